@@ -1,0 +1,188 @@
+"""The neural SDF field: multi-resolution features + a small MLP with SDF and colour heads."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, fields
+
+import torch
+import torch.nn.functional as F
+
+from neural_fields.dense_grid import DenseGridEncoding
+from neural_fields.field import Field, FieldInfo
+from neural_fields.hash_grid import HashGridEncoding
+
+ARCHITECTURE = "regnf.neural_sdf.v1"
+"""Name written into checkpoints; loading refuses any other architecture."""
+
+
+@dataclass
+class NeuralSDFConfig:
+    """Architecture of a :class:`NeuralSDF` (saved in every checkpoint)."""
+
+    encoding: str = "dense"
+    """Feature encoding: ``dense`` (grid_sample pyramid, default) or ``hash``."""
+    levels: int = 6
+    """Number of grid levels."""
+    features_per_level: int = 4
+    """Feature channels per level."""
+    base_resolution: int = 16
+    """Cells along the longest bounds axis at the coarsest level."""
+    finest_resolution: int = 128
+    """Cells along the longest bounds axis at the finest level."""
+    hash_table_size_log2: int = 18
+    """Hash encoding only: at most 2**k entries per level."""
+    hidden_dim: int = 64
+    """Width of the SDF MLP."""
+    hidden_layers: int = 2
+    """Hidden layers of the SDF MLP."""
+    geo_feature_dim: int = 15
+    """Extra outputs of the SDF MLP passed to the colour head."""
+    color_hidden_dim: int = 64
+    """Width of the colour MLP."""
+    view_dependent: bool = False
+    """Feed the viewing direction to the colour head (off: our captures are Lambertian)."""
+    init_radius: float = 0.5
+    """Radius of the sphere the SDF starts as (geometric initialisation), field units."""
+    inside_out: bool = False
+    """Start with positive SDF inside the init sphere (rooms seen from inside)."""
+
+    def to_json(self) -> dict:
+        return asdict(self)
+
+    @staticmethod
+    def from_json(data: dict) -> "NeuralSDFConfig":
+        known = {f.name for f in fields(NeuralSDFConfig)}
+        unknown = sorted(set(data) - known)
+        if unknown:
+            raise ValueError(f"unknown architecture keys {unknown}")
+        cfg = NeuralSDFConfig(**data)
+        if cfg.encoding not in ("dense", "hash"):
+            raise ValueError(f"unknown encoding {cfg.encoding!r} (expected 'dense' or 'hash')")
+        return cfg
+
+
+class NeuralSDF(Field):
+    """A trainable SDF field.
+
+    Parameters
+    ----------
+    config : NeuralSDFConfig
+    bounds : (2, 3) float
+        AABB of the field in its own frame; the grids cover exactly this box.
+    to_world : (4, 4) float
+        Field frame -> metres.
+    """
+
+    def __init__(
+        self,
+        config: NeuralSDFConfig | None = None,
+        bounds: torch.Tensor | None = None,
+        to_world: torch.Tensor | None = None,
+        info: FieldInfo | None = None,
+    ) -> None:
+        super().__init__(bounds=bounds, to_world=to_world, info=info)
+        self.config = cfg = config or NeuralSDFConfig()
+        extent = self.bounds[1] - self.bounds[0]
+        if cfg.encoding == "dense":
+            self.encoding: torch.nn.Module = DenseGridEncoding(
+                extent, cfg.levels, cfg.features_per_level, cfg.base_resolution, cfg.finest_resolution
+            )
+        elif cfg.encoding == "hash":
+            self.encoding = HashGridEncoding(
+                extent, cfg.levels, cfg.features_per_level, cfg.base_resolution,
+                cfg.finest_resolution, cfg.hash_table_size_log2,
+            )
+        else:
+            raise ValueError(f"unknown encoding {cfg.encoding!r}")
+        enc_dim = self.encoding.output_dim
+        dims = [3 + enc_dim] + [cfg.hidden_dim] * cfg.hidden_layers + [1 + cfg.geo_feature_dim]
+        self.sdf_layers = torch.nn.ModuleList(
+            torch.nn.Linear(a, b) for a, b in zip(dims[:-1], dims[1:])
+        )
+        color_in = cfg.geo_feature_dim + 3 + (3 if cfg.view_dependent else 0)
+        self.color_net = torch.nn.Sequential(
+            torch.nn.Linear(color_in, cfg.color_hidden_dim),
+            torch.nn.ReLU(),
+            torch.nn.Linear(cfg.color_hidden_dim, cfg.color_hidden_dim),
+            torch.nn.ReLU(),
+            torch.nn.Linear(cfg.color_hidden_dim, 3),
+        )
+        self._geometric_init(enc_dim)
+
+    @torch.no_grad()
+    def _geometric_init(self, enc_dim: int) -> None:
+        # SAL-style initialisation: the MLP starts as the SDF of a sphere in field coordinates
+        # (features start near zero and their input weights at zero), so early training is
+        # already a valid distance field and the eikonal term is satisfied from step 0.
+        cfg = self.config
+        for i, layer in enumerate(self.sdf_layers):
+            out_dim, in_dim = layer.weight.shape
+            if i == len(self.sdf_layers) - 1:
+                torch.nn.init.normal_(layer.weight, mean=math.sqrt(math.pi) / math.sqrt(in_dim), std=1e-4)
+                torch.nn.init.constant_(layer.bias, -cfg.init_radius)
+                if cfg.inside_out:
+                    layer.weight.neg_()
+                    layer.bias.neg_()
+            elif i == 0:
+                torch.nn.init.constant_(layer.bias, 0.0)
+                torch.nn.init.normal_(layer.weight, 0.0, math.sqrt(2) / math.sqrt(out_dim))
+                layer.weight[:, 3:].zero_()
+            else:
+                torch.nn.init.constant_(layer.bias, 0.0)
+                torch.nn.init.normal_(layer.weight, 0.0, math.sqrt(2) / math.sqrt(out_dim))
+
+    # -- evaluation ----------------------------------------------------------------------
+    def box_coordinates(self, x: torch.Tensor) -> torch.Tensor:
+        """Map field-frame points (n, 3) to [-1, 1]^3 over the bounds."""
+        lo, hi = self.bounds[0], self.bounds[1]
+        return (x - lo) / (hi - lo) * 2.0 - 1.0
+
+    def sdf_and_features(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """SDF (n,) and geometry features (n, geo_feature_dim) at field-frame points (n, 3)."""
+        h = torch.cat([x, self.encoding(self.box_coordinates(x))], dim=-1)
+        last = len(self.sdf_layers) - 1
+        for i, layer in enumerate(self.sdf_layers):
+            h = layer(h)
+            if i < last:
+                h = F.softplus(h, beta=100.0)
+        return h[:, 0], h[:, 1:]
+
+    def sdf(self, x: torch.Tensor) -> torch.Tensor:
+        return self.sdf_and_features(x)[0]
+
+    def color_from(self, features: torch.Tensor, normals: torch.Tensor, d: torch.Tensor | None) -> torch.Tensor:
+        """Colour head on precomputed geometry features (n, k), unit normals (n, 3), dirs (n, 3)."""
+        parts = [features, normals]
+        if self.config.view_dependent:
+            if d is None:
+                d = -normals
+            parts.append(d)
+        return torch.sigmoid(self.color_net(torch.cat(parts, dim=-1)))
+
+    def color(self, x: torch.Tensor, d: torch.Tensor | None = None) -> torch.Tensor:
+        with torch.enable_grad():
+            xr = x.detach().requires_grad_(True)
+            s, feat = self.sdf_and_features(xr)
+            (g,) = torch.autograd.grad(s.sum(), xr)
+        n = F.normalize(g, dim=-1)
+        return self.color_from(feat.detach(), n, d)
+
+
+def tetrahedral_gradient(
+    sdf_fn, x: torch.Tensor, h: float
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Finite-difference SDF gradient (n, 3) from 4 tetrahedral samples at step ``h``.
+
+    ``grid_sample`` has no second derivative, so training losses on the gradient (eikonal,
+    normals) use this differentiable estimate; it also smooths over sub-voxel noise. Also
+    returns the SDF estimate at ``x`` (n,) (the mean of the four samples).
+    """
+    k = torch.tensor(
+        [[1.0, -1.0, -1.0], [-1.0, -1.0, 1.0], [-1.0, 1.0, -1.0], [1.0, 1.0, 1.0]],
+        device=x.device, dtype=x.dtype,
+    )
+    pts = (x[:, None, :] + h * k[None]).reshape(-1, 3)
+    v = sdf_fn(pts).view(-1, 4)
+    grad = (v[..., None] * k[None]).sum(dim=1) / (4.0 * h)
+    return grad, v.mean(dim=1)
