@@ -6,8 +6,13 @@ every scale:
 - surface: |S(x)| at back-projected depth points;
 - near-surface: S(x + e n) = e for small offsets e along the depth-derived normal n;
 - free space: S >= 0 in front of every observed surface and along rays that hit nothing,
-  and S <= the remaining ray distance (the hit is that far along the ray);
-- eikonal: |grad S| = 1 (finite differences: grid_sample has no second derivative);
+  and S <= the remaining ray distance (the hit is that far along the ray); uniform points
+  that a random training view sees as empty (in front of its depth, or on a ray that hit
+  nothing) must be positive too, which carves floaters out of rarely seen corners;
+- eikonal: |grad S| = 1 (finite differences: grid_sample has no second derivative), at
+  surface samples only. Applied at sparse uniform points it moves fine-grid cells that are
+  touched once in a while, and Adam turns any such tiny gradient into a full-size step:
+  that left ~30 one-voxel floaters in free space per object; surface-only leaves none;
 - normals: grad S parallel to the depth-derived normal;
 - colour: L1 between the colour head at surface points and the observed pixel.
 """
@@ -50,6 +55,8 @@ class RGBDTrainConfig:
     """Learning rate of the feature grids."""
     lr_mlp: float = 2e-3
     """Learning rate of the MLPs."""
+    grid_decay: float = 0.0
+    """Decoupled weight decay of the grid features (removes free-space floaters)."""
     near_band_m: tuple[float, float] = (0.006, 0.02)
     """Near-surface offsets, metres: up to this far inside and outside (thin parts >= 1.2 cm)."""
     free_margin_m: float = 0.02
@@ -62,6 +69,8 @@ class RGBDTrainConfig:
     """Weight of the free-space loss."""
     w_eikonal: float = 0.1
     """Weight of the eikonal loss."""
+    eikonal_surface_only: bool = True
+    """Apply the eikonal loss at surface samples only (see the module docstring)."""
     w_normal: float = 0.05
     """Weight of the normal loss."""
     w_color: float = 1.0
@@ -83,6 +92,42 @@ class TrainLog:
     seconds: float = 0.0
     steps: int = 0
     losses: list[dict] = field(default_factory=list)
+
+
+class _ViewStack:
+    """Depth images of the training views on the device, for projective free-space tests."""
+
+    def __init__(self, depth: torch.Tensor, K: torch.Tensor, w2c: torch.Tensor) -> None:
+        self.depth, self.K, self.w2c = depth, K, w2c
+        self.count = depth.shape[0]
+
+    @staticmethod
+    def build(capture: CaptureLike, indices: Sequence[int], device: torch.device) -> "_ViewStack":
+        depth = np.stack([capture.depth(i) for i in indices]).astype(np.float32)
+        K = np.stack([np.asarray(capture.frames[i].intrinsics, np.float64) for i in indices])
+        c2w = np.stack([np.asarray(capture.frames[i].camtoworld, np.float64) for i in indices])
+        w2c = np.linalg.inv(c2w)
+        return _ViewStack(
+            torch.from_numpy(depth).to(device),
+            torch.from_numpy(K).float().to(device),
+            torch.from_numpy(w2c).float().to(device),
+        )
+
+    def seen_free(self, x: torch.Tensor, margin: float, view: torch.Tensor) -> torch.Tensor:
+        """(n,) float: 1 where view ``view[i]`` sees point ``x[i]`` in front of its surface."""
+        R, t, K = self.w2c[view, :3, :3], self.w2c[view, :3, 3], self.K[view]
+        pc = (R @ x[:, :, None]).squeeze(-1) + t
+        z = pc[:, 2]
+        zs = z.clamp_min(1e-6)
+        u = K[:, 0, 0] * pc[:, 0] / zs + K[:, 0, 2]
+        v = K[:, 1, 1] * pc[:, 1] / zs + K[:, 1, 2]
+        h, w = self.depth.shape[1:]
+        inside = (z > 1e-6) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        ui = u.clamp(0, w - 1).long()
+        vi = v.clamp(0, h - 1).long()
+        d = self.depth[view, vi, ui]
+        free = inside & ((d <= 0) | (z < d - margin))
+        return free.float()
 
 
 def capture_fingerprint(root: Path, relative_paths: Sequence[str]) -> str:
@@ -144,12 +189,13 @@ def train_rgbd(
     margin = cfg.free_margin_m / scale
 
     s = RGBDSamples(*(t.to(device) for t in samples))
+    views = _ViewStack.build(capture, indices, device)
     ok_idx = torch.nonzero(s.normal_ok).squeeze(1)
     if ok_idx.numel() == 0:
         raise ValueError("no depth pixel has a reliable normal; is the depth image constant?")
     m, k = s.points.shape[0], s.free_origins.shape[0]
     bounds_d = model.bounds
-    opt = make_optimizer(model, cfg.lr_grid, cfg.lr_mlp)
+    opt = make_optimizer(model, cfg.lr_grid, cfg.lr_mlp, cfg.grid_decay)
     base_lrs = [g["lr"] for g in opt.param_groups]
     log = TrainLog()
 
@@ -216,7 +262,11 @@ def train_rgbd(
         if f_e.numel():
             loss_free = loss_free + (F.relu(-f_e) * keep_e).mean() / ell
         gnorm = grads.norm(dim=-1)
-        loss_eik = ((gnorm - 1.0) ** 2).mean()
+        loss_eik = ((gnorm[: (ns if cfg.eikonal_surface_only else None)] - 1.0) ** 2).mean()
+        # Uniform points seen as empty by a random view: the tetrahedron's mean is their SDF.
+        seen_free = views.seen_free(xu, margin, randint(views.count, xu.shape[0]))
+        f_u = v[ns:].mean(dim=1)
+        loss_free = loss_free + (F.relu(-f_u) * seen_free).mean() / ell
         loss_normal = (1.0 - F.cosine_similarity(g_s, nrm, dim=-1)).mean()
         rgb = model.color_from(feat_s, F.normalize(g_s.detach(), dim=-1), None)
         loss_color = (rgb - col).abs().mean()
