@@ -20,7 +20,7 @@ def level_resolutions(levels: int, base: int, finest: int) -> list[int]:
     if levels == 1:
         return [finest]
     growth = (finest / base) ** (1.0 / (levels - 1))
-    return [int(round(base * growth**level)) for level in range(levels)]
+    return [round(base * growth**level) for level in range(levels)]
 
 
 def grid_shape(resolution: int, extent: torch.Tensor) -> tuple[int, int, int]:
@@ -30,7 +30,7 @@ def grid_shape(resolution: int, extent: torch.Tensor) -> tuple[int, int, int]:
     so the cells stay cubic and no memory is spent on empty height.
     """
     rel = (extent / extent.max()).tolist()
-    return tuple(max(2, int(math.ceil(resolution * r))) for r in rel)  # type: ignore[return-value]
+    return tuple(max(2, math.ceil(resolution * r)) for r in rel)  # type: ignore[return-value]
 
 
 class DenseGridEncoding(torch.nn.Module):

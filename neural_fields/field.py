@@ -8,8 +8,8 @@ fields and composites alike.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
 import torch
 
@@ -32,7 +32,7 @@ class Symmetry:
         return {"axis": "z", "order": int(self.order)}
 
     @staticmethod
-    def from_json(data: dict | None) -> "Symmetry":
+    def from_json(data: dict | None) -> Symmetry:
         if not data:
             return Symmetry()
         if data.get("axis", "z") != "z":

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import asdict, dataclass, fields
 
@@ -51,7 +52,7 @@ class NeuralSDFConfig:
         return asdict(self)
 
     @staticmethod
-    def from_json(data: dict) -> "NeuralSDFConfig":
+    def from_json(data: dict) -> NeuralSDFConfig:
         known = {f.name for f in fields(NeuralSDFConfig)}
         unknown = sorted(set(data) - known)
         if unknown:
@@ -98,7 +99,7 @@ class NeuralSDF(Field):
         enc_dim = self.encoding.output_dim
         dims = [3 + enc_dim] + [cfg.hidden_dim] * cfg.hidden_layers + [1 + cfg.geo_feature_dim]
         self.sdf_layers = torch.nn.ModuleList(
-            torch.nn.Linear(a, b) for a, b in zip(dims[:-1], dims[1:])
+            torch.nn.Linear(a, b) for a, b in itertools.pairwise(dims)
         )
         color_in = cfg.geo_feature_dim + 3 + (3 if cfg.view_dependent else 0)
         self.color_net = torch.nn.Sequential(

@@ -22,17 +22,17 @@ from __future__ import annotations
 import hashlib
 import json
 import time
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 from tqdm import tqdm
 
-from neural_fields.field import FieldInfo, Symmetry
-from neural_fields.neural_sdf import NeuralSDF, NeuralSDFConfig, tetrahedral_gradient
+from neural_fields.field import FieldInfo
+from neural_fields.neural_sdf import NeuralSDF, NeuralSDFConfig
 from neural_fields.optim import finest_voxel, lr_factor, make_optimizer
 from neural_fields.rgbd_samples import CaptureLike, RGBDSamples, build_samples, ray_box_interval
 
@@ -102,7 +102,7 @@ class _ViewStack:
         self.count = depth.shape[0]
 
     @staticmethod
-    def build(capture: CaptureLike, indices: Sequence[int], device: torch.device) -> "_ViewStack":
+    def build(capture: CaptureLike, indices: Sequence[int], device: torch.device) -> _ViewStack:
         depth = np.stack([capture.depth(i) for i in indices]).astype(np.float32)
         K = np.stack([np.asarray(capture.frames[i].intrinsics, np.float64) for i in indices])
         c2w = np.stack([np.asarray(capture.frames[i].camtoworld, np.float64) for i in indices])

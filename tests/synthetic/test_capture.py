@@ -7,11 +7,12 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 import pytest
-from .synth_helpers import backproject, erode
 
 from synthetic.capture import ObjectCaptureConfig, RoomCaptureConfig, capture_object, capture_room
 from synthetic.library import make_library_object
 from synthetic.sdfstudio_format import Capture
+
+from .synth_helpers import backproject, erode
 
 OBJ = ObjectCaptureConfig(width=64, height=64, n_views=12, progress=False)
 ROOM = RoomCaptureConfig(width=64, height=48, n_views=10, coverage="low", seed=2, progress=False)

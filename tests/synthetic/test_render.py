@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from .synth_helpers import erode, raycast
 
 from synthetic.library import make_library_object
 from synthetic.render import VOID_GREY, RGBDRenderer
 from synthetic.rooms import make_room
 from synthetic.shading import shaded_copy
 from synthetic.trajectories import look_at, object_capture_poses
+
+from .synth_helpers import erode, raycast
 
 W, H = 96, 80
 K = np.array([[110.0, 0.0, 47.0], [0.0, 112.0, 41.5], [0.0, 0.0, 1.0]])  # off-centre on purpose

@@ -7,12 +7,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 from scipy.spatial import ConvexHull
-from .synth_helpers import backproject, erode
 
 from synthetic.capture import RoomCaptureConfig, capture_room
 from synthetic.library import make_library_object
 from synthetic.render import RGBDRenderer
 from synthetic.rooms import ROOM_CONTENTS, ROOM_NAMES, make_room
+
+from .synth_helpers import backproject, erode
 
 
 def _hull(points_xy: np.ndarray) -> np.ndarray:

@@ -1,0 +1,37 @@
+# `make demo` and `make test` work on a fresh machine: they create .venv, install the CPU
+# build of torch first (so pip never picks a multi-GB CUDA build), then the project.
+VENV ?= .venv
+PY := $(VENV)/bin/python
+SUDO := $(shell [ "$$(id -u)" -eq 0 ] || echo sudo)
+export PYOPENGL_PLATFORM := egl
+
+.PHONY: demo test setup system-deps lint bench-fields bench-encodings clean-out
+
+$(VENV)/.installed: pyproject.toml
+	test -x $(PY) || python3 -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet torch==2.13.0
+	$(PY) -m pip install --quiet -e '.[dev]'
+	touch $@
+
+# Open3D needs libusb at import time.
+system-deps:
+	@ldconfig -p | grep -q 'libusb-1.0.so.0' || \
+	  ($(SUDO) apt-get update -qq && $(SUDO) apt-get install -y -qq libusb-1.0-0)
+
+setup: $(VENV)/.installed system-deps
+
+demo: setup
+	$(VENV)/bin/regnf bench fields --quick --json out/demo/bench_fields_quick.json
+
+test: setup
+	$(VENV)/bin/pytest -q
+
+lint: setup
+	$(VENV)/bin/ruff check .
+
+bench-fields: setup
+	$(VENV)/bin/regnf bench fields --json out/bench_fields.json --markdown docs/benchmarks_fields.md
+
+bench-encodings: setup
+	$(VENV)/bin/regnf bench encodings --json out/bench_encodings.json

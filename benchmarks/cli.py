@@ -1,0 +1,83 @@
+"""``regnf bench ...`` commands."""
+
+from __future__ import annotations
+
+import dataclasses
+import platform
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from rich.console import Console
+
+from regnf.cache import Cache, default_cache_dir
+from synthetic.atomic_io import write_json
+
+console = Console(stderr=True)
+
+
+def run_meta(command: str, device: str) -> dict:
+    """Where and when a benchmark ran."""
+    return {
+        "command": command,
+        "date": time.strftime("%Y-%m-%d %H:%M:%S"),
+        "device": device,
+        "torch": torch.__version__,
+        "threads": torch.get_num_threads(),
+        "cpu": platform.processor() or platform.machine(),
+    }
+
+
+@dataclass
+class BenchFields:
+    """Train (or reuse) every library object and room field and measure time and accuracy."""
+
+    json: Path = Path("out/bench_fields.json")
+    """Where to write the results (JSON)."""
+    quick: bool = False
+    """Two library objects (both sources), no room: a few minutes."""
+    markdown: Path | None = None
+    """Also write the results as a Markdown table here (e.g. docs/benchmarks_fields.md)."""
+    device: str = "cpu"
+    """Torch device."""
+    cache_dir: Path = dataclasses.field(default_factory=default_cache_dir)
+    """Cache directory (fields already there are reused, not retrained)."""
+
+    def run(self) -> None:
+        from benchmarks.fields import (
+            contact_sheet,
+            markdown_table,
+            run_fields_benchmark,
+            write_results,
+        )
+
+        command = "regnf bench fields" + (" --quick" if self.quick else "") + f" --json {self.json}"
+        rows, renders = run_fields_benchmark(Cache(self.cache_dir), quick=self.quick, device=self.device)
+        write_results(rows, self.json, run_meta(command, self.device))
+        sheet = self.json.with_suffix(".png")
+        contact_sheet(renders, sheet)
+        table = markdown_table(rows)
+        if self.markdown:
+            from synthetic.atomic_io import write_text
+
+            write_text(self.markdown, f"Command: `{command}`\n\n{table}")
+        console.print(table)
+        console.print(f"results: {self.json}; held-out renders (render | truth): {sheet}")
+
+
+@dataclass
+class BenchEncodings:
+    """Measure the CPU/GPU throughput of the candidate feature encodings."""
+
+    json: Path = Path("out/bench_encodings.json")
+    """Where to write the results (JSON)."""
+    device: str = "cpu"
+    """Torch device."""
+
+    def run(self) -> None:
+        from benchmarks.encodings import markdown_table, run_encodings_benchmark
+
+        rows = run_encodings_benchmark(self.device)
+        write_json(self.json, {"meta": run_meta("regnf bench encodings", self.device), "rows": rows})
+        console.print(markdown_table(rows))

@@ -1,0 +1,3 @@
+from regnf.cli import main
+
+raise SystemExit(main())

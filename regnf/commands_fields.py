@@ -1,0 +1,155 @@
+"""CLI commands that make data and fields: synth, train, distill, mesh."""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import torch
+from rich.console import Console
+
+from neural_fields.checkpoint import load_field, save_field
+from neural_fields.distill import distill_mesh
+from neural_fields.field import FieldInfo, Symmetry
+from neural_fields.meshing import extract_mesh, save_mesh
+from neural_fields.presets import object_mesh_preset, object_rgbd_preset, scene_rgbd_preset
+from neural_fields.training import train_rgbd
+from regnf.cache import Cache, capture_info, default_cache_dir
+from synthetic.capture import ObjectCaptureConfig, RoomCaptureConfig, capture_object, capture_room
+from synthetic.library import LIBRARY_NAMES
+from synthetic.rooms import ROOM_NAMES
+from synthetic.sdfstudio_format import load_capture
+
+console = Console(stderr=True)
+
+
+@dataclass
+class Synth:
+    """Generate the ONR-like data set: library objects captured in a void, and rooms."""
+
+    names: tuple[str, ...] = ()
+    """Objects (c dc fc fc-nop mc et t wt) and/or rooms (ac-room atbl-room mix-room); empty: all."""
+    coverage: Literal["full", "low", "both"] = "both"
+    """Room trajectories to capture."""
+    out: Path | None = None
+    """Write here (one folder per capture) instead of the cache."""
+    seed: int = 0
+    """Room layout and trajectory seed."""
+    cache_dir: Path = dataclasses.field(default_factory=default_cache_dir)
+    """Cache directory (used when --out is not given)."""
+
+    def run(self) -> None:
+        names = self.names or (*LIBRARY_NAMES, *ROOM_NAMES)
+        unknown = [n for n in names if n not in LIBRARY_NAMES and n not in ROOM_NAMES]
+        if unknown:
+            raise SystemExit(f"unknown object or room {unknown}; choose from {LIBRARY_NAMES + ROOM_NAMES}")
+        cache = Cache(self.cache_dir)
+        coverages = ("full", "low") if self.coverage == "both" else (self.coverage,)
+        for name in names:
+            if name in LIBRARY_NAMES:
+                cfg = ObjectCaptureConfig(seed=self.seed)
+                cap = capture_object(name, self.out / name, cfg) if self.out else cache.object_capture(name, cfg)
+                console.print(f"[green]{name}[/]: {len(cap.frames)} frames in {cap.root}")
+                continue
+            for cov in coverages:
+                cfg = RoomCaptureConfig(coverage=cov, seed=self.seed)
+                cap = (
+                    capture_room(name, self.out / f"{name}-{cov}", cfg)
+                    if self.out else cache.room_capture(name, cfg)
+                )
+                console.print(f"[green]{name} ({cov})[/]: {len(cap.frames)} frames, "
+                              f"{len(cap.instances)} instances in {cap.root}")
+
+
+@dataclass
+class Train:
+    """Train a neural SDF from a posed RGB-D capture (sdfstudio meta_data.json layout)."""
+
+    capture: Path
+    """Folder holding meta_data.json (ours, or a real sdfstudio / ONR download)."""
+    out: Path
+    """Checkpoint to write (.safetensors)."""
+    preset: Literal["object", "scene"] = "object"
+    """Architecture and schedule: a library object or a room seen from inside."""
+    steps: int | None = None
+    """Override the preset's number of optimisation steps."""
+    seed: int = 0
+    """Seed of initialisation and sampling (training is deterministic on CPU)."""
+    device: str = "cpu"
+    """Torch device, e.g. cpu or cuda."""
+
+    def run(self) -> None:
+        capture = load_capture(self.capture)
+        preset = object_rgbd_preset if self.preset == "object" else scene_rgbd_preset
+        cfg = preset(self.device, self.seed)
+        if self.steps is not None:
+            cfg = dataclasses.replace(cfg, steps=self.steps)
+        field, log = train_rgbd(capture, cfg, info=capture_info(capture))
+        save_field(field, self.out)
+        console.print(f"trained {field.name!r} in {log.seconds:.1f} s -> {self.out}")
+
+
+@dataclass
+class Distill:
+    """Distil a neural SDF from a watertight mesh in metres (CAD libraries)."""
+
+    mesh: Path
+    """Input mesh (.ply, .obj, .glb, .stl...), metres, watertight."""
+    out: Path
+    """Checkpoint to write (.safetensors)."""
+    label: str = "object"
+    """Semantic class, e.g. chair."""
+    name: str = ""
+    """Library name; default: the mesh file's stem."""
+    symmetry: int = 1
+    """Rotational symmetry about +Z: 1 none, k k-fold, 0 continuous."""
+    steps: int | None = None
+    """Override the number of optimisation steps."""
+    device: str = "cpu"
+    """Torch device."""
+
+    def run(self) -> None:
+        import trimesh
+
+        if not self.mesh.is_file():
+            raise SystemExit(f"{self.mesh}: no such mesh file")
+        try:
+            mesh = trimesh.load(self.mesh, force="mesh")
+        except Exception as exc:  # trimesh raises many types for unreadable files
+            raise SystemExit(f"{self.mesh}: cannot read mesh ({exc})") from exc
+        cfg = object_mesh_preset(self.device)
+        if self.steps is not None:
+            cfg = dataclasses.replace(cfg, steps=self.steps)
+        info = FieldInfo(label=self.label, name=self.name or self.mesh.stem,
+                         symmetry=Symmetry(self.symmetry), provenance={"source": "mesh", "mesh": str(self.mesh)})
+        try:
+            field, log = distill_mesh(mesh, cfg, info=info)
+        except ValueError as exc:
+            raise SystemExit(f"{self.mesh}: {exc}") from exc
+        save_field(field, self.out)
+        console.print(f"distilled {info.name!r} in {log['seconds']:.1f} s -> {self.out}")
+
+
+@dataclass
+class Mesh:
+    """Extract a coloured mesh from a field checkpoint by marching cubes."""
+
+    field: Path
+    """Checkpoint (.safetensors)."""
+    out: Path
+    """Mesh to write (.ply or .glb)."""
+    resolution: int = 256
+    """Cells along the longest axis of the field's bounds."""
+    world: bool = True
+    """Write vertices in metres (apply to_world) rather than the field frame."""
+    device: str = "cpu"
+    """Torch device."""
+
+    def run(self) -> None:
+        field = load_field(self.field, device=self.device)
+        with torch.no_grad():
+            mesh = extract_mesh(field, resolution=self.resolution, in_world=self.world)
+        save_mesh(mesh, self.out)
+        console.print(f"{len(mesh.vertices)} vertices, {len(mesh.faces)} faces -> {self.out}")
