@@ -52,7 +52,7 @@ def save_field(field: NeuralSDF, path: str | os.PathLike) -> Path:
     """Write ``field`` to ``path`` (``.safetensors``) atomically; returns the path."""
     path = Path(path)
     if path.suffix != ".safetensors":
-        raise ValueError(f"{path}: checkpoints are .safetensors files")
+        raise CheckpointError(path, "checkpoints are .safetensors files")
     header = json.dumps(field_header(field))
     tensors = {k: v.detach().to("cpu").contiguous() for k, v in field.state_dict().items()}
     with atomic_path(path) as tmp:

@@ -1,7 +1,7 @@
 """Training presets: the settings a library object and a room field are trained with.
 
 They are measured defaults (docs/benchmarks.md): a library object trains in under 2 minutes
-on 2 CPU cores, a room in about 6.
+on 2 CPU cores, a room in about 5.
 """
 
 from __future__ import annotations
@@ -22,9 +22,9 @@ def object_mesh_preset(device: str = "cpu", seed: int = 0) -> DistillConfig:
 
 
 def scene_rgbd_preset(device: str = "cpu", seed: int = 0) -> RGBDTrainConfig:
-    """A room seen from inside: 7 levels up to 256 cells, inside-out init, 2000 steps."""
+    """A room seen from inside: 7 levels up to 256 cells, inside-out init, 1500 steps."""
     return RGBDTrainConfig(
-        steps=2000,
+        steps=1500,
         device=device,
         seed=seed,
         architecture=NeuralSDFConfig(

@@ -1,0 +1,311 @@
+"""RGB-D sample building against a sphere-traced capture of an analytic object and closed forms."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from scipy.spatial.transform import Rotation
+
+from neural_fields.rgbd_samples import (
+    backproject_frame,
+    build_samples,
+    depth_normals,
+    ray_box_interval,
+)
+from synthetic.sdfstudio_format import Capture
+
+from .capture_helpers import (
+    BOX_CENTER,
+    BOX_COLOR,
+    BOX_HALF,
+    HEIGHT,
+    N_VIEWS,
+    SPHERE_CENTER,
+    SPHERE_COLOR,
+    SPHERE_RADIUS,
+    WIDTH,
+    analytic_sdf,
+    camera_poses,
+    write_analytic_capture,
+)
+
+
+@pytest.fixture(scope="module")
+def capture(tmp_path_factory: pytest.TempPathFactory) -> Capture:
+    return write_analytic_capture(Path(tmp_path_factory.mktemp("analytic_capture")))
+
+
+def pixel_dirs_camera(K: np.ndarray, h: int, w: int) -> np.ndarray:
+    """(h, w, 3) rays K^-1 [u + 0.5, v + 0.5, 1] (z component 1) in the camera frame."""
+    v, u = np.mgrid[0:h, 0:w] + 0.5
+    pix = np.stack([u, v, np.ones_like(u)], -1)
+    return pix @ np.linalg.inv(K).T
+
+
+def box_face_id(points: np.ndarray, tol: float = 1e-4) -> np.ndarray:
+    """(...) int: 0..5 for the box face (axis * 2 + (side > 0)) a point lies on, -1 otherwise.
+
+    A point counts only if it is on the union's surface there (outside the sphere).
+    """
+    q = points - BOX_CENTER
+    out = np.full(points.shape[:-1], -1)
+    on_box = np.all(np.abs(q) <= BOX_HALF + tol, axis=-1)
+    outside_sphere = np.linalg.norm(points - SPHERE_CENTER, axis=-1) > SPHERE_RADIUS + tol
+    for axis in range(3):
+        for side in (0, 1):
+            sign = 1.0 if side else -1.0
+            on = on_box & outside_sphere & (np.abs(q[..., axis] - sign * BOX_HALF[axis]) < tol)
+            out[on] = 2 * axis + side
+    return out
+
+
+# -- back-projection ----------------------------------------------------------------------------
+def test_backprojected_depth_points_lie_on_the_analytic_surface(capture: Capture) -> None:
+    idx = list(range(len(capture.frames)))
+    s = build_samples(capture, idx)
+    depths = [capture.depth(i) for i in idx]
+    n_valid = sum(int((d > 0).sum()) for d in depths)
+    assert s.points.shape == (n_valid, 3)
+    assert n_valid > 0.15 * len(idx) * WIDTH * HEIGHT  # the object fills ~1/3 of the views
+    # The capture was written in metres and loaded back in the normalised frame: the points
+    # are on the normalised-frame surface (a wrong depth or pose scale would be far off).
+    sdf = analytic_sdf(s.points.double().numpy())
+    assert np.abs(sdf).max() < 1e-3
+    # Origins are the camera centres (the poses rendered in the normalised frame), frame by frame.
+    counts = [int((d > 0).sum()) for d in depths]
+    centres = np.concatenate(
+        [np.broadcast_to(p[:3, 3], (k, 3)) for p, k in zip(camera_poses(), counts)]
+    )
+    np.testing.assert_allclose(s.origins.numpy(), centres, atol=1e-5)
+    # Each point is ray_t along a unit ray from its camera's centre.
+    dist = np.linalg.norm(s.points.double().numpy() - s.origins.double().numpy(), axis=1)
+    np.testing.assert_allclose(s.ray_t.double().numpy(), dist, rtol=1e-5)
+
+
+def test_sample_colours_are_the_analytic_colours(capture: Capture) -> None:
+    s = build_samples(capture, capture.train_indices())
+    p = s.points.double().numpy()
+    on_sphere = (np.linalg.norm(p - SPHERE_CENTER, axis=1) - SPHERE_RADIUS) < analytic_sdf(p) + 1e-6
+    want = np.where(on_sphere[:, None], np.array(SPHERE_COLOR), np.array(BOX_COLOR))
+    err = np.abs(s.colors.double().numpy() - want).max(axis=1)
+    # uint8 PNG quantisation: half a level; the winner of the union may flip on the seam only.
+    assert (err <= 0.5 / 255 + 1e-6).mean() > 0.999
+    assert ((s.colors >= 0) & (s.colors <= 1)).all()
+
+
+def test_backproject_frame_matches_a_closed_form_plane() -> None:
+    K = np.array([[20.0, 0.0, 8.0], [0.0, 22.0, 6.5], [0.0, 0.0, 1.0]])
+    h, w = 12, 16
+    R = Rotation.from_euler("xyz", [20.0, -35.0, 110.0], degrees=True).as_matrix()
+    c2w = np.eye(4)
+    c2w[:3, :3], c2w[:3, 3] = R, [0.3, -1.2, 2.0]
+    # Plane n . X = d in the camera frame; its z-depth along ray r (r_z = 1) is d / (n . r).
+    n_cam = np.array([0.3, -0.5, -1.0]) / np.linalg.norm([0.3, -0.5, -1.0])
+    d = float(n_cam @ np.array([0.0, 0.0, 3.0]))  # the plane passes through (0, 0, 3)
+    r = pixel_dirs_camera(K, h, w)
+    depth = d / (r @ n_cam)
+    assert (depth > 0).all()
+    depth[2, 3] = 0.0  # no hit
+    depth[5, 7] = np.nan  # sensor dropout
+    points, dirs, valid = backproject_frame(depth, K, c2w)
+    expect_valid = np.ones((h, w), bool)
+    expect_valid[2, 3] = expect_valid[5, 7] = False
+    np.testing.assert_array_equal(valid, expect_valid)
+    # World points are the camera-frame points z * r moved by the pose.
+    cam_pts = np.nan_to_num(depth)[..., None] * r
+    np.testing.assert_allclose(points[valid], (cam_pts @ R.T + c2w[:3, 3])[valid], atol=1e-12)
+    n_world, d_world = R @ n_cam, d + (R @ n_cam) @ c2w[:3, 3]
+    np.testing.assert_allclose(points[valid] @ n_world, d_world, atol=1e-12)
+    # Unit directions through the pixel centres, rotated into the world, for every pixel.
+    r_world = r @ R.T
+    np.testing.assert_allclose(
+        dirs, r_world / np.linalg.norm(r_world, axis=-1, keepdims=True), atol=1e-12
+    )
+    assert np.isfinite(points).all()
+
+
+# -- normals ------------------------------------------------------------------------------------
+def test_depth_normals_match_the_analytic_normals_on_flat_faces(capture: Capture) -> None:
+    """Away from edges (the pixel and its 4 neighbours on one box face) depth normals are exact."""
+    checked = 0
+    for i in range(len(capture.frames)):
+        frame = capture.frames[i]
+        K, c2w = frame.intrinsics, frame.camtoworld
+        depth = capture.depth(i).astype(np.float64)
+        points, dirs, valid = backproject_frame(depth, K, c2w)
+        normals, ok = depth_normals(points, depth, valid, K, dirs)
+        face = np.where(valid, box_face_id(points), -1)
+        c = face[1:-1, 1:-1]
+        flat = np.zeros_like(valid)
+        flat[1:-1, 1:-1] = (
+            (c >= 0)
+            & (face[1:-1, 2:] == c)
+            & (face[1:-1, :-2] == c)
+            & (face[2:, 1:-1] == c)
+            & (face[:-2, 1:-1] == c)
+        )
+        axis, side = face[flat] // 2, face[flat] % 2
+        true_n = np.zeros((int(flat.sum()), 3))
+        true_n[np.arange(len(axis)), axis] = np.where(side == 1, 1.0, -1.0)
+        # A flat patch is no discontinuity unless seen at grazing incidence (a depth step of
+        # 8 pixel footprints is the rule's limit; |cos| > 0.25 keeps it under ~4).
+        facing = np.abs((dirs[flat] * true_n).sum(-1)) > 0.25
+        assert ok[flat][facing].all(), f"frame {i}: a flat face pixel was rejected"
+        trusted = ok[flat]
+        cos = (normals[flat][trusted] * true_n[trusted]).sum(-1)
+        assert cos.size == 0 or cos.min() > 0.999, f"frame {i}: worst cos {cos.min()}"
+        checked += int(trusted.sum())
+        # Normals face the camera and are unit length where trusted, zero elsewhere.
+        assert ((normals[ok] * dirs[ok]).sum(-1) < 0).all()
+        np.testing.assert_allclose(np.linalg.norm(normals[ok], axis=-1), 1.0, atol=1e-9)
+        assert (normals[~ok] == 0).all()
+    assert checked > 10 * N_VIEWS  # the test must have looked at many face pixels
+
+
+def test_depth_normals_of_a_slanted_plane_and_a_depth_step() -> None:
+    f, h, w = 20.0, 10, 14
+    K = np.array([[f, 0.0, w / 2], [0.0, f, h / 2], [0.0, 0.0, 1.0]])
+    R = Rotation.from_euler("zyx", [30.0, 10.0, -50.0], degrees=True).as_matrix()
+    c2w = np.eye(4)
+    c2w[:3, :3], c2w[:3, 3] = R, [1.0, 2.0, 3.0]
+    r = pixel_dirs_camera(K, h, w)
+
+    # A plane tilted 60 degrees from fronto-parallel: steep, but no discontinuity.
+    n_cam = np.array([0.0, math.sin(math.radians(60.0)), -math.cos(math.radians(60.0))])
+    depth = (n_cam @ np.array([0.0, 0.0, 4.0])) / (r @ n_cam)
+    assert (depth > 0).all()
+    points, dirs, valid = backproject_frame(depth, K, c2w)
+    normals, ok = depth_normals(points, depth, valid, K, dirs)
+    assert ok[1:-1, 1:-1].all()
+    assert not ok[0].any() and not ok[-1].any() and not ok[:, 0].any() and not ok[:, -1].any()
+    np.testing.assert_allclose(
+        normals[1:-1, 1:-1], np.broadcast_to(R @ n_cam, (h - 2, w - 2, 3)), atol=1e-9
+    )
+
+    # Two fronto-parallel planes, z = 1 (left) and z = 2 (right), and one missing pixel.
+    depth = np.where(np.arange(w)[None, :] < w // 2, 1.0, 2.0) * np.ones((h, 1))
+    depth[4, 3] = 0.0
+    points, dirs, valid = backproject_frame(depth, K, c2w)
+    normals, ok = depth_normals(points, depth, valid, K, dirs)
+    expect = np.zeros((h, w), bool)
+    expect[1:-1, 1:-1] = True
+    expect[:, w // 2 - 1 : w // 2 + 1] = False  # either side of the step
+    expect[4, 3] = expect[3, 3] = expect[5, 3] = expect[4, 2] = expect[4, 4] = False
+    np.testing.assert_array_equal(ok, expect)
+    np.testing.assert_allclose(
+        normals[ok], np.broadcast_to(R @ [0.0, 0.0, -1.0], (int(ok.sum()), 3)), atol=1e-9
+    )
+
+
+# -- free rays ----------------------------------------------------------------------------------
+def _ray_misses_sphere(o: np.ndarray, d: np.ndarray, c: np.ndarray, r: float) -> np.ndarray:
+    t = np.maximum(((c - o) * d).sum(-1), 0.0)
+    return np.linalg.norm(o + t[:, None] * d - c, axis=-1) > r
+
+
+def _ray_misses_box(o: np.ndarray, d: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ta, tb = (lo - o) / d, (hi - o) / d
+    t_in = np.nanmax(np.minimum(ta, tb), axis=-1)
+    t_out = np.nanmin(np.maximum(ta, tb), axis=-1)
+    return (t_in > t_out) | (t_out < 0)
+
+
+def test_pixels_without_depth_become_free_rays_that_miss_the_object(capture: Capture) -> None:
+    idx = capture.train_indices()
+    s = build_samples(capture, idx)
+    empty = [int((capture.depth(i) <= 0).sum()) for i in idx]
+    assert s.free_dirs.shape == (sum(empty), 3) and s.free_origins.shape == (sum(empty), 3)
+    assert sum(empty) > 0.3 * len(idx) * WIDTH * HEIGHT
+    np.testing.assert_allclose(s.free_dirs.norm(dim=-1).numpy(), 1.0, atol=1e-6)
+    # Origins are the cameras' centres, in frame order.
+    centres = np.concatenate(
+        [np.broadcast_to(capture.frames[i].camtoworld[:3, 3], (k, 3)) for i, k in zip(idx, empty)]
+    )
+    np.testing.assert_allclose(s.free_origins.numpy(), centres, atol=1e-6)
+    # Closed-form ray-solid tests: no free ray enters the object (shrunk by 1e-3 for grazing rays).
+    o, d = s.free_origins.double().numpy(), s.free_dirs.double().numpy()
+    eps = 1e-3
+    miss_sphere = _ray_misses_sphere(o, d, SPHERE_CENTER, SPHERE_RADIUS - eps)
+    miss_box = _ray_misses_box(o, d, BOX_CENTER - BOX_HALF + eps, BOX_CENTER + BOX_HALF - eps)
+    assert (miss_sphere & miss_box).all()
+    # ... while the rays of the object's pixels do hit it (the same tests are not vacuous).
+    hit_dirs = (s.points - s.origins).double().numpy() / s.ray_t.double().numpy()[:, None]
+    ho = s.origins.double().numpy()
+    hit_any = ~_ray_misses_sphere(
+        ho, hit_dirs, SPHERE_CENTER, SPHERE_RADIUS + eps
+    ) | ~_ray_misses_box(ho, hit_dirs, BOX_CENTER - BOX_HALF - eps, BOX_CENTER + BOX_HALF + eps)
+    assert hit_any.all()
+
+
+def test_build_samples_of_a_frame_subset(capture: Capture) -> None:
+    one = build_samples(capture, [3])
+    two = build_samples(capture, [3, 5])
+    d3, d5 = capture.depth(3), capture.depth(5)
+    assert one.points.shape[0] == int((d3 > 0).sum())
+    assert two.points.shape[0] == int((d3 > 0).sum() + (d5 > 0).sum())
+    assert torch.equal(two.points[: one.points.shape[0]], one.points)
+    assert two.normal_ok.dtype == torch.bool and two.normal_ok.shape == (two.points.shape[0],)
+
+
+def test_build_samples_needs_depth(capture: Capture) -> None:
+    capture.frames[2].depth_path, saved = None, capture.frames[2].depth_path
+    try:
+        with pytest.raises(ValueError, match="frame 2 .*no depth"):
+            build_samples(capture, [1, 2])
+    finally:
+        capture.frames[2].depth_path = saved
+
+
+# -- ray / box intervals ------------------------------------------------------------------------
+UNIT_BOX = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
+S2 = math.sqrt(2.0)
+
+
+@pytest.mark.parametrize(
+    ("origin", "direction", "t_in", "t_out"),
+    [
+        ((-3.0, 0.0, 0.0), (1.0, 0.0, 0.0), 2.0, 4.0),  # straight through along +x
+        ((0.0, 0.0, 5.0), (0.0, 0.0, -1.0), 4.0, 6.0),  # along -z
+        ((0.0, 0.0, 0.0), (0.0, 1.0, 0.0), 0.0, 1.0),  # from inside: entry clamped at 0
+        ((-2.0, -2.0, 0.5), (1 / S2, 1 / S2, 0.0), S2, 3 * S2),  # diagonal, enters at a corner edge
+        ((0.5, -0.25, -3.0), (0.0, 0.0, 1.0), 2.0, 4.0),  # two zero direction components
+    ],
+)
+def test_ray_box_interval_hand_computed(origin, direction, t_in, t_out) -> None:
+    o = torch.tensor([origin], dtype=torch.float64)
+    d = torch.tensor([direction], dtype=torch.float64)
+    a, b = ray_box_interval(o, d, UNIT_BOX.double())
+    assert a.item() == pytest.approx(t_in, abs=1e-9)
+    assert b.item() == pytest.approx(t_out, abs=1e-9)
+
+
+@pytest.mark.parametrize(
+    ("origin", "direction"),
+    [
+        ((-3.0, 2.5, 0.0), (1.0, 0.0, 0.0)),  # passes above the box
+        ((3.0, 0.0, 0.0), (1.0, 0.0, 0.0)),  # box behind the origin
+        ((2.0, 0.0, -3.0), (0.0, 0.0, 1.0)),  # parallel to the x slab, outside it
+    ],
+)
+def test_ray_box_interval_misses_are_empty(origin, direction) -> None:
+    o = torch.tensor([origin], dtype=torch.float64)
+    d = torch.tensor([direction], dtype=torch.float64)
+    a, b = ray_box_interval(o, d, UNIT_BOX.double())
+    assert b.item() < a.item()
+
+
+def test_ray_box_interval_anisotropic_box_batched() -> None:
+    bounds = torch.tensor([[0.0, -1.0, 2.0], [4.0, 1.0, 3.0]])
+    o = torch.tensor([[-1.0, 0.0, 2.5], [2.0, 0.0, 0.0], [2.0, 0.0, 2.5]])
+    d = torch.nn.functional.normalize(
+        torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [3.0, 0.0, 4.0]]), dim=-1
+    )
+    a, b = ray_box_interval(o, d, bounds)
+    # Row 3 starts inside; it leaves through z = 3 after t = 0.5 / 0.8 (x would need 2 / 0.6).
+    np.testing.assert_allclose(a.numpy(), [1.0, 2.0, 0.0], atol=1e-6)
+    np.testing.assert_allclose(b.numpy(), [5.0, 3.0, 0.625], atol=1e-6)
