@@ -104,25 +104,28 @@ def load_field(path: str | os.PathLike, device: torch.device | str = "cpu") -> N
     header = read_header(path)
     try:
         config = NeuralSDFConfig.from_json(header["config"])
-        symmetry = Symmetry.from_json(header.get("symmetry"))
-    except (TypeError, ValueError) as exc:
+    except (TypeError, ValueError, AttributeError) as exc:
         raise CheckpointError(path, f"bad architecture config: {exc}") from exc
-    info = FieldInfo(
-        label=str(header.get("label", "object")),
-        name=str(header.get("name", "")),
-        symmetry=symmetry,
-        provenance=dict(header.get("provenance", {})),
-    )
     try:
-        field = NeuralSDF(
-            config,
-            bounds=torch.tensor(header["bounds"], dtype=torch.float32),
-            to_world=torch.tensor(header["to_world"], dtype=torch.float64),
-            info=info,
+        info = FieldInfo(
+            label=str(header.get("label", "object")),
+            name=str(header.get("name", "")),
+            symmetry=Symmetry.from_json(header.get("symmetry")),
+            provenance=dict(header.get("provenance", {})),
         )
-    except (ValueError, RuntimeError) as exc:
+        bounds = torch.tensor(header["bounds"], dtype=torch.float32)
+        to_world = torch.tensor(header["to_world"], dtype=torch.float64)
+    except (TypeError, ValueError, AttributeError) as exc:
+        raise CheckpointError(path, f"bad header: {exc}") from exc
+    try:
+        # Build a weightless skeleton first (meta device: nothing is allocated), so that a
+        # forged header asking for a huge grid is caught by the shape check below instead
+        # of exhausting memory.
+        with torch.device("meta"):
+            skeleton = NeuralSDF(config, bounds=bounds, to_world=to_world, info=info)
+    except (TypeError, ValueError, AttributeError, RuntimeError) as exc:
         raise CheckpointError(path, f"cannot build the field from the header: {exc}") from exc
-    expected = field.state_dict()
+    expected = {k: (tuple(v.shape), v.dtype) for k, v in skeleton.state_dict().items()}
     try:
         with safe_open(str(path), framework="pt") as f:
             names = set(f.keys())
@@ -132,16 +135,15 @@ def load_field(path: str | os.PathLike, device: torch.device | str = "cpu") -> N
                 raise CheckpointError(path, f"missing tensors {missing[:5]}")
             if extra:
                 raise CheckpointError(path, f"unexpected tensors {extra[:5]}")
+            for name, (shape, _) in expected.items():
+                stored = tuple(f.get_slice(name).get_shape())
+                if stored != shape:
+                    raise CheckpointError(path, f"tensor '{name}' has shape {stored}, expected {shape}")
             state = {}
-            for name in expected:
+            for name, (_, dtype) in expected.items():
                 t = f.get_tensor(name)
-                want = expected[name]
-                if tuple(t.shape) != tuple(want.shape):
-                    raise CheckpointError(
-                        path, f"tensor '{name}' has shape {tuple(t.shape)}, expected {tuple(want.shape)}"
-                    )
-                if t.dtype != want.dtype:
-                    raise CheckpointError(path, f"tensor '{name}' has dtype {t.dtype}, expected {want.dtype}")
+                if t.dtype != dtype:
+                    raise CheckpointError(path, f"tensor '{name}' has dtype {t.dtype}, expected {dtype}")
                 if t.is_floating_point() and not bool(torch.isfinite(t).all()):
                     raise CheckpointError(path, f"tensor '{name}' has non-finite values")
                 state[name] = t
@@ -149,6 +151,7 @@ def load_field(path: str | os.PathLike, device: torch.device | str = "cpu") -> N
         raise
     except (SafetensorError, OSError, ValueError, RuntimeError) as exc:
         raise CheckpointError(path, f"truncated or corrupted tensor data ({exc})") from exc
+    field = NeuralSDF(config, bounds=bounds, to_world=to_world, info=info)
     field.load_state_dict(state)
     return field.to(device)
 

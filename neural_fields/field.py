@@ -76,13 +76,15 @@ class Field(torch.nn.Module):
     ) -> None:
         super().__init__()
         if bounds is None:
-            bounds = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
-        bounds = torch.as_tensor(bounds, dtype=torch.float32)
+            bounds = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]], device="cpu")
+        # An explicit device keeps validation possible inside a ``torch.device("meta")``
+        # context (checkpoint loading builds a weightless skeleton that way).
+        bounds = torch.as_tensor(bounds, dtype=torch.float32, device=_device_of(bounds))
         if bounds.shape != (2, 3) or not bool((bounds[1] > bounds[0]).all()):
             raise ValueError(f"bounds must be (2, 3) with max > min, got {bounds.tolist()}")
         if to_world is None:
-            to_world = torch.eye(4)
-        to_world = torch.as_tensor(to_world, dtype=torch.float64)
+            to_world = torch.eye(4, device=_device_of(bounds))
+        to_world = torch.as_tensor(to_world, dtype=torch.float64, device=_device_of(to_world))
         if to_world.shape != (4, 4):
             raise ValueError(f"to_world must be 4x4, got shape {tuple(to_world.shape)}")
         self.register_buffer("bounds", bounds.clone())
@@ -194,6 +196,11 @@ class Field(torch.nn.Module):
     def diagonal(self) -> float:
         """Length of the bounds' diagonal in field-frame units."""
         return float(torch.linalg.norm(self.bounds[1] - self.bounds[0]))
+
+
+def _device_of(x: object) -> torch.device:
+    """The device of a tensor argument; CPU for lists and arrays."""
+    return x.device if isinstance(x, torch.Tensor) else torch.device("cpu")
 
 
 def _chunked(

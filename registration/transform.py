@@ -21,11 +21,11 @@ class SimilarityTransform(NamedTuple):
     s: float
 
     @staticmethod
-    def identity() -> "SimilarityTransform":
+    def identity() -> SimilarityTransform:
         return SimilarityTransform(np.eye(3), np.zeros(3), 1.0)
 
     @staticmethod
-    def from_matrix(M: np.ndarray) -> "SimilarityTransform":
+    def from_matrix(M: np.ndarray) -> SimilarityTransform:
         """Decompose a 4x4 similarity (raises ValueError for shear, reflection, bad scale)."""
         R, t, s = decompose_similarity(np.asarray(M, dtype=np.float64))
         return SimilarityTransform(np.asarray(R), np.asarray(t), float(s))
@@ -34,12 +34,12 @@ class SimilarityTransform(NamedTuple):
         """(4, 4) float64."""
         return np.asarray(similarity_matrix(np.asarray(self.R), np.asarray(self.t), float(self.s)))
 
-    def inverse(self) -> "SimilarityTransform":
+    def inverse(self) -> SimilarityTransform:
         """``x = (1/s) R^T (y - t)``."""
         Rt = np.asarray(self.R).T
         return SimilarityTransform(Rt, -(Rt @ np.asarray(self.t)) / self.s, 1.0 / self.s)
 
-    def compose(self, other: "SimilarityTransform") -> "SimilarityTransform":
+    def compose(self, other: SimilarityTransform) -> SimilarityTransform:
         """``self ∘ other``: apply ``other`` first."""
         R = np.asarray(self.R) @ np.asarray(other.R)
         t = self.s * (np.asarray(self.R) @ np.asarray(other.t)) + np.asarray(self.t)
@@ -54,5 +54,5 @@ class SimilarityTransform(NamedTuple):
                 "matrix": self.matrix().tolist()}
 
     @staticmethod
-    def from_json(data: dict) -> "SimilarityTransform":
+    def from_json(data: dict) -> SimilarityTransform:
         return SimilarityTransform.from_matrix(np.asarray(data["matrix"], dtype=np.float64))

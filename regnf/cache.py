@@ -28,6 +28,7 @@ from neural_fields.training import RGBDTrainConfig, capture_fingerprint, train_r
 from synthetic.capture import ObjectCaptureConfig, RoomCaptureConfig, capture_object, capture_room
 from synthetic.library import make_library_object
 from synthetic.sdfstudio_format import Capture, load_capture
+from synthetic.shading import shaded_copy
 
 CACHE_VERSION = 1
 """Bump when the meaning of cached data changes."""
@@ -122,7 +123,12 @@ class Cache:
     def mesh_field(self, name: str, config: DistillConfig) -> Path:
         """Checkpoint of library object ``name`` distilled from its procedural mesh."""
         obj = make_library_object(name)
-        mesh_sha = hashlib.sha256(obj.mesh.vertices.tobytes() + obj.mesh.faces.tobytes()).hexdigest()
+        # Distil the mesh as the captures show it (the same baked Lambertian shading), so that
+        # a field from either source has the colours a capture of the object has.
+        mesh = shaded_copy(obj.mesh)
+        mesh_sha = hashlib.sha256(
+            mesh.vertices.tobytes() + mesh.faces.tobytes() + mesh.visual.face_colors.tobytes()
+        ).hexdigest()
         path = self.root / "fields" / f"{name}-mesh-{config_key(config, mesh_sha)}.safetensors"
         if path.is_file():
             return path
@@ -130,7 +136,7 @@ class Cache:
             label=obj.label, name=name, symmetry=Symmetry(obj.symmetry_order),
             provenance={"source": "mesh", "mesh_sha256": mesh_sha},
         )
-        field, _ = distill_mesh(obj.mesh, config, info=info, progress=self.progress)
+        field, _ = distill_mesh(mesh, config, info=info, progress=self.progress)
         return save_field(field, path)
 
     def scene_field(self, name: str, coverage: str = "full", device: str = "cpu") -> Path:

@@ -17,12 +17,19 @@ def _commands() -> dict[str, type]:
     # Imported lazily so that `regnf --help` answers at once.
     from benchmarks.cli import BenchEncodings, BenchFields
     from regnf.commands_fields import Distill, Mesh, Synth, Train
+    from regnf.commands_registration import Register
+    from regnf.commands_stage import StageAddInstance, StageExport, StageNew, StageShow
 
     return {
         "synth": Synth,
         "train": Train,
         "distill": Distill,
         "mesh": Mesh,
+        "register": Register,
+        "stage new": StageNew,
+        "stage add-instance": StageAddInstance,
+        "stage show": StageShow,
+        "stage export": StageExport,
         "bench fields": BenchFields,
         "bench encodings": BenchEncodings,
     }

@@ -1,0 +1,47 @@
+"""The USD scene graph: the scene field, the library and every registered instance.
+
+A :class:`ComposedScene` is written to a stage (``write_stage``, ``new_stage``,
+``add_instance``, ``add_instance_from_registration``), read back (``read_stage``), swapped
+per instance by a layer of variant selections (``make_replacement_layer``), exported
+(``export_stage``: .usda / .usdc / .usdz) and checked (``validate_stage``).
+"""
+
+from .edit import (
+    add_instance,
+    add_instance_from_registration,
+    add_library_object,
+    new_stage,
+    provenance_from_registration,
+)
+from .errors import StageError
+from .fields import ProxyConfig, field_record, proxy_from_trimesh
+from .model import ComposedScene, FieldRecord, InstanceRecord, ProxyMesh, RegistrationProvenance
+from .package import export_stage
+from .replacement import make_replacement_layer
+from .summary import summarize
+from .usd_read import read_stage
+from .usd_write import write_stage
+from .validation import validate_stage
+
+__all__ = [
+    "ComposedScene",
+    "FieldRecord",
+    "InstanceRecord",
+    "ProxyConfig",
+    "ProxyMesh",
+    "RegistrationProvenance",
+    "StageError",
+    "add_instance",
+    "add_instance_from_registration",
+    "add_library_object",
+    "export_stage",
+    "field_record",
+    "make_replacement_layer",
+    "new_stage",
+    "provenance_from_registration",
+    "proxy_from_trimesh",
+    "read_stage",
+    "summarize",
+    "validate_stage",
+    "write_stage",
+]

@@ -1,0 +1,431 @@
+"""Initial registration: FPFH + RANSAC + ICP with scale (METHOD.md section 4).
+
+Input: surface samples of the scene (inside the proposal) and of the library object, each in
+its own FIELD frame. Output: up to ``top_k`` hypotheses ``T: scene field -> library field``,
+distinct in rotation, best first.
+
+Procedure:
+
+1. Centre both clouds and pre-estimate the scale ratio (RMS radius or a radius percentile,
+   on voxel-thinned clouds so that sampling density does not bias it); express both clouds in
+   a normalised frame where the library is unit-size (largest AABB side 1) and the scene is
+   pre-scaled to match. Feature radii then mean the same in both clouds (the authors'
+   RANSAC assumed scale 1 between fields of different scales).
+2. Voxel-downsample (*paper*: 0.025 of a unit-size object), FPFH (normal radius 2 voxels,
+   feature radius 5 voxels, 100 neighbours). The fields' own (outward, consistent) normals
+   are used by default instead of re-estimated (sign-ambiguous) ones.
+3. RANSAC on nearest-neighbour feature matches, point-to-point estimation WITH scaling,
+   ``ransac_n`` 4, edge-length and distance checkers, and explicit criteria (100 000
+   iterations, confidence 0.999; the authors' (4 000 000, 500) is read by Open3D as
+   confidence 1, so all 4 million iterations always ran). Run 0 uses all matches, exactly as
+   ``registration_ransac_based_on_feature_matching``; each later run drops the matches that
+   an earlier hypothesis explains, so that it finds the next-best mode (a symmetric object's
+   other poses), with its own seed.
+4. ICP refinement of every RANSAC result on the full (normalised) clouds, point-to-point with
+   scaling or point-to-plane; rank by fitness then inlier RMSE; keep hypotheses at least
+   ``min_rotation_deg`` apart; undo the normalisation.
+
+Determinism: every RANSAC run seeds Open3D's global generator (``o3d.utility.random.seed``).
+Open3D's RANSAC is parallel (OpenMP); results are bit-reproducible for a seed with one thread
+(``OMP_NUM_THREADS=1``) and may differ slightly between runs with several threads.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal, NamedTuple
+
+import numpy as np
+import open3d as o3d
+
+from .metrics import geodesic_angle
+from .sampling import SurfaceSamples
+from .transform import SimilarityTransform
+
+reg = o3d.pipelines.registration
+
+
+@dataclass(frozen=True)
+class InitConfig:
+    """Settings of :func:`initial_hypotheses` and :func:`fgr_baseline`.
+
+    Lengths in "voxels" are multiples of ``voxel_size``, itself a fraction of the library
+    cloud's size (its largest AABB side), i.e. absolute lengths in the normalised frame.
+    """
+
+    voxel_size: float = 0.025
+    """FPFH / RANSAC voxel, fraction of the library object's size (*paper*: 0.025)."""
+    use_field_normals: bool = True
+    """Use the samples' SDF normals (consistent, outward); False: Open3D estimates them."""
+    normal_radius_voxels: float = 2.0
+    """Normal estimation radius (only when ``use_field_normals`` is False) (*paper*: 2)."""
+    normal_max_nn: int = 30
+    """Neighbours of the normal estimation (only when ``use_field_normals`` is False)."""
+    feature_radius_voxels: float = 5.0
+    """FPFH radius (*paper*: 5)."""
+    feature_max_nn: int = 100
+    """FPFH neighbours (*paper*: 100)."""
+    scale_estimate: Literal["rms", "percentile"] = "rms"
+    """Scale pre-estimate: ratio of RMS radii, or of a percentile of the radii."""
+    scale_percentile: float = 90.0
+    """Percentile of the distances to the centroid used by ``scale_estimate='percentile'``."""
+    ransac_distance_voxels: float = 1.5
+    """RANSAC inlier distance and distance-checker threshold."""
+    ransac_n: int = 4
+    """Correspondences per RANSAC sample (*paper*: 4)."""
+    edge_length_ratio: float = 0.9
+    """Edge-length checker similarity (*paper*: 0.9)."""
+    mutual_filter: bool = False
+    """Keep only mutual nearest-neighbour feature matches."""
+    ransac_max_iteration: int = 100_000
+    """RANSAC iterations at most per run."""
+    ransac_confidence: float = 0.999
+    """RANSAC stops early at this confidence (a probability: must be < 1)."""
+    ransac_runs: int = 4
+    """RANSAC runs, each on the matches the earlier hypotheses leave unexplained."""
+    ransac_followup_iteration: int = 25_000
+    """Iterations at most of runs 1, 2, ... (secondary modes; run 0 gets the full budget)."""
+    min_matches: int = 20
+    """A run needs at least this many remaining feature matches."""
+    icp_method: Literal["point_to_point", "point_to_plane"] = "point_to_point"
+    """ICP refinement; point-to-point estimates the scale too, point-to-plane keeps it."""
+    icp_distance_voxels: float = 1.0
+    """ICP correspondence distance; also the inlier distance of fitness and RMSE."""
+    icp_max_iteration: int = 100
+    """ICP iterations at most."""
+    icp_relative_change: float = 1e-6
+    """ICP stops when fitness and inlier RMSE change relatively less than this."""
+    max_scale_ratio: float = 2.0
+    """Hypotheses whose scale differs from the pre-estimate by more than this factor go."""
+    top_k: int = 4
+    """Hypotheses returned at most."""
+    min_rotation_deg: float = 15.0
+    """Kept hypotheses differ pairwise by at least this geodesic angle."""
+    fgr_distance_voxels: float = 0.5
+    """FGR's maximum correspondence distance (Open3D's example: 0.5 voxel)."""
+    seed: int = 0
+    """Seed of run 0; run r uses ``seed + r``."""
+
+    def __post_init__(self) -> None:
+        if not 0 < self.ransac_confidence < 1:
+            raise ValueError(
+                f"ransac_confidence is a probability in (0, 1), got {self.ransac_confidence} "
+                "(Open3D clamps 1 and above, then always runs every iteration)"
+            )
+        if self.voxel_size <= 0 or self.feature_radius_voxels <= 0 or self.icp_distance_voxels <= 0:
+            raise ValueError(
+                "voxel_size, feature_radius_voxels and icp_distance_voxels must be > 0"
+            )
+        if self.ransac_n < 3 or self.ransac_runs < 1 or self.top_k < 1:
+            raise ValueError("ransac_n must be >= 3, ransac_runs and top_k >= 1")
+        if min(self.ransac_max_iteration, self.ransac_followup_iteration) < 1:
+            raise ValueError("RANSAC iteration budgets must be >= 1")
+        if self.max_scale_ratio <= 1:
+            raise ValueError(f"max_scale_ratio must be > 1, got {self.max_scale_ratio}")
+        if self.scale_estimate not in ("rms", "percentile"):
+            raise ValueError(f"unknown scale_estimate {self.scale_estimate!r}")
+        if self.icp_method not in ("point_to_point", "point_to_plane"):
+            raise ValueError(f"unknown icp_method {self.icp_method!r}")
+
+
+class Hypothesis(NamedTuple):
+    """One initial registration."""
+
+    transform: SimilarityTransform
+    """Scene field frame -> library field frame."""
+    fitness: float
+    """Fraction of scene samples with a library sample within the ICP distance."""
+    inlier_rmse: float
+    """RMSE of those inlier distances, in LIBRARY field units."""
+
+
+class _Prepared(NamedTuple):
+    """Both clouds in the normalised frame, with features."""
+
+    src: o3d.geometry.PointCloud  # full scene cloud (normalised)
+    tgt: o3d.geometry.PointCloud  # full library cloud (normalised)
+    src_down: o3d.geometry.PointCloud
+    tgt_down: o3d.geometry.PointCloud
+    src_fpfh: o3d.pipelines.registration.Feature
+    tgt_fpfh: o3d.pipelines.registration.Feature
+    scene_to_norm: SimilarityTransform
+    library_to_norm: SimilarityTransform
+    scale0: float  # pre-estimated scale, scene -> library
+
+
+def _check_samples(s: SurfaceSamples, what: str) -> None:
+    P, N = np.asarray(s.points), np.asarray(s.normals)
+    if P.ndim != 2 or P.shape[1] != 3 or N.shape != P.shape:
+        raise ValueError(f"{what} samples: points and normals must both be (n, 3)")
+    if len(P) < 10:
+        raise ValueError(f"{what} samples: {len(P)} points are too few to register (need >= 10)")
+    if not (np.isfinite(P).all() and np.isfinite(N).all()):
+        raise ValueError(f"{what} samples contain non-finite values")
+
+
+def _cloud(points: np.ndarray, normals: np.ndarray | None) -> o3d.geometry.PointCloud:
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.ascontiguousarray(points)))
+    if normals is not None:
+        pc.normals = o3d.utility.Vector3dVector(np.ascontiguousarray(normals))
+    return pc
+
+
+def _thin(points: np.ndarray, voxel: float) -> np.ndarray:
+    """One point per occupied voxel (the first), so statistics follow area, not ray density."""
+    keys = np.floor((points - points.min(axis=0)) / voxel).astype(np.int64)
+    _, first = np.unique(keys, axis=0, return_index=True)
+    return points[np.sort(first)]
+
+
+def _centre_and_radius(points: np.ndarray, config: InitConfig) -> tuple[np.ndarray, float]:
+    """Centroid (3,) and radius (RMS or percentile) of a density-thinned cloud."""
+    c = points.mean(axis=0)
+    rms = float(np.sqrt(((points - c) ** 2).sum(axis=1).mean()))
+    thin = _thin(points, 0.02 * rms) if rms > 0 else points
+    c = thin.mean(axis=0)
+    d = np.linalg.norm(thin - c, axis=1)
+    if config.scale_estimate == "rms":
+        r = float(np.sqrt((d**2).mean()))
+    else:
+        r = float(np.percentile(d, config.scale_percentile))
+    if not r > 0:
+        raise ValueError("a sample cloud has zero spread (all points coincide)")
+    return c, r
+
+
+def _prepare(scene: SurfaceSamples, library: SurfaceSamples, config: InitConfig) -> _Prepared:
+    _check_samples(scene, "scene")
+    _check_samples(library, "library")
+    Ps, Pl = np.asarray(scene.points, np.float64), np.asarray(library.points, np.float64)
+    c_s, r_s = _centre_and_radius(Ps, config)
+    c_l, r_l = _centre_and_radius(Pl, config)
+    size = float((Pl.max(axis=0) - Pl.min(axis=0)).max())  # library frame is canonical-aligned
+    scale0 = r_l / r_s
+    # Normalised frame: library unit-size, scene pre-scaled to the library's scale.
+    lib_n = SimilarityTransform(np.eye(3), -c_l / size, 1.0 / size)
+    scn_n = SimilarityTransform(np.eye(3), -c_s * scale0 / size, scale0 / size)
+    v = config.voxel_size
+    use_n = config.use_field_normals
+    src = _cloud(scn_n.apply(Ps), np.asarray(scene.normals) if use_n else None)
+    tgt = _cloud(lib_n.apply(Pl), np.asarray(library.normals) if use_n else None)
+    downs, feats = [], []
+    for pc in (src, tgt):
+        down = pc.voxel_down_sample(v)
+        if use_n:
+            down.normalize_normals()  # voxel averaging shortens them
+        else:
+            down.estimate_normals(
+                o3d.geometry.KDTreeSearchParamHybrid(
+                    radius=config.normal_radius_voxels * v, max_nn=config.normal_max_nn
+                )
+            )
+        if len(down.points) < config.ransac_n:
+            raise ValueError(
+                f"only {len(down.points)} points left after the {v} voxel downsampling; "
+                "the sample clouds are too small to register"
+            )
+        feats.append(
+            reg.compute_fpfh_feature(
+                down,
+                o3d.geometry.KDTreeSearchParamHybrid(
+                    radius=config.feature_radius_voxels * v, max_nn=config.feature_max_nn
+                ),
+            )
+        )
+        downs.append(down)
+    if not use_n:
+        tgt.estimate_normals(
+            o3d.geometry.KDTreeSearchParamHybrid(
+                radius=config.normal_radius_voxels * v, max_nn=config.normal_max_nn
+            )
+        )
+    return _Prepared(src, tgt, downs[0], downs[1], feats[0], feats[1], scn_n, lib_n, scale0)
+
+
+def _feature_matches(prep: _Prepared, mutual: bool) -> np.ndarray:
+    """(m, 2) int32: each scene point's nearest library point in FPFH space."""
+    from scipy.spatial import cKDTree
+
+    Fs, Fl = np.asarray(prep.src_fpfh.data).T, np.asarray(prep.tgt_fpfh.data).T
+    j = cKDTree(Fl).query(Fs, k=1)[1]
+    i = np.arange(len(Fs))
+    if mutual:
+        back = cKDTree(Fs).query(Fl, k=1)[1]
+        keep = back[j] == i
+        i, j = i[keep], j[keep]
+    return np.stack([i, j], axis=1).astype(np.int32)
+
+
+def _to_field(prep: _Prepared, M_norm: np.ndarray) -> SimilarityTransform:
+    """Normalised-frame 4x4 -> scene field -> library field transform."""
+    T_norm = SimilarityTransform.from_matrix(M_norm)
+    return prep.library_to_norm.inverse().compose(T_norm).compose(prep.scene_to_norm)
+
+
+def _evaluate(prep: _Prepared, M_norm: np.ndarray, config: InitConfig) -> tuple[float, float]:
+    res = reg.evaluate_registration(
+        prep.src, prep.tgt, config.icp_distance_voxels * config.voxel_size, M_norm
+    )
+    size = 1.0 / prep.library_to_norm.s
+    return float(res.fitness), float(res.inlier_rmse) * size
+
+
+def _icp(prep: _Prepared, M0: np.ndarray, config: InitConfig) -> np.ndarray:
+    if config.icp_method == "point_to_point":
+        est = reg.TransformationEstimationPointToPoint(with_scaling=True)
+    else:
+        est = reg.TransformationEstimationPointToPlane()
+    res = reg.registration_icp(
+        prep.src,
+        prep.tgt,
+        config.icp_distance_voxels * config.voxel_size,
+        M0,
+        est,
+        reg.ICPConvergenceCriteria(
+            relative_fitness=config.icp_relative_change,
+            relative_rmse=config.icp_relative_change,
+            max_iteration=config.icp_max_iteration,
+        ),
+    )
+    return np.asarray(res.transformation)
+
+
+def _similarity_or_none(M: np.ndarray) -> np.ndarray | None:
+    """``M`` re-projected onto a proper similarity, or None if it is degenerate."""
+    A = M[:3, :3]
+    if not np.isfinite(M).all() or np.linalg.det(A) <= 0:
+        return None
+    U, S, Vt = np.linalg.svd(A)
+    out = M.copy()
+    out[:3, :3] = (U @ Vt) * S.mean()
+    return out
+
+
+def _ransac_runs(prep: _Prepared, config: InitConfig) -> list[np.ndarray]:
+    """Normalised-frame 4x4 results of the sequential RANSAC runs (before ICP)."""
+    v = config.voxel_size
+    dist = config.ransac_distance_voxels * v
+    checkers = [
+        reg.CorrespondenceCheckerBasedOnEdgeLength(config.edge_length_ratio),
+        reg.CorrespondenceCheckerBasedOnDistance(dist),
+    ]
+    criteria = [
+        reg.RANSACConvergenceCriteria(n, config.ransac_confidence)
+        for n in (config.ransac_max_iteration, config.ransac_followup_iteration)
+    ]
+    est = reg.TransformationEstimationPointToPoint(with_scaling=True)
+    corr = _feature_matches(prep, config.mutual_filter)
+    Ps = np.asarray(prep.src_down.points)
+    Pl = np.asarray(prep.tgt_down.points)
+    out = []
+    for r in range(config.ransac_runs):
+        if len(corr) < max(config.min_matches, config.ransac_n):
+            break
+        o3d.utility.random.seed(config.seed + r)
+        res = reg.registration_ransac_based_on_correspondence(
+            prep.src_down,
+            prep.tgt_down,
+            o3d.utility.Vector2iVector(corr),
+            dist,
+            est,
+            config.ransac_n,
+            checkers,
+            criteria[min(r, 1)],
+        )
+        M = np.asarray(res.transformation)
+        if res.fitness == 0 or np.allclose(M, np.eye(4)):
+            break  # RANSAC found nothing valid in the remaining matches
+        out.append(M)
+        # Drop the matches this hypothesis explains, so that the next run finds another mode.
+        mapped = Ps[corr[:, 0]] @ M[:3, :3].T + M[:3, 3]
+        corr = corr[np.linalg.norm(mapped - Pl[corr[:, 1]], axis=1) > dist]
+    return out
+
+
+def _select(cands: list[Hypothesis], config: InitConfig) -> list[Hypothesis]:
+    """Best first (fitness, then RMSE), pairwise at least ``min_rotation_deg`` apart."""
+    cands = sorted(cands, key=lambda h: (-h.fitness, h.inlier_rmse))
+    kept: list[Hypothesis] = []
+    min_angle = np.radians(config.min_rotation_deg)
+    for h in cands:
+        if len(kept) == config.top_k:
+            break
+        R = np.asarray(h.transform.R)
+        if all(geodesic_angle(np.asarray(k.transform.R).T @ R) >= min_angle for k in kept):
+            kept.append(h)
+    return kept
+
+
+def initial_hypotheses(
+    scene: SurfaceSamples, library: SurfaceSamples, config: InitConfig = InitConfig()
+) -> list[Hypothesis]:
+    """Up to ``top_k`` initial transforms scene field -> library field, best first.
+
+    Parameters
+    ----------
+    scene : SurfaceSamples
+        Samples of the scene field inside the proposal (scene field frame).
+    library : SurfaceSamples
+        Samples of the library field (library field frame).
+    config : InitConfig
+
+    Returns
+    -------
+    list of Hypothesis
+        Non-empty, sorted by fitness (then inlier RMSE), pairwise distinct in rotation.
+
+    Raises
+    ------
+    ValueError
+        For malformed or too small sample sets, or when no run produced a usable transform.
+    """
+    prep = _prepare(scene, library, config)
+    cands = []
+    for M_ransac in _ransac_runs(prep, config):
+        M = _similarity_or_none(_icp(prep, M_ransac, config))
+        if M is None:
+            M = _similarity_or_none(M_ransac)
+        if M is None:
+            continue
+        T = _to_field(prep, M)
+        # ICP with scaling can collapse the scene onto part of the library: reject that.
+        ratio = T.s / prep.scale0
+        if not 1.0 / config.max_scale_ratio <= ratio <= config.max_scale_ratio:
+            continue
+        fit, rmse = _evaluate(prep, M, config)
+        cands.append(Hypothesis(T, fit, rmse))
+    if not cands:
+        raise ValueError(
+            "initial registration failed: RANSAC found no transform consistent with the FPFH "
+            "matches (too few or too different surface samples?)"
+        )
+    return _select(cands, config)
+
+
+def fgr_baseline(
+    scene: SurfaceSamples, library: SurfaceSamples, config: InitConfig = InitConfig()
+) -> Hypothesis:
+    """Open3D's Fast Global Registration on the same normalised clouds and features.
+
+    FGR estimates a RIGID transform only: the scale of the result is the pre-estimate
+    (ratio of the clouds' radii, see ``InitConfig.scale_estimate``), not FGR's. No ICP.
+
+    Returns
+    -------
+    Hypothesis
+        Scene field -> library field, with fitness and inlier RMSE as in
+        :func:`initial_hypotheses`.
+    """
+    prep = _prepare(scene, library, config)
+    option = reg.FastGlobalRegistrationOption(
+        maximum_correspondence_distance=config.fgr_distance_voxels * config.voxel_size
+    )
+    o3d.utility.random.seed(config.seed)
+    res = reg.registration_fgr_based_on_feature_matching(
+        prep.src_down, prep.tgt_down, prep.src_fpfh, prep.tgt_fpfh, option
+    )
+    M = _similarity_or_none(np.asarray(res.transformation))
+    if M is None:
+        raise ValueError("FGR returned a degenerate transform")
+    fit, rmse = _evaluate(prep, M, config)
+    return Hypothesis(_to_field(prep, M), fit, rmse)

@@ -1,0 +1,194 @@
+"""An object proposal: an oriented box around one object in a field's frame.
+
+In a scene it comes from a detector or, as in the paper, from the data set's ground-truth
+box; in a library field it is the whole object. Surface sampling (``sampling.py``) aims its
+cameras at the box and, on the scene side, keeps only the surface inside it.
+"""
+
+from __future__ import annotations
+
+import itertools
+from typing import NamedTuple
+
+import numpy as np
+
+from neural_fields.similarity import decompose_similarity
+
+CORNER_RTOL = 1e-6
+"""Corners must match a box to this fraction of its diagonal (float32 input passes)."""
+
+_SIGNS = np.array(list(itertools.product((-1.0, 1.0), repeat=3)))  # (8, 3), x slowest
+
+
+class _ProposalBoxFields(NamedTuple):
+    center: np.ndarray
+    """(3,) float64: the box centre."""
+    half_extents: np.ndarray
+    """(3,) float64: half sizes along the box's own axes, all > 0."""
+    rotation: np.ndarray
+    """(3, 3) float64: columns are the box axes (a proper rotation, box -> frame)."""
+
+
+class ProposalBox(_ProposalBoxFields):
+    """An oriented box ``{c + R u : |u_i| <= h_i}`` in a field's frame.
+
+    Construction validates: finite entries, positive half extents, ``rotation`` a proper
+    rotation. A point ``x`` has box coordinates ``u = R^T (x - c)``.
+    """
+
+    __slots__ = ()
+
+    def __new__(  # noqa: PYI034 (typing.Self needs Python 3.11)
+        cls,
+        center: np.ndarray,
+        half_extents: np.ndarray,
+        rotation: np.ndarray | None = None,
+    ) -> ProposalBox:
+        c = np.asarray(center, dtype=np.float64).reshape(-1)
+        h = np.asarray(half_extents, dtype=np.float64).reshape(-1)
+        R = np.eye(3) if rotation is None else np.asarray(rotation, dtype=np.float64)
+        if c.shape != (3,) or not np.isfinite(c).all():
+            raise ValueError(f"box center must be 3 finite numbers, got {c.tolist()}")
+        if h.shape != (3,) or not np.isfinite(h).all() or not (h > 0).all():
+            raise ValueError(
+                f"box half extents must be 3 finite numbers > 0 (an empty or flat box is no "
+                f"proposal), got {h.tolist()}"
+            )
+        if R.shape != (3, 3) or not np.isfinite(R).all():
+            raise ValueError(f"box rotation must be a finite 3x3 matrix, got shape {R.shape}")
+        if np.abs(R.T @ R - np.eye(3)).max() > 1e-5 or np.linalg.det(R) <= 0:
+            raise ValueError("box rotation must be a proper rotation (orthonormal, det +1)")
+        return super().__new__(cls, c, h, R)
+
+    # -- constructors -------------------------------------------------------------------------
+    @staticmethod
+    def from_aabb(lo: np.ndarray, hi: np.ndarray) -> ProposalBox:
+        """The axis-aligned box ``[lo, hi]`` (each (3,)); raises if any ``hi <= lo``."""
+        lo_, hi_ = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
+        if lo_.shape != (3,) or hi_.shape != (3,):
+            raise ValueError(f"lo and hi must be (3,), got {lo_.shape} and {hi_.shape}")
+        if not (hi_ > lo_).all():
+            raise ValueError(f"an AABB needs hi > lo on every axis, got lo={lo_}, hi={hi_}")
+        return ProposalBox(0.5 * (lo_ + hi_), 0.5 * (hi_ - lo_), np.eye(3))
+
+    @staticmethod
+    def from_corners(corners: np.ndarray) -> ProposalBox:
+        """The oriented box whose 8 corners are ``corners`` (8, 3), in any order.
+
+        The three edges at one corner are found among its 7 difference vectors as the only
+        mutually orthogonal triple that regenerates all 8 corners (no PCA: that is ambiguous
+        for boxes with two equal sides). Axes are ordered and signed to be as close to the
+        frame's axes as possible, so an axis-aligned box comes back with ``rotation = I``.
+
+        Raises
+        ------
+        ValueError
+            If the array is not (8, 3) and finite, the corners are degenerate (repeated, flat)
+            or they are not the corners of a rectangular box.
+        """
+        P = np.asarray(corners, dtype=np.float64)
+        if P.shape != (8, 3) or not np.isfinite(P).all():
+            raise ValueError(f"corners must be a finite (8, 3) array, got shape {P.shape}")
+        V = P[1:] - P[0]  # (7, 3)
+        diag = float(np.linalg.norm(V, axis=1).max())
+        if diag <= 0:
+            raise ValueError("box corners are all the same point")
+        tol = CORNER_RTOL * diag * 10
+        triples = np.array(list(itertools.combinations(range(7), 3)))  # (35, 3)
+        E = V[triples]  # (35, 3, 3): candidate edge triples
+        G = np.einsum("kia,kja->kij", E, E)
+        off = np.abs(G[:, [0, 0, 1], [1, 2, 2]]).max(axis=1) / diag**2
+        order = np.argsort(off, kind="stable")
+        for k in order[:4]:  # only near-orthogonal triples can be the answer
+            edges = E[k]
+            lengths = np.linalg.norm(edges, axis=1)
+            if lengths.min() <= tol or off[k] > 1e-5:
+                break
+            gen = P[0] + (_SIGNS * 0.5 + 0.5) @ edges  # (8, 3): all subset sums
+            dist = np.linalg.norm(gen[:, None, :] - P[None, :, :], axis=-1)
+            if (dist.min(axis=1) <= tol).all() and (dist.min(axis=0) <= tol).all():
+                return ProposalBox._from_edges(P.mean(axis=0), edges)
+        raise ValueError(
+            "corners are not the 8 corners of a non-degenerate rectangular box "
+            "(repeated or coplanar points, or the angles are not right angles)"
+        )
+
+    @staticmethod
+    def _from_edges(center: np.ndarray, edges: np.ndarray) -> ProposalBox:
+        lengths = np.linalg.norm(edges, axis=1)
+        axes = edges / lengths[:, None]  # rows: unit box axes
+        # Pick the permutation and signs that bring the axes closest to x, y, z.
+        best = max(
+            itertools.permutations(range(3)),
+            key=lambda p: sum(abs(axes[p[i], i]) for i in range(3)),
+        )
+        A = axes[list(best)]
+        A = A * np.where(np.diag(A) < 0, -1.0, 1.0)[:, None]
+        R = A.T  # columns = axes
+        if np.linalg.det(R) < 0:  # keep right-handed: flip the axis least aligned
+            j = int(np.argmin(np.abs(np.diag(R))))
+            R[:, j] = -R[:, j]
+        # Re-orthonormalise (the corners may be float32): polar decomposition by SVD.
+        U, _, Vt = np.linalg.svd(R)
+        R = U @ Vt
+        return ProposalBox(center, 0.5 * lengths[list(best)], R)
+
+    # -- derived quantities ------------------------------------------------------------------
+    @property
+    def radius(self) -> float:
+        """Half the diagonal: the radius of the sphere through the corners."""
+        return float(np.linalg.norm(self.half_extents))
+
+    @property
+    def diagonal(self) -> float:
+        """Length of the box diagonal."""
+        return 2.0 * self.radius
+
+    def corners(self) -> np.ndarray:
+        """(8, 3) float64 corners, box-axis signs in ``itertools.product`` order."""
+        return self.center + (_SIGNS * self.half_extents) @ self.rotation.T
+
+    def inflated(self, pad_rel: float) -> ProposalBox:
+        """The same box with every half extent grown by the fraction ``pad_rel`` (> -1)."""
+        if not np.isfinite(pad_rel) or pad_rel <= -1:
+            raise ValueError(f"pad_rel must be finite and > -1, got {pad_rel}")
+        return ProposalBox(self.center, self.half_extents * (1.0 + pad_rel), self.rotation)
+
+    def transformed(self, M: np.ndarray) -> ProposalBox:
+        """The box mapped by the 4x4 similarity ``M`` (for example metres -> scene field frame).
+
+        Raises ``ValueError`` if ``M`` is not a similarity (shear, reflection, ...).
+        """
+        R, t, s = decompose_similarity(np.asarray(M, dtype=np.float64))
+        R = np.asarray(R)
+        return ProposalBox(
+            float(s) * (R @ self.center) + np.asarray(t),
+            float(s) * self.half_extents,
+            R @ self.rotation,
+        )
+
+    def to_local(self, points: np.ndarray) -> np.ndarray:
+        """Box coordinates ``R^T (x - c)`` (n, 3) of ``points`` (n, 3)."""
+        return (np.asarray(points, dtype=np.float64) - self.center) @ self.rotation
+
+    def contains(self, points: np.ndarray, pad_rel: float = 0.0) -> np.ndarray:
+        """(n,) bool: ``points`` (n, 3) inside the box with half extents grown by ``pad_rel``."""
+        p = np.asarray(points, dtype=np.float64)
+        if p.ndim != 2 or p.shape[1] != 3:
+            raise ValueError(f"points must be (n, 3), got shape {p.shape}")
+        return (np.abs(self.to_local(p)) <= self.half_extents * (1.0 + pad_rel)).all(axis=1)
+
+    def to_json(self) -> dict:
+        return {
+            "center": self.center.tolist(),
+            "half_extents": self.half_extents.tolist(),
+            "rotation": self.rotation.tolist(),
+        }
+
+    @staticmethod
+    def from_json(data: dict) -> ProposalBox:
+        return ProposalBox(
+            np.asarray(data["center"]),
+            np.asarray(data["half_extents"]),
+            np.asarray(data["rotation"]),
+        )

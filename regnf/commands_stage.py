@@ -1,0 +1,119 @@
+"""CLI commands ``regnf stage new | add-instance | show | export``: the USD scene graph."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+from rich.console import Console
+
+console = Console(stderr=True)
+
+
+def _fail(exc: Exception) -> SystemExit:
+    return SystemExit(f"regnf stage: {exc}")
+
+
+@dataclass
+class StageNew:
+    """Create a USD stage from a scene field and library fields (no instances yet)."""
+
+    out: Path
+    """Stage to write (.usda or .usdc); assets go beside it (library/, slots/, fields/)."""
+    scene: Path
+    """Scene field checkpoint (.safetensors)."""
+    library: tuple[Path, ...] = ()
+    """Library object checkpoints (.safetensors); names and classes come from their headers."""
+    proxy_resolution: int = 48
+    """Marching-cubes cells along the longest axis for the proxy meshes."""
+    overwrite: bool = False
+    """Replace an existing stage."""
+    device: str = "cpu"
+    """Torch device used to mesh the proxies."""
+
+    def run(self) -> None:
+        from scene_graph import ProxyConfig, StageError, new_stage
+
+        try:
+            scene = new_stage(self.out, self.scene, self.library,
+                              ProxyConfig(resolution=self.proxy_resolution, device=self.device),
+                              overwrite=self.overwrite)
+        except StageError as exc:
+            raise _fail(exc) from exc
+        console.print(f"[green]stage[/] {self.out}: scene + {len(scene.library)} library objects "
+                      f"in {len(scene.classes())} classes")
+
+
+@dataclass
+class StageAddInstance:
+    """Add a registered instance to a stage from a `regnf register` result (JSON)."""
+
+    stage: Path
+    """The stage (.usda or .usdc)."""
+    result: Path
+    """Registration result JSON written by `regnf register --out`."""
+    id: str | None = None
+    """Instance id (prim name); default <library name>_<k>."""
+    force: bool = False
+    """Write a registration that was not accepted (confidence below the threshold)."""
+
+    def run(self) -> None:
+        from scene_graph import StageError, add_instance_from_registration
+
+        try:
+            data = json.loads(self.result.read_text())
+        except (OSError, json.JSONDecodeError) as exc:
+            raise SystemExit(f"{self.result}: cannot read the registration result ({exc})") from exc
+        try:
+            iid = add_instance_from_registration(self.stage, data, force=self.force, instance_id=self.id)
+        except StageError as exc:
+            raise _fail(exc) from exc
+        console.print(f"[green]added[/] instance {iid!r} ({data.get('library_name')}) to {self.stage}")
+
+
+@dataclass
+class StageShow:
+    """Summarise a stage: scene, library classes, instances with transforms and confidence."""
+
+    stage: Path
+    """The stage (.usda, .usdc, a replacement layer or a .usdz package)."""
+
+    def run(self) -> None:
+        from scene_graph import StageError, read_stage, summarize
+
+        try:
+            scene = read_stage(self.stage)
+        except StageError as exc:
+            raise _fail(exc) from exc
+        print(summarize(scene))
+
+
+@dataclass
+class StageExport:
+    """Export a stage as .usda, .usdc or a self-contained .usdz (checkpoints and proxies inside)."""
+
+    stage: Path
+    """The stage to export."""
+    usdz: Path | None = None
+    """Write a self-contained .usdz package here."""
+    usdc: Path | None = None
+    """Write the stage with a binary (.usdc) root layer here, assets beside it."""
+    usda: Path | None = None
+    """Write the stage with a text (.usda) root layer here, assets beside it."""
+
+    def run(self) -> None:
+        from scene_graph import StageError, export_stage
+
+        targets = [p for p in (self.usdz, self.usdc, self.usda) if p is not None]
+        if not targets:
+            raise SystemExit("regnf stage export: give --usdz, --usdc and/or --usda")
+        for out, suffix in ((self.usdz, ".usdz"), (self.usdc, ".usdc"), (self.usda, ".usda")):
+            if out is not None and out.suffix != suffix:
+                raise SystemExit(f"regnf stage export: {out} must end in {suffix}")
+        try:
+            for out in targets:
+                export_stage(self.stage, out)
+                console.print(f"[green]exported[/] {self.stage} -> {out}")
+        except StageError as exc:
+            raise _fail(exc) from exc

@@ -1,0 +1,103 @@
+"""Field records from checkpoints: validate the checkpoint, mesh a proxy by marching cubes."""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from neural_fields.checkpoint import CheckpointError, load_field, read_header
+from neural_fields.field import Symmetry
+from neural_fields.meshing import extract_mesh
+
+from .errors import StageError
+from .model import FieldRecord, ProxyMesh
+
+
+@dataclass(frozen=True)
+class ProxyConfig:
+    """How proxy meshes are made."""
+
+    resolution: int = 48
+    """Marching-cubes cells along the longest axis of the field's bounds (a preview, not a scan)."""
+    with_color: bool = True
+    """Colour the proxy's vertices from the field."""
+    device: str = "cpu"
+    """Torch device on which the field is evaluated."""
+
+
+def proxy_from_trimesh(mesh: trimesh.Trimesh) -> ProxyMesh:
+    """A :class:`ProxyMesh` from a triangle mesh in metres (vertex colours kept if any)."""
+    colors = None
+    vc = getattr(mesh.visual, "vertex_colors", None)
+    if mesh.visual.kind == "vertex" and vc is not None and len(vc) == len(mesh.vertices):
+        colors = (np.asarray(vc)[:, :3] / 255.0).astype(np.float32)
+    return ProxyMesh(
+        np.asarray(mesh.vertices, dtype=np.float32),
+        np.asarray(mesh.faces, dtype=np.int32),
+        colors,
+    )
+
+
+def checkpoint_name(checkpoint: str | os.PathLike, prim: str) -> str:
+    """The field name in a checkpoint's header (its file stem if it has none)."""
+    try:
+        header = read_header(checkpoint)
+    except CheckpointError as exc:
+        raise StageError(exc.path, prim, exc.problem) from exc
+    return str(header.get("name") or Path(checkpoint).stem)
+
+
+def field_record(
+    checkpoint: str | os.PathLike,
+    prim: str,
+    config: ProxyConfig | None = None,
+    proxy: trimesh.Trimesh | None = None,
+) -> FieldRecord:
+    """Read and validate a checkpoint and make its :class:`FieldRecord`.
+
+    Parameters
+    ----------
+    checkpoint : str or PathLike
+        A regnf checkpoint (.safetensors).
+    prim : str
+        The prim the field will become (named in errors).
+    config : ProxyConfig, optional
+    proxy : trimesh.Trimesh, optional
+        A proxy mesh in metres to use instead of marching cubes of the field.
+
+    Raises
+    ------
+    StageError
+        A missing or corrupted checkpoint, or a field with no surface to mesh.
+    """
+    cfg = config or ProxyConfig()
+    path = Path(checkpoint).absolute()
+    try:
+        header = read_header(path)
+        field = load_field(path, device=cfg.device)
+    except CheckpointError as exc:
+        raise StageError(exc.path, prim, exc.problem) from exc
+    if proxy is None:
+        try:
+            mesh = extract_mesh(field, cfg.resolution, with_color=cfg.with_color, in_world=True)
+        except ValueError as exc:
+            raise StageError(path, prim, f"cannot mesh a proxy: {exc}") from exc
+        proxy_mesh = proxy_from_trimesh(mesh)
+    else:
+        proxy_mesh = proxy_from_trimesh(proxy)
+    return FieldRecord(
+        name=str(header.get("name") or path.stem),
+        label=str(header.get("label") or "object"),
+        checkpoint=path,
+        to_world=np.asarray(header["to_world"], dtype=np.float64),
+        bounds=np.asarray(header["bounds"], dtype=np.float64),
+        symmetry_order=Symmetry.from_json(header.get("symmetry")).order,
+        provenance=dict(header.get("provenance") or {}),
+        proxy=proxy_mesh,
+    )
+
+

@@ -1,0 +1,95 @@
+"""Instance replacement: a small layer of variant selections over a base stage.
+
+The layer sublayers the base stage and, per replaced instance, overrides the slot's
+variant selection; nothing else. Because every instance of a class references the same
+slot asset, instances that select the same object still share one prototype (authoring a
+VariantSet per instance would give each its own). Canonical object frames (base centred at
+the origin, +Z up, +X forward) make the new object stand on the floor with the old heading.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping
+from pathlib import Path
+
+from pxr import Sdf
+
+from . import layout as L
+from .errors import StageError
+from .transaction import file_transaction
+from .usd_read import open_stage, read_stage, regnf_data
+
+
+def make_replacement_layer(
+    base_stage_path: str | os.PathLike,
+    selections: Mapping[str, str],
+    out_path: str | os.PathLike,
+    force: bool = False,
+) -> Path:
+    """Write a layer over ``base_stage_path`` that swaps instances' library objects.
+
+    Parameters
+    ----------
+    base_stage_path : str or PathLike
+        A regnf stage.
+    selections : mapping
+        Instance id -> library name to show instead.
+    out_path : str or PathLike
+        The layer to write (.usda or .usdc), in the base stage's folder (its relative asset
+        paths are the base's).
+    force : bool
+        Allow a swap to an object of a different class (the instance then references that
+        class's slot).
+
+    Returns
+    -------
+    Path
+        ``out_path``, readable by :func:`scene_graph.read_stage`.
+
+    Raises
+    ------
+    StageError
+        Unknown instance or library object, a swap across classes (unless forced), an output
+        outside the base stage's folder; nothing is written then.
+    """
+    base = Path(base_stage_path).absolute()
+    out = Path(out_path).absolute()
+    if out.parent != base.parent:
+        raise StageError(out, "/", f"a replacement layer must lie beside its base stage in {base.parent} "
+                         "(its relative asset paths would otherwise escape the stage's folder)")
+    if out.suffix not in (".usda", ".usdc"):
+        raise StageError(out, "/", "a replacement layer must end in .usda or .usdc")
+    if out == base:
+        raise StageError(out, "/", "the replacement layer cannot overwrite its base stage")
+    scene = read_stage(base)
+    layer = Sdf.Layer.CreateAnonymous(out.suffix)
+    layer.pseudoRoot.SetInfo("upAxis", "Z")
+    layer.pseudoRoot.SetInfo("metersPerUnit", 1.0)
+    layer.defaultPrim = "World"
+    base_stage = open_stage(base)
+    data = dict(regnf_data(base_stage.GetRootLayer(), str(base)))
+    data["replacementOf"] = "./" + base.name
+    data["selections"] = dict(selections)
+    layer.customLayerData = {"regnf": data}
+    layer.subLayerPaths.append("./" + base.name)
+    world = Sdf.PrimSpec(layer, "World", Sdf.SpecifierOver, "")
+    parent = Sdf.PrimSpec(world, "Instances", Sdf.SpecifierOver, "")
+    for iid, name in selections.items():
+        prim = L.instance_path(iid)
+        if iid not in scene.instances:
+            raise StageError(base, prim, f"no such instance (instances: {sorted(scene.instances)})")
+        if name not in scene.library:
+            raise StageError(base, prim, f"library object {name!r} is not in the stage's library {sorted(scene.library)}")
+        old = scene.library[scene.instances[iid].library_name].label
+        new = scene.library[name].label
+        spec = Sdf.PrimSpec(parent, iid, Sdf.SpecifierOver, "")
+        if old != new:
+            if not force:
+                raise StageError(base, prim, f"cannot replace a {old} by {name!r}, a {new} (force to allow)")
+            # The other class's slot replaces the reference (an explicit list is the strongest).
+            spec.referenceList.explicitItems = [Sdf.Reference("./" + L.slot_layer(new))]
+        spec.variantSelections[L.VARIANT_SET] = name
+    with file_transaction() as tx:
+        layer.Export(str(tx.temp_path(out)))
+    return out

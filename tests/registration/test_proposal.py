@@ -1,0 +1,104 @@
+"""ProposalBox: construction, corners round trip, similarity mapping, containment."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from registration.proposal import ProposalBox
+
+from .fixtures import placement, rot
+
+
+def test_aabb_basics() -> None:
+    box = ProposalBox.from_aabb(np.array([-1.0, 0.0, 2.0]), np.array([1.0, 4.0, 3.0]))
+    np.testing.assert_allclose(box.center, [0.0, 2.0, 2.5])
+    np.testing.assert_allclose(box.half_extents, [1.0, 2.0, 0.5])
+    np.testing.assert_allclose(box.rotation, np.eye(3))
+    assert box.radius == pytest.approx(np.sqrt(1 + 4 + 0.25))
+    assert box.diagonal == pytest.approx(2 * np.sqrt(5.25))
+    c = box.corners()
+    assert c.shape == (8, 3)
+    np.testing.assert_allclose(c.min(axis=0), [-1.0, 0.0, 2.0])
+    np.testing.assert_allclose(c.max(axis=0), [1.0, 4.0, 3.0])
+
+
+@pytest.mark.parametrize("half", [(0.3, 0.5, 0.7), (0.5, 0.5, 0.5), (1.0, 1.0, 0.01)])
+def test_from_corners_round_trip_any_order(half: tuple[float, float, float]) -> None:
+    # Equal sides (a cube) would defeat a PCA; a thin slab tests the near-degenerate case.
+    R = rot([1.0, 2.0, -0.5], 0.9)
+    box = ProposalBox(np.array([0.3, -1.0, 2.0]), np.array(half), R)
+    corners = box.corners()[np.random.default_rng(3).permutation(8)]
+    back = ProposalBox.from_corners(corners)
+    np.testing.assert_allclose(back.center, box.center, atol=1e-12)
+    # Same box: same corner set and the same points inside.
+    d = np.linalg.norm(back.corners()[:, None] - box.corners()[None], axis=-1)
+    assert d.min(axis=1).max() < 1e-9
+    assert np.linalg.det(back.rotation) == pytest.approx(1.0)
+    pts = np.random.default_rng(0).uniform(-1.5, 1.5, (2000, 3)) + box.center
+    np.testing.assert_array_equal(back.contains(pts), box.contains(pts))
+
+
+def test_from_corners_of_aabb_gives_identity() -> None:
+    box = ProposalBox.from_aabb(np.zeros(3), np.array([1.0, 2.0, 3.0]))
+    back = ProposalBox.from_corners(box.corners()[::-1])
+    np.testing.assert_allclose(back.rotation, np.eye(3), atol=1e-12)
+    np.testing.assert_allclose(back.half_extents, [0.5, 1.0, 1.5])
+
+
+def test_from_corners_rejects_non_boxes() -> None:
+    box = ProposalBox.from_aabb(np.zeros(3), np.ones(3))
+    c = box.corners()
+    with pytest.raises(ValueError, match="8, 3"):
+        ProposalBox.from_corners(c[:7])
+    skewed = c.copy()
+    skewed[:, 0] += 0.3 * skewed[:, 2]  # a parallelepiped, not a box
+    with pytest.raises(ValueError, match="rectangular box"):
+        ProposalBox.from_corners(skewed)
+    flat = c.copy()
+    flat[:, 2] = 0.0  # all corners coplanar
+    with pytest.raises(ValueError, match="rectangular box|same point"):
+        ProposalBox.from_corners(flat)
+    with pytest.raises(ValueError, match="same point"):
+        ProposalBox.from_corners(np.zeros((8, 3)))
+
+
+def test_degenerate_boxes_raise() -> None:
+    with pytest.raises(ValueError, match="hi > lo"):
+        ProposalBox.from_aabb(np.zeros(3), np.array([1.0, 0.0, 1.0]))
+    with pytest.raises(ValueError, match="half extents"):
+        ProposalBox(np.zeros(3), np.array([1.0, -1.0, 1.0]))
+    with pytest.raises(ValueError, match="proper rotation"):
+        ProposalBox(np.zeros(3), np.ones(3), np.diag([1.0, 1.0, -1.0]))
+    with pytest.raises(ValueError, match="center"):
+        ProposalBox(np.array([0.0, np.nan, 0.0]), np.ones(3))
+
+
+def test_transformed_maps_corners_and_containment() -> None:
+    box = ProposalBox(np.array([0.1, 0.2, 0.3]), np.array([0.2, 0.4, 0.6]), rot([0, 0, 1], 0.4))
+    M = placement([1.0, 1.0, 0.0], 1.1, [2.0, -1.0, 0.5], 0.25)
+    moved = box.transformed(M)
+    mapped = box.corners() @ M[:3, :3].T + M[:3, 3]
+    np.testing.assert_allclose(moved.corners(), mapped, atol=1e-12)
+    np.testing.assert_allclose(moved.half_extents, 0.25 * box.half_extents)
+    pts = np.random.default_rng(1).uniform(-1, 1, (3000, 3))
+    np.testing.assert_array_equal(moved.contains(pts @ M[:3, :3].T + M[:3, 3]), box.contains(pts))
+    with pytest.raises(ValueError):
+        box.transformed(np.diag([1.0, 2.0, 1.0, 1.0]))  # non-uniform scale
+
+
+def test_contains_padding() -> None:
+    box = ProposalBox.from_aabb(-np.ones(3), np.ones(3))
+    p = np.array([[1.05, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, -1.2, 0.0]])
+    np.testing.assert_array_equal(box.contains(p), [False, True, False])
+    np.testing.assert_array_equal(box.contains(p, pad_rel=0.1), [True, True, False])
+    np.testing.assert_allclose(box.inflated(0.1).half_extents, 1.1)
+    with pytest.raises(ValueError, match=r"\(n, 3\)"):
+        box.contains(np.zeros(3))
+
+
+def test_json_round_trip() -> None:
+    box = ProposalBox(np.array([1.0, 2.0, 3.0]), np.array([0.1, 0.2, 0.3]), rot([0, 1, 0], 0.3))
+    back = ProposalBox.from_json(box.to_json())
+    for a, b in zip(back, box):
+        np.testing.assert_allclose(a, b)
