@@ -14,13 +14,13 @@ from collections.abc import Callable
 
 import numpy as np
 import torch
-from registration.baselines import register_fgr, register_init_only, register_nerf2nerf
 from tqdm import tqdm
 
 from neural_fields.analytic import Transformed
 from neural_fields.checkpoint import load_field
 from neural_fields.field import Field
 from neural_fields.similarity import similarity_matrix
+from registration.baselines import register_fgr, register_init_only, register_nerf2nerf
 from registration.ground_truth import find_instance, proposal_from_instance, true_scene_to_library
 from registration.metrics import registration_errors
 from registration.register import RegistrationConfig, register, single_hypothesis
@@ -67,7 +67,7 @@ def evaluate(result: RegistrationResult, truth: SimilarityTransform, scene: Fiel
     """Metric columns of one row."""
     errs = registration_errors(
         result.transform, truth, scene_world_scale=scene.world_scale,
-        surface_points_library=surface_lib, diagonal_m=diag_m,
+        library_points=surface_lib, library_diagonal_m=diag_m,
         library_to_world=library.to_world.detach().cpu().double().numpy(), symmetry=library.symmetry,
     )
     return errs._asdict()

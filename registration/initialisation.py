@@ -395,11 +395,30 @@ def initial_hypotheses(
         fit, rmse = _evaluate(prep, M, config)
         cands.append(Hypothesis(T, fit, rmse))
     if not cands:
-        raise ValueError(
+        raise NoHypothesisError(
             "initial registration failed: RANSAC found no transform consistent with the FPFH "
             "matches (too few or too different surface samples?)"
         )
     return _select(cands, config)
+
+
+class NoHypothesisError(ValueError):
+    """RANSAC found no transform at all: the two clouds do not look alike."""
+
+
+def centroid_hypothesis(
+    scene: SurfaceSamples, library: SurfaceSamples, config: InitConfig = InitConfig()
+) -> Hypothesis:
+    """The weakest possible start: centroids aligned, radii matched, no rotation.
+
+    Used when RANSAC finds nothing, so that the refinement still runs and its confidence
+    (not an exception) reports the failed registration.
+    """
+    c_s, r_s = _centre_and_radius(np.asarray(scene.points, np.float64), config)
+    c_l, r_l = _centre_and_radius(np.asarray(library.points, np.float64), config)
+    s = r_l / r_s
+    T = SimilarityTransform(np.eye(3), c_l - s * c_s, float(s))
+    return Hypothesis(T, 0.0, float("inf"))
 
 
 def fgr_baseline(

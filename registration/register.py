@@ -7,7 +7,8 @@ Stages (METHOD.md sections 3-5), each a function with its own config:
 2. scale-aware FPFH + RANSAC + ICP, keeping the best K hypotheses distinct in rotation
    (:mod:`registration.initialisation`);
 3. bidirectional SDF refinement of every hypothesis with the adaptive robust loss
-   (:mod:`registration.refinement`); the one with the lowest final loss wins.
+   (:mod:`registration.refinement`); the one with the most inlier residuals wins (the final
+   NLLs are not comparable: each hypothesis learns its own kernel shape and scale).
 
 The result carries a confidence (the fraction of SDF residuals under a threshold, both
 directions) so that a failed registration is reported, not silently written.
@@ -23,11 +24,16 @@ import numpy as np
 import torch
 
 from neural_fields.field import Field
-from registration.initialisation import InitConfig, initial_hypotheses
+from registration.initialisation import (
+    InitConfig,
+    NoHypothesisError,
+    centroid_hypothesis,
+    initial_hypotheses,
+)
 from registration.proposal import ProposalBox
 from registration.refinement import RefineConfig, refine_many
 from registration.result import HypothesisReport, RegistrationResult
-from registration.sampling import SamplingConfig, sample_surface
+from registration.sampling import SamplingConfig, SurfaceSamples, sample_surface
 
 
 @dataclass
@@ -60,6 +66,24 @@ def check_fields(scene: Field, library: Field) -> None:
         )
 
 
+def sample_pair(
+    scene_field: Field, library_field: Field, proposal: ProposalBox, config: RegistrationConfig
+) -> tuple[SurfaceSamples, SurfaceSamples]:
+    """Stage 1: the scene's surface inside the proposal and the whole library object's."""
+    scene = sample_surface(scene_field, proposal, config.scene_sampling, side="scene")
+    library = sample_surface(library_field, None, config.library_sampling, side="library")
+    return scene, library
+
+
+def sample_tensors(
+    scene: SurfaceSamples, library: SurfaceSamples, device: torch.device
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The sample points as float32 tensors on ``device`` (the refinement's A and B)."""
+    A = torch.as_tensor(scene.points, dtype=torch.float32, device=device)
+    B = torch.as_tensor(library.points, dtype=torch.float32, device=device)
+    return A, B
+
+
 def register(
     scene_field: Field,
     library_field: Field,
@@ -86,19 +110,18 @@ def register(
     check_fields(scene_field, library_field)
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
-    scene_samples = sample_surface(scene_field, proposal, cfg.scene_sampling, side="scene")
-    lib_box = ProposalBox.from_aabb(*library_field.bounds.detach().cpu().double().numpy())
-    lib_samples = sample_surface(library_field, lib_box, cfg.library_sampling, side="library")
+    scene_samples, lib_samples = sample_pair(scene_field, library_field, proposal, cfg)
     timings["sampling"] = time.perf_counter() - t0
 
     t1 = time.perf_counter()
-    hyps = initial_hypotheses(scene_samples, lib_samples, cfg.init)
+    try:
+        hyps = initial_hypotheses(scene_samples, lib_samples, cfg.init)
+    except NoHypothesisError:
+        hyps = [centroid_hypothesis(scene_samples, lib_samples, cfg.init)]
     timings["initialisation"] = time.perf_counter() - t1
 
     t2 = time.perf_counter()
-    dev = library_field.device
-    A = torch.as_tensor(scene_samples.points, dtype=torch.float32, device=dev)
-    B = torch.as_tensor(lib_samples.points, dtype=torch.float32, device=dev)
+    A, B = sample_tensors(scene_samples, lib_samples, library_field.device)
     refined = refine_many(scene_field, library_field, A, B, [h.transform for h in hyps], cfg.refine)
     timings["refinement"] = time.perf_counter() - t2
     timings["total"] = time.perf_counter() - t0
@@ -107,9 +130,14 @@ def register(
         HypothesisReport(h.transform, r.transform, float(h.fitness), float(r.loss), float(r.inlier_fraction))
         for h, r in zip(hyps, refined)
     ]
-    order = np.argsort([r.loss for r in refined])
+    # The adaptive NLL is not comparable across hypotheses (each learns its own alpha and c),
+    # so rank by what is: the fraction of inlier residuals, then the mean residual.
+    order = sorted(
+        range(len(refined)),
+        key=lambda i: (-refined[i].inlier_fraction, refined[i].mean_residual_A + refined[i].mean_residual_B),
+    )
     reports = [reports[i] for i in order]
-    best = refined[int(order[0])]
+    best = refined[order[0]]
     return RegistrationResult(
         transform=best.transform,
         confidence=float(best.inlier_fraction),
@@ -129,6 +157,7 @@ def register(
             "inlier_threshold": getattr(cfg.refine, "inlier_threshold", float("nan")),
         },
         history=list(best.history),
+        samples=(np.asarray(scene_samples.points), np.asarray(lib_samples.points)),
     )
 
 

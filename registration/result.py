@@ -59,6 +59,8 @@ class RegistrationResult:
     """``inlier_threshold`` and ``acceptance_threshold`` used."""
     history: list[dict] = field(default_factory=list)
     """Per-iteration refinement record of the chosen hypothesis (loss, residuals, alpha, c, s)."""
+    samples: tuple[np.ndarray, np.ndarray] | None = None
+    """Scene samples (scene field frame) and library samples (library field frame); not saved."""
 
     @property
     def matrix(self) -> np.ndarray:

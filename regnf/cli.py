@@ -15,7 +15,7 @@ os.environ.setdefault("PYOPENGL_PLATFORM", "egl")  # headless pyrender
 
 def _commands() -> dict[str, type]:
     # Imported lazily so that `regnf --help` answers at once.
-    from benchmarks.cli import BenchEncodings, BenchFields
+    from benchmarks.cli import BenchEncodings, BenchFields, BenchRegistration
     from regnf.commands_fields import Distill, Mesh, Synth, Train
     from regnf.commands_registration import Register
     from regnf.commands_stage import StageAddInstance, StageExport, StageNew, StageShow
@@ -31,6 +31,7 @@ def _commands() -> dict[str, type]:
         "stage show": StageShow,
         "stage export": StageExport,
         "bench fields": BenchFields,
+        "bench registration": BenchRegistration,
         "bench encodings": BenchEncodings,
     }
 

@@ -56,6 +56,10 @@ class Register:
     """Instance id (or library name) in --capture to take the box from."""
     out: Path = Path("registration.json")
     """Where to write the result (JSON)."""
+    stage: Path | None = None
+    """Also write the result as an instance into this USD stage (made by `regnf stage new`)."""
+    force: bool = False
+    """Write into --stage even when the registration was not accepted (flagged as such)."""
     top_k: int | None = None
     """Hypotheses refined (default: the config's; 1 is the paper's method)."""
     device: str = "cpu"
@@ -101,9 +105,20 @@ class Register:
         t = result.transform
         summary = (f"s = {t.s:.4f}, |t| = {np.linalg.norm(t.t):.4f}, confidence {result.confidence:.3f}, "
                    f"{result.timings.get('total', float('nan')):.1f} s -> {self.out}")
+        written = None
+        if self.stage is not None and (result.accepted or self.force):
+            from scene_graph import add_instance_from_registration
+
+            written = add_instance_from_registration(self.stage, payload, force=self.force)
         if result.accepted:
             console.print(f"[green]registered[/] {library.name!r}: {summary}")
+            if written:
+                console.print(f"instance {written!r} written to {self.stage}")
         else:
+            if written:
+                console.print(f"[yellow]forced[/]: instance {written!r} written to {self.stage} (flagged)")
+            elif self.stage is not None:
+                console.print(f"nothing written to {self.stage} (use --force to write it anyway)")
             console.print(
                 f"[red]registration FAILED[/] for {library.name!r}: confidence {result.confidence:.3f} is "
                 f"below the acceptance threshold {result.thresholds['acceptance_threshold']}; "

@@ -1,0 +1,129 @@
+"""End-to-end ``register`` and the baselines on analytic fields with a known similarity."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+
+from neural_fields.analytic import Box, Cylinder, Transformed, Union
+from neural_fields.similarity import similarity_matrix
+from registration.baselines import kabsch, register_fgr, register_init_only, register_nerf2nerf
+from registration.metrics import geodesic_angle
+from registration.proposal import ProposalBox
+from registration.register import RegistrationConfig, register
+from registration.transform import SimilarityTransform
+
+from .fixtures import OBJECT_HI, OBJECT_LO, make_object, make_scene, placement, rot
+
+DIAG = float(np.linalg.norm(OBJECT_HI - OBJECT_LO))
+
+
+def library_at_scale(factor: float):
+    """The test object in a library frame ``factor`` times larger than metres."""
+    return Transformed(make_object(), np.asarray(similarity_matrix(np.eye(3), np.zeros(3), factor)),
+                       name="lib", label="chair")
+
+
+def scene_and_truth(yaw: float, factor: float):
+    """A scene with the object placed by a yaw + translation, and T_gt scene -> library."""
+    M = placement([0, 0, 1], yaw, [0.7, -0.4, 0.0], 1.0)
+    scene = make_scene(M)
+    proposal = ProposalBox.from_corners(
+        (np.array([[x, y, z] for x in (OBJECT_LO[0], OBJECT_HI[0]) for y in (OBJECT_LO[1], OBJECT_HI[1])
+                   for z in (OBJECT_LO[2], OBJECT_HI[2])]) @ M[:3, :3].T) + M[:3, 3]
+    )
+    S = np.asarray(similarity_matrix(np.eye(3), np.zeros(3), factor))
+    truth = SimilarityTransform.from_matrix(S @ np.linalg.inv(M))
+    return scene, proposal, truth
+
+
+def errors(T: SimilarityTransform, truth: SimilarityTransform) -> tuple[float, float, float]:
+    rot_err = geodesic_angle(truth.R.T @ T.R)
+    centre = truth.apply(((OBJECT_LO + OBJECT_HI) / 2)[None])[0]
+    # Translation error: where the two transforms put the object's centre, in metres.
+    trans = np.linalg.norm(T.inverse().apply(centre[None]) - truth.inverse().apply(centre[None])) / DIAG
+    return float(rot_err), float(trans), abs(T.s / truth.s - 1.0)
+
+
+@pytest.mark.parametrize("factor", [0.25, 1.0, 4.0])
+def test_register_recovers_a_known_similarity_at_any_library_scale(factor: float) -> None:
+    scene, proposal, truth = scene_and_truth(2.3, factor)
+    result = register(scene, library_at_scale(factor), proposal)
+    r, t, s = errors(result.transform, truth)
+    assert r < 0.02 and t < 0.01 and s < 0.01, (r, t, s)
+    assert result.accepted and result.confidence > 0.9
+    assert set(result.timings) >= {"sampling", "initialisation", "refinement", "total"}
+    assert result.hypotheses and result.hypotheses[0].confidence == result.confidence
+
+
+def test_wrong_object_is_detected() -> None:
+    # A table-like object (slab on one pillar) in the proposal, the chair-like object as library.
+    table = Union(Box(half_extents=(0.4, 0.4, 0.03), center=(0.0, 0.0, 0.72)),
+                  Cylinder(radius=0.06, half_height=0.35, center=(0.0, 0.0, 0.35)),
+                  Box(half_extents=(3.0, 3.0, 0.05), center=(0.0, 0.0, -0.05)))
+    proposal = ProposalBox.from_aabb(np.array([-0.4, -0.4, 0.0]), np.array([0.4, 0.4, 0.75]))
+    result = register(table, library_at_scale(1.0), proposal)
+    assert not result.accepted
+    assert result.confidence < RegistrationConfig().acceptance_threshold
+
+
+def test_empty_proposal_box_raises() -> None:
+    scene, _, _ = scene_and_truth(0.5, 1.0)
+    empty = ProposalBox.from_aabb(np.array([2.0, 2.0, 0.5]), np.array([2.5, 2.5, 1.0]))
+    with pytest.raises(ValueError, match="no surface"):
+        register(scene, library_at_scale(1.0), empty)
+
+
+def test_non_finite_field_raises() -> None:
+    scene, proposal, _ = scene_and_truth(0.5, 1.0)
+
+    class Broken(type(scene)):
+        def sdf(self, x: torch.Tensor) -> torch.Tensor:
+            return torch.full_like(x[:, 0], float("nan"))
+
+    broken = Broken.__new__(Broken)
+    broken.__dict__.update(scene.__dict__)
+    with pytest.raises(ValueError, match="non-finite"):
+        register(broken, library_at_scale(1.0), proposal)
+
+
+def test_mismatched_devices_raise() -> None:
+    scene, proposal, _ = scene_and_truth(0.5, 1.0)
+    lib = library_at_scale(1.0).to("meta")
+    with pytest.raises(ValueError, match="device"):
+        register(scene, lib, proposal)
+
+
+def test_baselines_run_and_nerf2nerf_keeps_unit_scale() -> None:
+    scene, proposal, truth = scene_and_truth(1.0, 1.0)
+    lib = library_at_scale(1.0)
+    cfg = RegistrationConfig()
+    # Keypoints are picked among these library points: the corners of the base slab.
+    surface = np.array([[x, y, z] for x in (-0.4, 0.4) for y in (-0.25, 0.25) for z in (0.0, 0.1)])
+    n2n = register_nerf2nerf(scene, lib, proposal, cfg, truth, surface, keypoint_noise_rel=0.0)
+    assert n2n.transform.s == pytest.approx(1.0)
+    r, t, _ = errors(n2n.transform, truth)
+    assert r < 0.05 and t < 0.05, (r, t)
+    init = register_init_only(scene, lib, proposal, cfg)
+    fgr = register_fgr(scene, lib, proposal, cfg)
+    assert init.method == "regnf-init" and fgr.method == "fgr"
+    assert 0.0 <= init.confidence <= 1.0 and 0.0 <= fgr.confidence <= 1.0
+
+
+def test_kabsch_recovers_a_rigid_transform() -> None:
+    R = rot([0.3, -0.5, 0.8], 1.1)
+    src = np.random.default_rng(0).normal(size=(6, 3))
+    dst = src @ R.T + np.array([0.2, -1.0, 3.0])
+    T = kabsch(src, dst)
+    assert np.allclose(T.R, R, atol=1e-12) and np.allclose(T.t, [0.2, -1.0, 3.0], atol=1e-12)
+
+
+def test_single_hypothesis_config_refines_one() -> None:
+    from registration.register import single_hypothesis
+
+    cfg = single_hypothesis(RegistrationConfig())
+    assert cfg.init.top_k == 1
+    assert dataclasses.replace(cfg).init.top_k == 1
