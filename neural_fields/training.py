@@ -14,7 +14,9 @@ every scale:
   touched once in a while, and Adam turns any such tiny gradient into a full-size step:
   that left ~30 one-voxel floaters in free space per object; surface-only leaves none;
 - normals: grad S parallel to the depth-derived normal;
-- colour: L1 between the colour head at surface points and the observed pixel.
+- colour: L1 between the colour head at surface points and the observed pixel;
+- optionally (``w_volume_color > 0``), NeuS volume rendering: L1 between the colour
+  volume-rendered along a training ray (near its observed depth) and the pixel.
 """
 
 from __future__ import annotations
@@ -35,6 +37,7 @@ from neural_fields.field import FieldInfo
 from neural_fields.neural_sdf import NeuralSDF, NeuralSDFConfig
 from neural_fields.optim import finest_voxel, lr_factor, make_optimizer
 from neural_fields.rgbd_samples import CaptureLike, RGBDSamples, build_samples, ray_box_interval
+from neural_fields.volume_render import render_rays_neus
 
 
 @dataclass
@@ -75,6 +78,16 @@ class RGBDTrainConfig:
     """Weight of the normal loss."""
     w_color: float = 1.0
     """Weight of the colour loss."""
+    w_volume_color: float = 0.0
+    """Weight of the optional NeuS volume-rendering colour loss (0: off)."""
+    volume_rays: int = 256
+    """Rays per step for the volume-rendering colour loss."""
+    volume_samples: int = 32
+    """Samples per ray, within +-volume_band_m of the observed depth."""
+    volume_band_m: float = 0.05
+    """Half-width of the rendered interval around the observed surface, metres."""
+    volume_inv_s: float = 400.0
+    """NeuS sharpness s (in 1/field units): the logistic density's inverse width."""
     bounds_margin: float = 0.08
     """Field bounds: the observed points' box grown by this fraction of its size per side."""
     seed: int = 0
@@ -274,6 +287,18 @@ def train_rgbd(
             cfg.w_surface * loss_surface + cfg.w_near * loss_near + cfg.w_free * loss_free
             + cfg.w_eikonal * loss_eik + cfg.w_normal * loss_normal + cfg.w_color * loss_color
         )
+        loss_volume = torch.zeros((), device=device)
+        if cfg.w_volume_color > 0:
+            vi = randint(m, cfg.volume_rays)
+            vo, vp, vt = s.origins[vi], s.points[vi], s.ray_t[vi]
+            vd = (vp - vo) / vt[:, None]
+            band = cfg.volume_band_m / scale
+            rendered, _ = render_rays_neus(
+                model, vo, vd, (vt - band).clamp_min(0.0), vt + band, cfg.volume_samples,
+                cfg.volume_inv_s, gen,
+            )
+            loss_volume = (rendered - s.colors[vi]).abs().mean()
+            loss = loss + cfg.w_volume_color * loss_volume
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
@@ -283,6 +308,7 @@ def train_rgbd(
                 "near": float(loss_near.detach()), "free": float(loss_free.detach()),
                 "eikonal": float(loss_eik.detach()),
                 "normal": float(loss_normal.detach()), "color": float(loss_color.detach()),
+                "volume_color": float(loss_volume.detach()),
             }
             log.losses.append(entry)
             bar.set_postfix(surf=f"{entry['surface']:.3f}", col=f"{entry['color']:.3f}")

@@ -20,6 +20,8 @@ import json
 import os
 from pathlib import Path
 
+import trimesh
+
 from neural_fields.checkpoint import save_field
 from neural_fields.distill import DistillConfig, distill_mesh
 from neural_fields.field import FieldInfo, Symmetry
@@ -125,17 +127,18 @@ class Cache:
         obj = make_library_object(name)
         # Distil the mesh as the captures show it (the same baked Lambertian shading), so that
         # a field from either source has the colours a capture of the object has.
-        mesh = shaded_copy(obj.mesh)
-        mesh_sha = hashlib.sha256(
-            mesh.vertices.tobytes() + mesh.faces.tobytes() + mesh.visual.face_colors.tobytes()
-        ).hexdigest()
-        path = self.root / "fields" / f"{name}-mesh-{config_key(config, mesh_sha)}.safetensors"
+        info = FieldInfo(label=obj.label, name=name, symmetry=Symmetry(obj.symmetry_order))
+        return self.distilled_field(shaded_copy(obj.mesh), info, config)
+
+    def distilled_field(self, mesh: trimesh.Trimesh, info: FieldInfo, config: DistillConfig) -> Path:
+        """Checkpoint of a field distilled from ``mesh`` (distilled if missing)."""
+        colors = mesh.visual.face_colors.tobytes() if mesh.visual.kind == "face" else b""
+        mesh_sha = hashlib.sha256(mesh.vertices.tobytes() + mesh.faces.tobytes() + colors).hexdigest()
+        key = config_key(config, mesh_sha, info.label, info.name, info.symmetry.order)
+        path = self.root / "fields" / f"{info.name or 'mesh'}-mesh-{key}.safetensors"
         if path.is_file():
             return path
-        info = FieldInfo(
-            label=obj.label, name=name, symmetry=Symmetry(obj.symmetry_order),
-            provenance={"source": "mesh", "mesh_sha256": mesh_sha},
-        )
+        info.provenance = {**info.provenance, "source": "mesh", "mesh_sha256": mesh_sha}
         field, _ = distill_mesh(mesh, config, info=info, progress=self.progress)
         return save_field(field, path)
 

@@ -10,19 +10,28 @@ from typing import Literal
 import torch
 from rich.console import Console
 
-from neural_fields.checkpoint import load_field, save_field
-from neural_fields.distill import distill_mesh
+from neural_fields.checkpoint import load_field
 from neural_fields.field import FieldInfo, Symmetry
 from neural_fields.meshing import extract_mesh, save_mesh
 from neural_fields.presets import object_mesh_preset, object_rgbd_preset, scene_rgbd_preset
-from neural_fields.training import train_rgbd
 from regnf.cache import Cache, capture_info, default_cache_dir
+from synthetic.atomic_io import write_bytes
 from synthetic.capture import ObjectCaptureConfig, RoomCaptureConfig, capture_object, capture_room
 from synthetic.library import LIBRARY_NAMES
 from synthetic.rooms import ROOM_NAMES
 from synthetic.sdfstudio_format import load_capture
 
 console = Console(stderr=True)
+
+
+def copy_out(path: Path, out: Path | None) -> None:
+    """Copy a cached checkpoint to ``out`` (atomically), if asked."""
+    if out is None:
+        return
+    if out.suffix != ".safetensors":
+        raise SystemExit(f"{out}: checkpoints are .safetensors files")
+    write_bytes(out, path.read_bytes())
+    console.print(f"-> {out}")
 
 
 @dataclass
@@ -69,8 +78,8 @@ class Train:
 
     capture: Path
     """Folder holding meta_data.json (ours, or a real sdfstudio / ONR download)."""
-    out: Path
-    """Checkpoint to write (.safetensors)."""
+    out: Path | None = None
+    """Also copy the checkpoint here (.safetensors); it is kept in the cache either way."""
     preset: Literal["object", "scene"] = "object"
     """Architecture and schedule: a library object or a room seen from inside."""
     steps: int | None = None
@@ -79,6 +88,8 @@ class Train:
     """Seed of initialisation and sampling (training is deterministic on CPU)."""
     device: str = "cpu"
     """Torch device, e.g. cpu or cuda."""
+    cache_dir: Path = dataclasses.field(default_factory=default_cache_dir)
+    """Cache directory: the same data and settings are never trained twice."""
 
     def run(self) -> None:
         capture = load_capture(self.capture)
@@ -86,9 +97,9 @@ class Train:
         cfg = preset(self.device, self.seed)
         if self.steps is not None:
             cfg = dataclasses.replace(cfg, steps=self.steps)
-        field, log = train_rgbd(capture, cfg, info=capture_info(capture))
-        save_field(field, self.out)
-        console.print(f"trained {field.name!r} in {log.seconds:.1f} s -> {self.out}")
+        path = Cache(self.cache_dir).rgbd_field(capture, cfg)
+        console.print(f"field {capture_info(capture).name!r}: {path}")
+        copy_out(path, self.out)
 
 
 @dataclass
@@ -97,8 +108,8 @@ class Distill:
 
     mesh: Path
     """Input mesh (.ply, .obj, .glb, .stl...), metres, watertight."""
-    out: Path
-    """Checkpoint to write (.safetensors)."""
+    out: Path | None = None
+    """Also copy the checkpoint here (.safetensors); it is kept in the cache either way."""
     label: str = "object"
     """Semantic class, e.g. chair."""
     name: str = ""
@@ -109,6 +120,8 @@ class Distill:
     """Override the number of optimisation steps."""
     device: str = "cpu"
     """Torch device."""
+    cache_dir: Path = dataclasses.field(default_factory=default_cache_dir)
+    """Cache directory: the same mesh and settings are never distilled twice."""
 
     def run(self) -> None:
         import trimesh
@@ -123,13 +136,13 @@ class Distill:
         if self.steps is not None:
             cfg = dataclasses.replace(cfg, steps=self.steps)
         info = FieldInfo(label=self.label, name=self.name or self.mesh.stem,
-                         symmetry=Symmetry(self.symmetry), provenance={"source": "mesh", "mesh": str(self.mesh)})
+                         symmetry=Symmetry(self.symmetry), provenance={"mesh": str(self.mesh)})
         try:
-            field, log = distill_mesh(mesh, cfg, info=info)
+            path = Cache(self.cache_dir).distilled_field(mesh, info, cfg)
         except ValueError as exc:
             raise SystemExit(f"{self.mesh}: {exc}") from exc
-        save_field(field, self.out)
-        console.print(f"distilled {info.name!r} in {log['seconds']:.1f} s -> {self.out}")
+        console.print(f"field {info.name!r}: {path}")
+        copy_out(path, self.out)
 
 
 @dataclass

@@ -7,13 +7,12 @@ import zipfile
 
 import numpy as np
 import pytest
+import tinyusdz  # the second, independent USD reader (a dev dependency)
 from pxr import Usd, UsdGeom
 
 from scene_graph import add_instance, export_stage
 
 from .helpers import make_stage, similarity
-
-tinyusdz = pytest.importorskip("tinyusdz")
 
 
 @pytest.fixture(scope="module")

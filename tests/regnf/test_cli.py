@@ -1,0 +1,73 @@
+"""The ``regnf`` command line: help, the cache (nothing made twice), train / distill / mesh."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import trimesh
+
+from neural_fields.checkpoint import load_field
+from regnf.cli import main
+from tests.neural_fields.capture_helpers import write_analytic_capture
+
+
+def test_help_lists_every_command(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["--help"]) == 0
+    out = capsys.readouterr().out
+    for cmd in ("synth", "train", "distill", "mesh", "register", "bench fields", "bench registration"):
+        assert cmd in out
+
+
+def test_unknown_command_is_an_error(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["no-such-command"]) == 2
+    assert "unknown command" in capsys.readouterr().err
+
+
+def test_command_help_explains_options(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as done:
+        main(["train", "--help"])
+    assert done.value.code == 0
+    out = capsys.readouterr().out
+    assert "--cache-dir" in out and "Cache directory" in out
+
+
+def test_distill_uses_the_cache_and_meshes(tmp_path: Path) -> None:
+    box = trimesh.creation.box(extents=(0.4, 0.3, 0.2))
+    box.apply_translation((0.0, 0.0, 0.1))
+    mesh_path = tmp_path / "box.ply"
+    box.export(mesh_path)
+    cache = tmp_path / "cache"
+    args = ["distill", "--mesh", str(mesh_path), "--steps", "5", "--label", "box", "--cache-dir", str(cache)]
+    assert main([*args, "--out", str(tmp_path / "a.safetensors")]) == 0
+    made = sorted((cache / "fields").glob("*.safetensors"))
+    assert len(made) == 1
+    stamp = made[0].stat().st_mtime_ns
+    # Same mesh, same settings: reused, not distilled again.
+    assert main([*args, "--out", str(tmp_path / "b.safetensors")]) == 0
+    assert sorted((cache / "fields").glob("*.safetensors")) == made
+    assert made[0].stat().st_mtime_ns == stamp
+    assert (tmp_path / "a.safetensors").read_bytes() == made[0].read_bytes() == (tmp_path / "b.safetensors").read_bytes()
+    assert load_field(tmp_path / "a.safetensors").label == "box"
+    # A different setting is a different field.
+    assert main([*args[:-2], "--steps", "6", "--cache-dir", str(cache)]) == 0
+    assert len(list((cache / "fields").glob("*.safetensors"))) == 2
+    assert main(["mesh", "--field", str(made[0]), "--out", str(tmp_path / "m.ply"), "--resolution", "32"]) == 0
+    assert len(trimesh.load(tmp_path / "m.ply").faces) > 0
+
+
+def test_distill_rejects_a_missing_mesh(tmp_path: Path) -> None:
+    with pytest.raises(SystemExit, match="no such mesh file"):
+        main(["distill", "--mesh", str(tmp_path / "nope.ply"), "--cache-dir", str(tmp_path)])
+
+
+def test_train_from_a_capture_folder(tmp_path: Path) -> None:
+    capture = write_analytic_capture(tmp_path / "cap")
+    root = capture.root
+    cache = tmp_path / "cache"
+    args = ["train", "--capture", str(root), "--steps", "3", "--cache-dir", str(cache)]
+    assert main([*args, "--out", str(tmp_path / "f.safetensors")]) == 0
+    field = load_field(tmp_path / "f.safetensors")
+    assert field.info.provenance["trained_from"] == "rgbd"
+    assert main(args) == 0  # reused
+    assert len(list((cache / "fields").glob("*.safetensors"))) == 1
