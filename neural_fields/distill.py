@@ -18,10 +18,13 @@ import trimesh
 from tqdm import tqdm
 
 from neural_fields.field import FieldInfo
-from neural_fields.neural_sdf import NeuralSDF, NeuralSDFConfig
+from neural_fields.neural_sdf import (
+    NeuralSDF,
+    NeuralSDFConfig,
+    tetrahedral_combine,
+    tetrahedral_points,
+)
 from neural_fields.optim import finest_voxel, lr_factor, make_optimizer
-
-_TETRA = [[1.0, -1.0, -1.0], [-1.0, -1.0, 1.0], [-1.0, 1.0, -1.0], [1.0, 1.0, 1.0]]
 
 
 @dataclass
@@ -131,7 +134,6 @@ def distill_mesh(
     S_nrm = torch.from_numpy(nrm.astype(np.float32)).to(device)
     S_col = torch.from_numpy(col.astype(np.float32)).to(device)
     n_near = near.shape[0]
-    kt = torch.tensor(_TETRA, device=device)
     gen = torch.Generator().manual_seed(cfg.seed)
     opt = make_optimizer(model, cfg.lr_grid, cfg.lr_mlp)
     base = [g["lr"] for g in opt.param_groups]
@@ -147,13 +149,12 @@ def distill_mesh(
         si = torch.randint(S_pts.shape[0], (ns,), generator=gen).to(device)
         x, target = P[ii], SD[ii]
         xs = S_pts[si]
-        fd = (torch.cat([xs, x[-nu:]])[:, None, :] + h_fd * kt[None]).reshape(-1, 3)
+        fd = tetrahedral_points(torch.cat([xs, x[-nu:]]), h_fd)
         f_all, feat_all = model.sdf_and_features(torch.cat([x, xs, fd]))
         f_x = f_all[: x.shape[0]]
         f_s = f_all[x.shape[0] : x.shape[0] + ns]
         feat_s = feat_all[x.shape[0] : x.shape[0] + ns]
-        v = f_all[x.shape[0] + ns :].view(-1, 4)
-        grads = (v[..., None] * kt[None]).sum(1) / (4.0 * h_fd)
+        grads, _ = tetrahedral_combine(f_all[x.shape[0] + ns :], h_fd)
         g_s = grads[:ns]
         loss_sdf = (f_x - target).abs().mean() / ell + f_s.abs().mean() / ell
         loss_eik = ((grads.norm(dim=-1) - 1.0) ** 2).mean()

@@ -34,7 +34,12 @@ import torch.nn.functional as F
 from tqdm import tqdm
 
 from neural_fields.field import FieldInfo
-from neural_fields.neural_sdf import NeuralSDF, NeuralSDFConfig
+from neural_fields.neural_sdf import (
+    NeuralSDF,
+    NeuralSDFConfig,
+    tetrahedral_combine,
+    tetrahedral_points,
+)
 from neural_fields.optim import finest_voxel, lr_factor, make_optimizer
 from neural_fields.rgbd_samples import CaptureLike, RGBDSamples, build_samples, ray_box_interval
 from neural_fields.volume_render import render_rays_neus
@@ -254,18 +259,13 @@ def train_rgbd(
         xu = bounds_d[0] + rand(cfg.batch_eikonal * 3).view(-1, 3) * (bounds_d[1] - bounds_d[0])
 
         # -- one batched forward pass over every sample --------------------------------------
-        kt = torch.tensor(
-            [[1.0, -1.0, -1.0], [-1.0, -1.0, 1.0], [-1.0, 1.0, -1.0], [1.0, 1.0, 1.0]], device=device
-        )
-        fd_centres = torch.cat([xs, xu])
-        fd_pts = (fd_centres[:, None, :] + h_fd * kt[None]).reshape(-1, 3)
+        fd_pts = tetrahedral_points(torch.cat([xs, xu]), h_fd)
         direct = torch.cat([xs, xs_all, xn, xf, xe_free])
         sdf_all, feat_all = model.sdf_and_features(torch.cat([direct, fd_pts]))
         sizes = [ns, ns, ns, xf.shape[0], xe_free.shape[0]]
         f_s, f_sa, f_n, f_f, f_e = torch.split(sdf_all[: direct.shape[0]], sizes)
         feat_s = feat_all[:ns]
-        v = sdf_all[direct.shape[0]:].view(-1, 4)
-        grads = (v[..., None] * kt[None]).sum(1) / (4.0 * h_fd)
+        grads, f_mean = tetrahedral_combine(sdf_all[direct.shape[0]:], h_fd)
         g_s = grads[:ns]
 
         loss_surface = (f_s.abs().mean() + f_sa.abs().mean()) * 0.5 / ell
@@ -278,7 +278,7 @@ def train_rgbd(
         loss_eik = ((gnorm[: (ns if cfg.eikonal_surface_only else None)] - 1.0) ** 2).mean()
         # Uniform points seen as empty by a random view: the tetrahedron's mean is their SDF.
         seen_free = views.seen_free(xu, margin, randint(views.count, xu.shape[0]))
-        f_u = v[ns:].mean(dim=1)
+        f_u = f_mean[ns:]
         loss_free = loss_free + (F.relu(-f_u) * seen_free).mean() / ell
         loss_normal = (1.0 - F.cosine_similarity(g_s, nrm, dim=-1)).mean()
         rgb = model.color_from(feat_s, F.normalize(g_s.detach(), dim=-1), None)

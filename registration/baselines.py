@@ -17,15 +17,17 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from collections.abc import Callable
 
 import numpy as np
 
 from neural_fields.field import Field
-from registration.initialisation import fgr_baseline, initial_hypotheses
+from registration.initialisation import Hypothesis, fgr_baseline, initial_hypotheses
 from registration.proposal import ProposalBox
 from registration.refinement import RefineResult, refine
 from registration.register import RegistrationConfig, check_fields, sample_pair, sample_tensors
 from registration.result import HypothesisReport, RegistrationResult
+from registration.sampling import SurfaceSamples
 from registration.transform import SimilarityTransform
 
 
@@ -56,36 +58,37 @@ def _score(scene: Field, library: Field, A, B, T: SimilarityTransform, cfg: Regi
     return refine(scene, library, A, B, T, dataclasses.replace(cfg.refine, max_iterations=0))
 
 
-def register_init_only(scene: Field, library: Field, proposal: ProposalBox,
-                       config: RegistrationConfig | None = None) -> RegistrationResult:
-    """Reg-NF-init: the best initial hypothesis, not refined."""
-    cfg = config or RegistrationConfig()
+def _one_hypothesis(method: str, scene: Field, library: Field, proposal: ProposalBox,
+                    cfg: RegistrationConfig, make: Callable[[SurfaceSamples, SurfaceSamples], Hypothesis],
+                    ) -> RegistrationResult:
+    """Sample, make one hypothesis with ``make``, score it without refining."""
     check_fields(scene, library)
     t0 = time.perf_counter()
     ss, ls = sample_pair(scene, library, proposal, cfg)
     t1 = time.perf_counter()
-    best = initial_hypotheses(ss, ls, dataclasses.replace(cfg.init, top_k=1))[0]
+    hyp = make(ss, ls)
     t2 = time.perf_counter()
     A, B = sample_tensors(ss, ls, library.device)
     timings = {"sampling": t1 - t0, "initialisation": t2 - t1, "total": t2 - t0}
-    return _result("regnf-init", best.transform, _score(scene, library, A, B, best.transform, cfg),
-                   cfg, proposal, timings, float(best.fitness), samples=(ss.points, ls.points))
+    return _result(method, hyp.transform, _score(scene, library, A, B, hyp.transform, cfg),
+                   cfg, proposal, timings, float(hyp.fitness), samples=(ss.points, ls.points))
+
+
+def register_init_only(scene: Field, library: Field, proposal: ProposalBox,
+                       config: RegistrationConfig | None = None) -> RegistrationResult:
+    """Reg-NF-init: the best initial hypothesis, not refined."""
+    cfg = config or RegistrationConfig()
+    init = dataclasses.replace(cfg.init, top_k=1)
+    return _one_hypothesis("regnf-init", scene, library, proposal, cfg,
+                           lambda ss, ls: initial_hypotheses(ss, ls, init)[0])
 
 
 def register_fgr(scene: Field, library: Field, proposal: ProposalBox,
                  config: RegistrationConfig | None = None) -> RegistrationResult:
     """FGR on the same samples and features (rigid; scale from the radius pre-estimate)."""
     cfg = config or RegistrationConfig()
-    check_fields(scene, library)
-    t0 = time.perf_counter()
-    ss, ls = sample_pair(scene, library, proposal, cfg)
-    t1 = time.perf_counter()
-    hyp = fgr_baseline(ss, ls, cfg.init)
-    t2 = time.perf_counter()
-    A, B = sample_tensors(ss, ls, library.device)
-    timings = {"sampling": t1 - t0, "initialisation": t2 - t1, "total": t2 - t0}
-    return _result("fgr", hyp.transform, _score(scene, library, A, B, hyp.transform, cfg),
-                   cfg, proposal, timings, float(hyp.fitness), samples=(ss.points, ls.points))
+    return _one_hypothesis("fgr", scene, library, proposal, cfg,
+                           lambda ss, ls: fgr_baseline(ss, ls, cfg.init))
 
 
 def spread_keypoints(points: np.ndarray, n: int) -> np.ndarray:
