@@ -32,8 +32,8 @@ from synthetic.library import make_library_object
 from synthetic.sdfstudio_format import Capture, load_capture
 from synthetic.shading import shaded_copy
 
-CACHE_VERSION = 1
-"""Bump when the meaning of cached data changes."""
+CACHE_VERSION = 2
+"""Bump when the meaning of cached data changes (including a changed default setting)."""
 
 
 def default_cache_dir() -> Path:
@@ -41,19 +41,42 @@ def default_cache_dir() -> Path:
     return Path(os.environ.get("REGNF_CACHE", "~/.cache/regnf")).expanduser()
 
 
-def config_key(*parts: object) -> str:
-    """A short stable hash of JSON-serialisable parts (dataclasses allowed)."""
-    def plain(x: object) -> object:
-        return dataclasses.asdict(x) if dataclasses.is_dataclass(x) else x
+def non_default(config: object) -> object:
+    """The fields of a (nested) dataclass that differ from their defaults.
 
-    text = json.dumps([CACHE_VERSION, *[plain(p) for p in parts]], sort_keys=True, default=str)
+    Keying the cache on these only means that adding an option whose default keeps the old
+    behaviour does not invalidate every trained field; changing a default's meaning must
+    bump :data:`CACHE_VERSION` instead.
+    """
+    if not dataclasses.is_dataclass(config):
+        return config
+    out = {}
+    for f in dataclasses.fields(config):
+        value = getattr(config, f.name)
+        if f.default is not dataclasses.MISSING:
+            default = f.default
+        elif f.default_factory is not dataclasses.MISSING:  # type: ignore[misc]
+            default = f.default_factory()  # type: ignore[misc]
+        else:
+            default = dataclasses.MISSING
+        if dataclasses.is_dataclass(value):
+            nested = non_default(value)
+            if nested:
+                out[f.name] = nested
+        elif default is dataclasses.MISSING or value != default:
+            out[f.name] = value
+    return out
+
+
+def config_key(*parts: object) -> str:
+    """A short stable hash of JSON-serialisable parts (dataclasses: their non-default fields)."""
+    text = json.dumps([CACHE_VERSION, *[non_default(p) for p in parts]], sort_keys=True, default=str)
     return hashlib.sha256(text.encode()).hexdigest()[:12]
 
 
-def _without_progress(config: object) -> dict:
-    data = dataclasses.asdict(config)
-    data.pop("progress", None)
-    return data
+def _without_progress(config: object) -> object:
+    # Whether a progress bar was shown does not change what was made.
+    return dataclasses.replace(config, progress=True)
 
 
 def capture_info(capture: Capture) -> FieldInfo:

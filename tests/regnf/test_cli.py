@@ -71,3 +71,18 @@ def test_train_from_a_capture_folder(tmp_path: Path) -> None:
     assert field.info.provenance["trained_from"] == "rgbd"
     assert main(args) == 0  # reused
     assert len(list((cache / "fields").glob("*.safetensors"))) == 1
+
+
+def test_cache_keys_ignore_new_options_left_at_their_default() -> None:
+    import dataclasses
+
+    from neural_fields.presets import object_rgbd_preset
+    from neural_fields.training import RGBDTrainConfig
+    from regnf.cache import config_key
+
+    cfg = object_rgbd_preset()
+    assert config_key(cfg) == config_key(dataclasses.replace(cfg))
+    assert config_key(cfg) != config_key(dataclasses.replace(cfg, steps=cfg.steps + 1))
+    assert config_key(cfg) != config_key(dataclasses.replace(cfg, w_volume_color=0.5))
+    # An option at its default contributes nothing to the key.
+    assert config_key(RGBDTrainConfig()) == config_key(RGBDTrainConfig(w_volume_color=0.0))
