@@ -8,6 +8,7 @@ fields and composites alike.
 
 from __future__ import annotations
 
+import abc
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -57,7 +58,7 @@ class FieldInfo:
     """Free-form JSON-serialisable record of how the field was made."""
 
 
-class Field(torch.nn.Module):
+class Field(torch.nn.Module, metaclass=abc.ABCMeta):
     """Base class of all signed-distance fields.
 
     Subclasses implement :meth:`sdf` and :meth:`color` on batched points and set
@@ -93,6 +94,7 @@ class Field(torch.nn.Module):
         self.info = info or FieldInfo()
 
     # -- the two methods a field must provide -------------------------------------------
+    @abc.abstractmethod
     def sdf(self, x: torch.Tensor) -> torch.Tensor:
         """Signed distance in field-frame units.
 
@@ -105,11 +107,12 @@ class Field(torch.nn.Module):
         -------
         (n,) float
         """
-        raise NotImplementedError(f"{type(self).__name__} must implement sdf()")
+        ...
 
+    @abc.abstractmethod
     def color(self, x: torch.Tensor, d: torch.Tensor | None = None) -> torch.Tensor:
         """RGB in [0, 1] at points ``x`` (n, 3) seen along unit directions ``d`` (n, 3)."""
-        raise NotImplementedError(f"{type(self).__name__} must implement color()")
+        ...
 
     # -- shared behaviour -----------------------------------------------------------------
     @property

@@ -409,15 +409,14 @@ def sample_surface(
 
 
 def _same_device(a: torch.device, b: torch.device) -> bool:
-    """``cuda`` and ``cuda:0`` are the same device when 0 is the current one."""
+    """Whether two devices are one (an index-less device means the backend's current one)."""
     if a.type != b.type:
         return False
-    if a.type == "cuda":
-        cur = torch.cuda.current_device()
-        return (a.index if a.index is not None else cur) == (
-            b.index if b.index is not None else cur
-        )
-    return True
+    if a.index is None and b.index is None or a.index == b.index:
+        return True
+    module = getattr(torch, a.type, None)  # e.g. torch.cuda for accelerators
+    current = module.current_device() if module is not None and hasattr(module, "current_device") else 0
+    return (a.index if a.index is not None else current) == (b.index if b.index is not None else current)
 
 
 def _empty_message(field: Field, why: str) -> str:

@@ -270,6 +270,9 @@ class _Trainable(Field):
     def sdf(self, x: torch.Tensor) -> torch.Tensor:
         return self.child.sdf(x) + self.offset
 
+    def color(self, x: torch.Tensor, d: torch.Tensor | None = None) -> torch.Tensor:
+        return self.child.color(x, d)
+
 
 def test_field_parameters_get_no_gradient(problem: dict) -> None:
     lib = _Trainable(make_library())

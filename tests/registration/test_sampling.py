@@ -180,6 +180,9 @@ class NaNField(Field):
     def sdf(self, x: torch.Tensor) -> torch.Tensor:
         return torch.full((x.shape[0],), float("nan"), dtype=x.dtype)
 
+    def color(self, x: torch.Tensor, d: torch.Tensor | None = None) -> torch.Tensor:
+        return torch.full((x.shape[0], 3), 0.5, dtype=x.dtype)
+
 
 def test_non_finite_field_raises() -> None:
     box = ProposalBox.from_aabb(-0.5 * np.ones(3), 0.5 * np.ones(3))
