@@ -8,7 +8,6 @@ in the checkpoint), and ``cached`` says so.
 
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 
@@ -45,7 +44,7 @@ def eval_throughput(field: Field, n: int = 262_144, chunk: int = 65_536) -> tupl
 
 
 def measure(field: Field, path: Path, kind: str, source: str, name: str, gt_meshes, capture,
-            seconds: float | None, cached: bool) -> tuple[dict, list[np.ndarray]]:
+            cached: bool) -> tuple[dict, list[np.ndarray]]:
     """One benchmark row for a trained field, plus its held-out renders."""
     err = surface_error(field, gt_meshes)
     chamfer = chamfer_relative(field, gt_meshes)
@@ -56,7 +55,7 @@ def measure(field: Field, path: Path, kind: str, source: str, name: str, gt_mesh
         "name": name,
         "kind": kind,
         "source": source,
-        "train_seconds": round(float(seconds if seconds is not None else prov.get("train_seconds", float("nan"))), 2),
+        "train_seconds": round(float(prov.get("train_seconds", float("nan"))), 2),
         "surface_error_mean_rel": err.mean_rel,
         "surface_error_p95_rel": err.p95_rel,
         "chamfer_rel": chamfer,
@@ -70,7 +69,6 @@ def measure(field: Field, path: Path, kind: str, source: str, name: str, gt_mesh
 
 def run_fields_benchmark(cache: Cache, quick: bool = False, device: str = "cpu") -> tuple[list[dict], dict]:
     """Train (or reuse) and measure every field; returns rows and held-out renders per row."""
-    torch.set_num_threads(max(1, torch.get_num_threads()))
     objects = QUICK_OBJECTS if quick else LIBRARY_NAMES
     jobs = [("object", n, s) for n in objects for s in ("rgbd", "mesh")]
     if not quick:
@@ -90,7 +88,7 @@ def run_fields_benchmark(cache: Cache, quick: bool = False, device: str = "cpu")
         field = load_field(path, device=device)
         # train_seconds is what the training measured itself (kept in the checkpoint's
         # provenance), so a reused field reports the time it took when it was made.
-        row, images = measure(field, path, kind, source, name, gt, capture, None, path in before)
+        row, images = measure(field, path, kind, source, name, gt, capture, path in before)
         rows.append(row)
         renders[f"{name}-{source}"] = (images, [capture.rgb(i) for i in capture.test_indices()[:4]])
     return rows, renders
@@ -130,4 +128,3 @@ def markdown_table(rows: list[dict]) -> str:
 def write_results(rows: list[dict], json_path: Path, meta: dict) -> None:
     """Write the rows (and the run's metadata) as JSON, atomically."""
     write_json(json_path, {"meta": meta, "rows": rows})
-    json.dumps(rows)  # fail loudly here rather than later if a row is not serialisable
