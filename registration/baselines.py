@@ -22,10 +22,16 @@ from collections.abc import Callable
 import numpy as np
 
 from neural_fields.field import Field
-from registration.initialisation import Hypothesis, fgr_baseline, initial_hypotheses
+from registration.initialisation import Hypothesis, fgr_baseline
 from registration.proposal import ProposalBox
 from registration.refinement import RefineResult, refine
-from registration.register import RegistrationConfig, check_fields, sample_pair, sample_tensors
+from registration.register import (
+    RegistrationConfig,
+    check_fields,
+    hypotheses_or_fallback,
+    sample_pair,
+    sample_tensors,
+)
 from registration.result import HypothesisReport, RegistrationResult
 from registration.sampling import SurfaceSamples
 from registration.transform import SimilarityTransform
@@ -80,7 +86,7 @@ def register_init_only(scene: Field, library: Field, proposal: ProposalBox,
     cfg = config or RegistrationConfig()
     init = dataclasses.replace(cfg.init, top_k=1)
     return _one_hypothesis("regnf-init", scene, library, proposal, cfg,
-                           lambda ss, ls: initial_hypotheses(ss, ls, init)[0])
+                           lambda ss, ls: hypotheses_or_fallback(ss, ls, init)[0])
 
 
 def register_fgr(scene: Field, library: Field, proposal: ProposalBox,

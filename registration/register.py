@@ -25,6 +25,7 @@ import torch
 
 from neural_fields.field import Field
 from registration.initialisation import (
+    Hypothesis,
     InitConfig,
     NoHypothesisError,
     centroid_hypothesis,
@@ -75,6 +76,17 @@ def sample_pair(
     return scene, library
 
 
+def hypotheses_or_fallback(
+    scene: SurfaceSamples, library: SurfaceSamples, config: InitConfig
+) -> list[Hypothesis]:
+    """Stage 2, or the centroid start when RANSAC finds nothing, so that the refinement
+    runs and a low confidence (not an exception) reports the failed registration."""
+    try:
+        return initial_hypotheses(scene, library, config)
+    except NoHypothesisError:
+        return [centroid_hypothesis(scene, library, config)]
+
+
 def sample_tensors(
     scene: SurfaceSamples, library: SurfaceSamples, device: torch.device
 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -114,10 +126,7 @@ def register(
     timings["sampling"] = time.perf_counter() - t0
 
     t1 = time.perf_counter()
-    try:
-        hyps = initial_hypotheses(scene_samples, lib_samples, cfg.init)
-    except NoHypothesisError:
-        hyps = [centroid_hypothesis(scene_samples, lib_samples, cfg.init)]
+    hyps = hypotheses_or_fallback(scene_samples, lib_samples, cfg.init)
     timings["initialisation"] = time.perf_counter() - t1
 
     t2 = time.perf_counter()
