@@ -150,12 +150,19 @@ class Sphere(AnalyticField):
         return torch.linalg.vector_norm(x - self._p("center", x), dim=-1) - self._p("radius", x)
 
 
-def _box_sdf(p: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """Exact SDF (n,) of the centred box with half extents ``b`` (3,) at points ``p`` (n, 3)."""
-    q = p.abs() - b
+def _from_slab_distances(q: torch.Tensor) -> torch.Tensor:
+    """Exact SDF (n,) of an intersection of slabs from signed per-axis distances ``q`` (n, k).
+
+    Outside: the length of the positive part; inside: the largest (least negative) distance.
+    """
     outside = torch.linalg.vector_norm(q.clamp(min=0.0), dim=-1)
     inside = q.max(dim=-1).values.clamp(max=0.0)
     return outside + inside
+
+
+def _box_sdf(p: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Exact SDF (n,) of the centred box with half extents ``b`` (3,) at points ``p`` (n, 3)."""
+    return _from_slab_distances(p.abs() - b)
 
 
 class Box(AnalyticField):
@@ -281,9 +288,7 @@ class Cylinder(AnalyticField):
             ],
             dim=-1,
         )
-        outside = torch.linalg.vector_norm(q.clamp(min=0.0), dim=-1)
-        inside = q.max(dim=-1).values.clamp(max=0.0)
-        return outside + inside
+        return _from_slab_distances(q)
 
 
 class Capsule(AnalyticField):
