@@ -32,6 +32,7 @@ Open3D's RANSAC is parallel (OpenMP); results are bit-reproducible for a seed wi
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Literal, NamedTuple
 
@@ -75,8 +76,10 @@ class InitConfig:
     """Correspondences per RANSAC sample (*paper*: 4)."""
     edge_length_ratio: float = 0.9
     """Edge-length checker similarity (*paper*: 0.9)."""
-    mutual_filter: bool = False
-    """Keep only mutual nearest-neighbour feature matches."""
+    mutual_filter: bool = True
+    """Keep only mutual nearest-neighbour feature matches (measured: with all matches run 0
+    found nothing for 4-5 of 8 seeds on two of three room pairs; mutual ones: 8 of 8 on all
+    three). When the mutual matches give nothing, all matches are tried."""
     ransac_max_iteration: int = 100_000
     """RANSAC iterations at most per run."""
     ransac_confidence: float = 0.999
@@ -380,8 +383,11 @@ def initial_hypotheses(
         For malformed or too small sample sets, or when no run produced a usable transform.
     """
     prep = _prepare(scene, library, config)
+    runs = _ransac_runs(prep, config)
+    if not runs and config.mutual_filter:
+        runs = _ransac_runs(prep, dataclasses.replace(config, mutual_filter=False))
     cands = []
-    for M_ransac in _ransac_runs(prep, config):
+    for M_ransac in runs:
         M = _similarity_or_none(_icp(prep, M_ransac, config))
         if M is None:
             M = _similarity_or_none(M_ransac)
