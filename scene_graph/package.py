@@ -1,8 +1,10 @@
 """Export a stage: the root layer as .usda or .usdc, or a self-contained .usdz package.
 
-The package holds the root layer first (as USD requires), then every asset layer, slot and
-checkpoint at the same relative paths as on disk, so the layers' relative asset paths work
-unchanged inside it (and the regnf tables in ``customLayerData`` still point at the files).
+The package holds the root layer first (as USD requires), then every asset layer and slot at
+the same relative paths as on disk, so the layers' relative asset paths work unchanged inside
+it (and the regnf tables in ``customLayerData`` still point at the files). Checkpoints go in as
+USD layers carrying their bytes (:mod:`scene_graph.embedded_checkpoint`): the usdz
+specification admits no other file types.
 """
 
 from __future__ import annotations
@@ -11,9 +13,10 @@ import os
 import tempfile
 from pathlib import Path
 
-from pxr import Sdf
+from pxr import Sdf, UsdUtils
 
 from . import layout as L
+from .embedded_checkpoint import CHECKPOINT_SUFFIX, embedded_name, write_embedded_checkpoint
 from .errors import StageError
 from .transaction import file_transaction
 from .usd_read import open_stage, read_stage
@@ -36,22 +39,39 @@ def export_stage(stage_path: str | os.PathLike, out_path: str | os.PathLike) -> 
     if out.suffix != ".usdz":
         raise StageError(out, "/", "export to .usda, .usdc or .usdz")
     root = src.parent
-    files = [L.SCENE_CHECKPOINT]
-    for name in sorted(scene.library):
-        files += [L.library_layer(name), L.library_checkpoint(name)]
-    files += [L.slot_layer(c) for c in scene.classes()]
-    missing = [f for f in files if not (root / f).is_file()]
+    checkpoints = [L.SCENE_CHECKPOINT] + [L.library_checkpoint(n) for n in sorted(scene.library)]
+    layers = [L.library_layer(n) for n in sorted(scene.library)]
+    slots = [L.slot_layer(c) for c in scene.classes()]
+    missing = [f for f in checkpoints + layers + slots if not (root / f).is_file()]
     if missing:
         raise StageError(src, "/", f"assets missing beside the stage: {missing}")
     with file_transaction() as tx, tempfile.TemporaryDirectory() as tmpdir:
+        tmp = Path(tmpdir)
         # The root layer as usdc under the stage's name: USD opens the package's first file.
         root_name = src.with_suffix(".usdc").name
-        staged_root = Path(tmpdir) / root_name
         stage = open_stage(src)  # held: the layer lives only as long as its stage
-        stage.GetRootLayer().Export(str(staged_root))
+        entries = [(_packaged_layer(stage.GetRootLayer(), tmp / root_name), root_name)]
+        for rel in layers:
+            entries.append((_packaged_layer(Sdf.Layer.FindOrOpen(str(root / rel)), tmp / rel), rel))
+        entries += [(root / rel, rel) for rel in slots]
+        for rel in checkpoints:
+            name = embedded_name(rel)
+            (tmp / name).parent.mkdir(parents=True, exist_ok=True)
+            entries.append((write_embedded_checkpoint(root / rel, tmp / name), name))
         writer = Sdf.ZipFileWriter.CreateNew(str(tx.temp_path(out)))
-        writer.AddFile(str(staged_root), root_name)
-        for rel in files:
-            writer.AddFile(str(root / rel), rel)
+        for file, rel in entries:
+            writer.AddFile(str(file), rel)
         writer.Save()
     return out
+
+
+def _packaged_layer(layer: Sdf.Layer, dest: Path) -> Path:
+    """A copy of ``layer`` at ``dest`` whose checkpoint paths name the embedded layers."""
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    layer.Export(str(dest))
+    copy = Sdf.Layer.FindOrOpen(str(dest))
+    UsdUtils.ModifyAssetPaths(
+        copy, lambda p: embedded_name(p) if p.endswith(CHECKPOINT_SUFFIX) else p
+    )
+    copy.Save()
+    return dest

@@ -18,6 +18,7 @@ from pxr import Ar, Sdf, Tf, Usd, UsdGeom
 from neural_fields.checkpoint import CheckpointError, read_header
 
 from . import layout as L
+from .embedded_checkpoint import checkpoint_file, is_embedded
 from .errors import StageError
 from .model import (
     FORMAT_VERSION,
@@ -110,11 +111,13 @@ def read_field(prim: Usd.Prim, layer: Sdf.Layer, root: Path, check_checkpoint: b
         raise StageError(file, where, "no such prim")
     asset = _get(prim, L.A_CHECKPOINT, file)
     checkpoint = anchored(layer, asset.path, root, where, "checkpoint path")
-    if check_checkpoint and "[" not in checkpoint:
+    if check_checkpoint:
         try:
-            read_header(checkpoint)
+            with checkpoint_file(checkpoint) as ckpt:  # a package's checkpoints are embedded layers
+                read_header(ckpt)
         except CheckpointError as exc:
-            raise StageError(exc.path, where, f"checkpoint referenced by {file}: {exc.problem}") from exc
+            at = checkpoint if is_embedded(checkpoint) else exc.path
+            raise StageError(at, where, f"checkpoint referenced by {file}: {exc.problem}") from exc
     elif not Ar.GetResolver().Resolve(checkpoint):
         raise StageError(file, where, f"checkpoint {asset.path!r} does not exist")
     labels = prim.GetAttribute(f"semantics:labels:{L.LABEL_INSTANCE}").Get()
@@ -212,7 +215,7 @@ def read_stage(path: str | os.PathLike, check_checkpoints: bool = True) -> Compo
     path : str or PathLike
         The root layer.
     check_checkpoints : bool
-        Parse every checkpoint's header (on disk; inside a package only its presence).
+        Parse every checkpoint's header (inside a package: the embedded one, digest checked).
 
     Raises
     ------
