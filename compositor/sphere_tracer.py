@@ -1,0 +1,482 @@
+"""Sphere tracing of any field, with the composite's extra outputs.
+
+Per ray (vectorised over rays; the loops are over STEPS, each touching only the rays still
+active):
+
+1. Rays are clipped to the field's bounds (and ``[near, far]``).
+2. Empty-space skipping: where the coarse :class:`~compositor.distance_grid.DistanceGrid`
+   guarantees at least ``grid_skip_cells`` cells of free space, the ray steps that far for
+   one table look-up and no field evaluation.
+3. Otherwise the field is evaluated and the ray takes an over-relaxed step ``w * sdf``
+   (Keinert et al. 2014, "Enhanced sphere tracing"). A relaxed step is safe only if the
+   unbounding spheres before and after it overlap, ``r_prev + |r| >= step``; if they do
+   not, the ray goes back to the plain step ``r_prev`` from the last safe point. Keinert
+   then continues with ``w = 1`` (``adaptive=False``). By default the factor adapts
+   instead: with ``m`` the rate at which the SDF fell between the last two samples (the
+   incidence cosine, for a plane), the largest step whose spheres still overlap is
+   ``2 r / (1 + m)``, so ``w = min(0.95 * 2 / (1 + m), cap)``, where the cap starts at
+   ``omega`` and is halved towards 1 after each failure. This keeps the gain on flat
+   surfaces seen at moderate incidence, where a fixed ``omega = 1.6`` fails at once (it
+   exceeds the verifiable step for any incidence cosine above 0.25).
+   An option, off by default, ``bracket_on_sign_change``: a relaxed step that lands
+   INSIDE matter (``r < 0``) is bracketed and refined directly, overlap or not. That
+   saves the slow approach of oblique rays to convex surfaces (about 20 % fewer
+   evaluations on a sphere), but a thin surface in the unverified gap, in front of a
+   thicker one, can then be skipped in favour of the one behind it.
+4. A sample with ``|sdf| < tol(t)`` is a hit, with ``tol(t) = max(tol,
+   footprint_fraction * t * pixel_angle)``: never finer than a fraction of the pixel
+   footprint. A sign change (a relaxed or minimum step crossed the surface) is bracketed
+   and refined by Illinois false position (or plain bisection) to ``|sdf| < tol(t)``.
+
+A ray whose first sample is inside matter (the bounds or ``near`` cut through an object)
+is a hit at its start. Non-finite SDF values are an error, not a miss.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import torch
+
+from neural_fields.field import DEFAULT_CHUNK, Field
+from neural_fields.raycast import ray_aabb
+
+from .camera import Camera, CameraRays, camera_rays
+from .composite_field import BACKGROUND_ID, CompositeSample, sample_field
+from .distance_grid import DistanceGrid
+from .render_result import Render
+from .shading import check_camera_outside, shade_hits
+
+REFINE_METHODS = ("illinois", "bisection")
+ADAPTIVE_MARGIN = 0.95
+MIN_NEWTON_SLOPE = 0.1
+"""Smallest SDF slope along the ray for the final secant correction of a hit."""
+"""Fraction of the largest verifiable relaxation that adaptive steps take."""
+
+
+@dataclass(frozen=True)
+class SphereTracerConfig:
+    """Settings of :func:`trace` and :func:`render` (distances in FIELD units unless noted)."""
+
+    max_steps: int = 256
+    """Marching iterations per ray (look-ups and evaluations) before it counts as a miss."""
+    omega: float = 1.6
+    """Over-relaxation factor of the steps (the cap when adaptive), in [1, 2); 1 is plain."""
+    adaptive: bool = True
+    """Adapt the relaxation to the SDF's slope along the ray (see the module); False: Keinert's
+    fixed ``omega``, dropped to 1 for good after the first failed step."""
+    min_step: float = 1e-4
+    """Smallest step, so that grazing rays do not stall; an overshoot it causes is refined."""
+    tol: float = 1e-5
+    """Absolute hit tolerance on the SDF."""
+    footprint_fraction: float = 1e-4
+    """Hit tolerance as a fraction of the pixel footprint at the sample (0: absolute only)."""
+    refine: str = "illinois"
+    """Root refinement of a bracketed crossing: ``illinois`` (false position) or ``bisection``."""
+    max_refine: int = 32
+    """Refinement iterations; then the bracket is interpolated linearly."""
+    bracket_on_sign_change: bool = False
+    """Unsafe speed-up: a relaxed step that lands inside matter brackets the surface even if
+    the unbounding spheres do not overlap (see the module). False: Keinert's fallback."""
+    grid_resolution: int = 32
+    """Cells per axis of the empty-space-skipping grid; 0 disables skipping."""
+    grid_lipschitz: float = 1.0
+    """Lipschitz constant assumed by the grid's bounds (> 1 for fields that overestimate)."""
+    grid_skip_cells: float = 0.5
+    """Skip by look-up only when the guaranteed free distance is this many (smallest) cells."""
+    bounds_pad: float = 1e-3
+    """The bounds are grown by this much for the ray clipping."""
+    near: float = 0.0
+    """METRES from the camera before which :func:`render` ignores surfaces."""
+    far: float = math.inf
+    """METRES from the camera beyond which :func:`render` ignores surfaces."""
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """RGB of pixels that hit nothing."""
+    chunk: int = DEFAULT_CHUNK
+    """Rays traced (and shaded) per batch, to bound memory."""
+    check_camera: bool = True
+    """:func:`render` refuses a camera whose centre is inside matter."""
+
+    def __post_init__(self) -> None:
+        if self.max_steps < 1 or self.max_refine < 0 or self.chunk < 1:
+            raise ValueError("max_steps and chunk must be >= 1 and max_refine >= 0")
+        if not 1.0 <= self.omega < 2.0:
+            raise ValueError(f"omega must be in [1, 2), got {self.omega}")
+        if not (self.tol > 0 and self.min_step >= 0 and self.footprint_fraction >= 0):
+            raise ValueError("tol must be > 0, min_step and footprint_fraction >= 0")
+        if self.refine not in REFINE_METHODS:
+            raise ValueError(f"refine must be one of {REFINE_METHODS}, got {self.refine!r}")
+        if self.grid_resolution < 0 or not self.grid_lipschitz > 0 or not self.grid_skip_cells > 0:
+            raise ValueError("need grid_resolution >= 0, grid_lipschitz > 0, grid_skip_cells > 0")
+        if not (0 <= self.near < self.far) or self.bounds_pad < 0:
+            raise ValueError(f"need 0 <= near < far and bounds_pad >= 0, got {self.near}, {self.far}")
+        if len(self.background) != 3:
+            raise ValueError(f"background must be RGB, got {self.background!r}")
+
+    @staticmethod
+    def plain() -> SphereTracerConfig:
+        """Textbook sphere tracing: unrelaxed steps, no skipping, bisection (a reference)."""
+        return SphereTracerConfig(
+            omega=1.0, adaptive=False, grid_resolution=0, refine="bisection"
+        )
+
+
+class TraceHits(NamedTuple):
+    """What :func:`trace` found for each of ``n`` rays (field frame)."""
+
+    hit: torch.Tensor
+    """(n,) bool."""
+    t: torch.Tensor
+    """(n,) float: field units along the unit direction to the hit; +inf where missed."""
+    points: torch.Tensor
+    """(n, 3) float: hit points; 0 where missed."""
+    winner: torch.Tensor
+    """(n,) int64: component hit (0 scene or plain field, i instance), -1 where missed."""
+    evals: torch.Tensor
+    """(n,) int64: field evaluations (composite costs included), refinement included."""
+    lookups: torch.Tensor
+    """(n,) int64: distance-grid look-ups."""
+
+
+def _sample_checked(field: Field, p: torch.Tensor) -> CompositeSample:
+    s = sample_field(field, p)
+    bad = ~torch.isfinite(s.sdf)
+    if bool(bad.any()):
+        k = int(bad.nonzero()[0, 0])
+        raise ValueError(
+            f"field {field.name or type(field).__name__!r} returned a non-finite SDF "
+            f"({float(s.sdf[k])}) at {int(bad.sum())} of {p.shape[0]} points while tracing, "
+            f"for example at field-frame point {p[k].tolist()}"
+        )
+    return s
+
+
+def _check_rays(origins: torch.Tensor, dirs: torch.Tensor, near: float, far: float) -> None:
+    if origins.ndim != 2 or origins.shape[-1] != 3 or origins.shape != dirs.shape:
+        raise ValueError(
+            f"origins and dirs must both be (n, 3), got {tuple(origins.shape)} and {tuple(dirs.shape)}"
+        )
+    if not (0 <= near < far):
+        raise ValueError(f"need 0 <= near < far, got near={near}, far={far}")
+    if dirs.shape[0] > 0:
+        norm_err = float((torch.linalg.vector_norm(dirs, dim=-1) - 1.0).abs().max())
+        if not norm_err < 1e-4:
+            raise ValueError(f"dirs must be unit vectors (largest |norm - 1| = {norm_err:.3g})")
+
+
+@torch.no_grad()
+def trace(
+    field: Field,
+    origins: torch.Tensor,
+    dirs: torch.Tensor,
+    near: float = 0.0,
+    far: float = math.inf,
+    config: SphereTracerConfig = SphereTracerConfig(),
+    grid: DistanceGrid | None = None,
+    pixel_angle: float = 0.0,
+) -> TraceHits:
+    """Intersect rays with the zero level set of ``field`` (see the module).
+
+    Parameters
+    ----------
+    field : Field
+        Any field; a :class:`~compositor.composite_field.CompositeField` also reports the
+        winning component and its per-point evaluation cost.
+    origins : (n, 3) float
+        Field frame.
+    dirs : (n, 3) float
+        Unit directions, field frame.
+    near, far : float
+        Range of ``t`` searched, FIELD units.
+    config : SphereTracerConfig
+    grid : DistanceGrid, optional
+        Built from ``field``; built here (once per call) if None and
+        ``config.grid_resolution > 0``. Pass one to amortise it over many calls.
+    pixel_angle : float
+        Radians per pixel, for the footprint-relative tolerance; 0 disables it.
+
+    Returns
+    -------
+    TraceHits
+        On the field's device.
+    """
+    _check_rays(origins, dirs, near, far)
+    if grid is None and config.grid_resolution > 0:
+        grid = DistanceGrid.build(field, config.grid_resolution, config.grid_lipschitz, config.chunk)
+    dev = field.device
+    parts = [
+        _trace_chunk(
+            field,
+            origins[i : i + config.chunk].to(dev),
+            dirs[i : i + config.chunk].to(dev),
+            near,
+            far,
+            config,
+            grid,
+            pixel_angle,
+        )
+        for i in range(0, origins.shape[0], config.chunk)
+    ]
+    if not parts:
+        z = torch.zeros(0, device=dev)
+        zl = z.long()
+        return TraceHits(z.bool(), z, torch.zeros(0, 3, device=dev), zl, zl, zl)
+    return TraceHits(*(torch.cat([p[k] for p in parts]) for k in range(len(TraceHits._fields))))
+
+
+def _trace_chunk(
+    field: Field,
+    o: torch.Tensor,
+    d: torch.Tensor,
+    near: float,
+    far: float,
+    cfg: SphereTracerConfig,
+    grid: DistanceGrid | None,
+    pixel_angle: float,
+) -> TraceHits:
+    n, dev = o.shape[0], o.device
+    lo = field.bounds[0].to(o.dtype) - cfg.bounds_pad
+    hi = field.bounds[1].to(o.dtype) + cfg.bounds_pad
+    t_in, t_out = ray_aabb(o, d, lo, hi)
+    t = t_in.clamp(min=near)
+    t_end = t_out.clamp(max=far)
+    fp = cfg.footprint_fraction * pixel_angle
+
+    def tol_at(tt: torch.Tensor) -> torch.Tensor:
+        return (fp * tt).clamp(min=cfg.tol)
+
+    zeros_l = torch.zeros(n, dtype=torch.long, device=dev)
+    evals, lookups, winner = zeros_l.clone(), zeros_l.clone(), zeros_l - 1
+    hit = torch.zeros(n, dtype=torch.bool, device=dev)
+    bracketed = torch.zeros_like(hit)
+    safe = torch.zeros_like(hit)  # the ray has a known free sphere (t_prev, r_prev)
+    t_prev, r_prev = t.clone(), torch.zeros_like(t)
+    s_neg = torch.zeros_like(t)  # SDF at the inside end of a bracket [t_prev, t]
+    omega_cap = torch.full_like(t, cfg.omega)  # per ray; shrinks after each failed step
+    slope = torch.full_like(t, math.nan)  # -d(sdf)/dt between the last two evaluations
+    prev_eval = torch.zeros_like(hit)  # the safe sphere comes from an evaluation, not the grid
+    relaxed = torch.zeros_like(hit)  # the last step was longer than the safe radius
+    skip_min = cfg.grid_skip_cells * float(grid.cell.min()) if grid is not None else math.inf
+    idx = (t <= t_end).nonzero().squeeze(1)
+
+    for _ in range(cfg.max_steps):
+        if idx.numel() == 0:
+            break
+        ti = t[idx]
+        p = o[idx] + ti[:, None] * d[idx]
+        cont = []  # rays that keep marching after this iteration
+        if grid is not None:
+            lb = grid.lower_bound(p)
+            lookups[idx] += 1
+            skip = lb >= skip_min
+            si, lbs = idx[skip], lb[skip]
+            # A grid step is an unrelaxed step in guaranteed free space: a safe sphere.
+            t_prev[si], r_prev[si], safe[si], prev_eval[si] = ti[skip], lbs, True, False
+            relaxed[si] = False
+            t[si] = ti[skip] + lbs
+            cont.append(si[t[si] <= t_end[si]])
+            idx, ti, p = idx[~skip], ti[~skip], p[~skip]
+        if idx.numel() > 0:
+            s = _sample_checked(field, p)
+            r = s.sdf.to(t.dtype)
+            evals[idx] += s.evals
+            winner[idx] = s.winner
+            step = ti - t_prev[idx]
+            plain = r_prev[idx].clamp(min=cfg.min_step)
+            # Keinert's test: the relaxed step left the union of the two unbounding spheres.
+            fail = relaxed[idx] & (r_prev[idx] + r.abs() < step)
+            if cfg.bracket_on_sign_change:
+                fail &= r >= 0  # a sign change is a bracket: refine it rather than go back
+            fi = idx[fail]
+            t[fi] = t_prev[fi] + plain[fail]
+            relaxed[fi] = False
+            omega_cap[fi] = 1.0 + 0.5 * (omega_cap[fi] - 1.0) if cfg.adaptive else 1.0
+            cont.append(fi)
+
+            ok = ~fail
+            close = ok & (r.abs() < tol_at(ti))  # within tolerance on either side
+            neg = ok & (r < 0) & ~close
+            first_inside = neg & ~safe[idx]
+            crossed = neg & safe[idx]
+            hit[idx[first_inside | close]] = True
+            # A hit within tolerance is still off by r / cos(incidence) along the ray; one
+            # secant (Newton) step with the slope measured between the last two samples
+            # removes most of that for free. Skipped where the slope is unknown or grazing.
+            ci, rc, mc = idx[close], r[close], slope[idx[close]]
+            good = torch.isfinite(mc) & (mc > MIN_NEWTON_SLOPE)
+            t[ci] = torch.where(good, ti[close] + rc / mc.clamp(min=MIN_NEWTON_SLOPE), ti[close])
+            bracketed[idx[crossed]] = True
+            s_neg[idx[crossed]] = r[crossed]
+
+            move = ok & ~neg & ~close
+            mi, tm, rm = idx[move], ti[move], r[move]
+            dt = tm - t_prev[mi]
+            measured = prev_eval[mi] & (dt > 0)
+            slope[mi] = torch.where(measured, (r_prev[mi] - rm) / dt.clamp(min=1e-30), slope[mi])
+            t_prev[mi], r_prev[mi], safe[mi], prev_eval[mi] = tm, rm, True, True
+            w = _relaxation(omega_cap[mi], slope[mi], cfg)
+            relaxed[mi] = (w > 1.0) & (w * rm > cfg.min_step)
+            t_next = tm + (w * rm).clamp(min=cfg.min_step)
+            # A relaxed step past the exit is unverified: take the plain one there instead.
+            beyond = t_next > t_end[mi]
+            t_next = torch.where(beyond, tm + rm.clamp(min=cfg.min_step), t_next)
+            relaxed[mi] &= ~beyond
+            t[mi] = t_next
+            cont.append(mi[t_next <= t_end[mi]])  # past the bounds' exit (or far): a miss
+        idx = torch.cat(cont) if cont else idx
+
+    bi = bracketed.nonzero().squeeze(1)
+    if bi.numel() > 0:
+        t[bi] = _refine(field, o, d, t_prev, r_prev, t, s_neg, bi, cfg, tol_at, evals, winner)
+        hit[bi] = True
+
+    t = torch.where(hit, t, torch.full_like(t, math.inf))
+    winner = torch.where(hit, winner, torch.full_like(winner, BACKGROUND_ID))
+    points = torch.where(hit[:, None], o + t.nan_to_num(posinf=0.0)[:, None] * d, torch.zeros_like(o))
+    return TraceHits(hit, t, points, winner, evals, lookups)
+
+
+def _relaxation(cap: torch.Tensor, slope: torch.Tensor, cfg: SphereTracerConfig) -> torch.Tensor:
+    """Step factors (m,) of rays with relaxation caps ``cap`` and SDF slopes ``slope`` (m,).
+
+    If the SDF falls along the ray at rate ``m`` (a plane seen at incidence cosine ``m``),
+    a step ``w r`` keeps the unbounding spheres overlapping iff ``w <= 2 / (1 + m)``; a
+    margin below that bound avoids borderline failures. Unknown slopes (NaN) use the cap.
+    """
+    if not cfg.adaptive:
+        return cap
+    m = slope.clamp(0.0, 1.0)
+    w = (ADAPTIVE_MARGIN * 2.0 / (1.0 + m)).clamp(min=1.0)
+    return torch.where(torch.isnan(slope), cap, torch.minimum(w, cap))
+
+
+def _refine(
+    field: Field,
+    o: torch.Tensor,
+    d: torch.Tensor,
+    t_pos: torch.Tensor,
+    s_pos: torch.Tensor,
+    t_neg: torch.Tensor,
+    s_neg: torch.Tensor,
+    bi: torch.Tensor,
+    cfg: SphereTracerConfig,
+    tol_at,
+    evals: torch.Tensor,
+    winner: torch.Tensor,
+) -> torch.Tensor:
+    """Roots (len(bi),) of the brackets ``[t_pos (sdf > 0), t_neg (sdf < 0)]`` of rays ``bi``.
+
+    Illinois false position: the secant point of the bracket, halving the value kept at an
+    end that survives twice in a row (so that convex SDF profiles converge fast too).
+    ``evals`` and ``winner`` are updated in place.
+    """
+    a, sa = t_pos[bi].clone(), s_pos[bi].clone()
+    b, sb = t_neg[bi].clone(), s_neg[bi].clone()
+    root = b.clone()
+    last = torch.zeros_like(a)  # +1: a moved last time, -1: b moved, 0: neither yet
+    act = torch.arange(bi.numel(), device=a.device)  # positions in bi still refining
+    for _ in range(cfg.max_refine):
+        if act.numel() == 0:
+            break
+        aa, bb = a[act], b[act]
+        mid = 0.5 * (aa + bb)
+        if cfg.refine == "illinois":
+            m = aa + (bb - aa) * sa[act] / (sa[act] - sb[act])
+            # Safeguard: a secant point outside the open bracket falls back to the midpoint.
+            m = torch.where(torch.isfinite(m) & (m > aa) & (m < bb), m, mid)
+        else:
+            m = mid
+        rays = bi[act]
+        s = _sample_checked(field, o[rays] + m[:, None] * d[rays])
+        r = s.sdf.to(a.dtype)
+        evals[rays] += s.evals
+        winner[rays] = s.winner
+        tol = tol_at(m)
+        done = (r.abs() < tol) | (bb - aa < tol)
+        root[act[done]] = m[done]
+        outside = ~done & (r > 0)
+        inside = ~done & ~outside
+        ao, bo = act[outside], act[inside]
+        a[ao], sa[ao] = m[outside], r[outside]
+        sb[ao] = torch.where(last[ao] > 0, 0.5 * sb[ao], sb[ao])
+        last[ao] = 1.0
+        b[bo], sb[bo] = m[inside], r[inside]
+        sa[bo] = torch.where(last[bo] < 0, 0.5 * sa[bo], sa[bo])
+        last[bo] = -1.0
+        act = act[~done]
+    if act.numel() > 0:  # unconverged: one secant estimate, no further evaluation
+        frac = (sa[act] / (sa[act] - sb[act])).nan_to_num(0.5).clamp(0.0, 1.0)
+        root[act] = a[act] + frac * (b[act] - a[act])
+    return root
+
+
+@torch.no_grad()
+def render(
+    field: Field,
+    camera: Camera,
+    config: SphereTracerConfig = SphereTracerConfig(),
+    grid: DistanceGrid | None = None,
+) -> Render:
+    """Sphere-trace one view of ``field`` from ``camera`` (posed in the field's metres).
+
+    Raises ``ValueError`` if the camera centre is inside matter (``config.check_camera``)
+    or the field returns non-finite values. A view with no surface is not an error: every
+    pixel is background (``mask`` all False, ``instance_id`` -1, depth 0).
+
+    Parameters
+    ----------
+    field : Field
+    camera : Camera
+    config : SphereTracerConfig
+        ``near`` and ``far`` in metres; the other distances in field units.
+    grid : DistanceGrid, optional
+        Prebuilt for ``field``; see :func:`trace`.
+
+    Returns
+    -------
+    Render
+        ``evals_per_pixel`` counts tracing only (shading adds one SDF gradient and one
+        colour query per hit pixel).
+    """
+    rays = camera_rays(field, camera)
+    if config.check_camera:
+        check_camera_outside(field, rays.origin)
+    ws = field.world_scale
+    hits = trace(
+        field,
+        rays.origins,
+        rays.dirs,
+        config.near / ws,
+        config.far / ws,
+        config,
+        grid,
+        rays.pixel_angle,
+    )
+    return _to_render(field, camera, rays, hits, config.background, config.chunk)
+
+
+def _to_render(
+    field: Field,
+    camera: Camera,
+    rays: CameraRays,
+    hits: TraceHits,
+    background: Sequence[float],
+    chunk: int,
+) -> Render:
+    h, w = camera.height, camera.width
+    shaded = shade_hits(field, hits.points, rays.dirs, hits.hit, background, chunk)
+    depth = torch.where(
+        hits.hit, hits.t.nan_to_num(posinf=0.0) * rays.z_scale * field.world_scale, 0.0
+    )
+    return Render(
+        rgb=shaded.rgb.reshape(h, w, 3),
+        depth=depth.reshape(h, w),
+        normals=shaded.normals.reshape(h, w, 3),
+        instance_id=hits.winner.reshape(h, w),
+        mask=hits.hit.reshape(h, w),
+        evals_per_pixel=hits.evals.reshape(h, w),
+        lookups_per_pixel=hits.lookups.reshape(h, w),
+    )

@@ -1,0 +1,1 @@
+"""Tests of the compositor: composite fields, renderers and image output."""
