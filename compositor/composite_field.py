@@ -106,13 +106,23 @@ class CompositeField(Field):
         if not isinstance(scene, Field):
             raise TypeError(f"the scene must be a Field, got {type(scene).__name__}")
         placements, ids, tints = _placements(scene, objects, config)
-        for r in removals:
+        for k, r in enumerate(removals):
             if not isinstance(r, RemovalRegion):
                 raise TypeError(f"removals take RemovalRegion objects, got {type(r).__name__}")
+            # Analytic shapes simply move with the composite; a field inside one must already
+            # be where the scene is (moving a caller's field behind its back would surprise).
+            for f in r.modules():
+                if isinstance(f, Field) and f.device != scene.device:
+                    raise ValueError(
+                        f"removals[{k}] holds field {f.name!r} on {f.device} but the scene is on "
+                        f"{scene.device}; move them to one device"
+                    )
         bounds = scene.bounds.detach().cpu().double()
         for p in placements:  # grow the bounds to hold objects that stick out of the scene
             box = p.aabb()
-            bounds = torch.stack([torch.minimum(bounds[0], box[0]), torch.maximum(bounds[1], box[1])])
+            bounds = torch.stack(
+                [torch.minimum(bounds[0], box[0]), torch.maximum(bounds[1], box[1])]
+            )
         info = info or FieldInfo(
             label=scene.info.label,
             name=f"{scene.info.name or 'scene'}+composite",
@@ -130,8 +140,8 @@ class CompositeField(Field):
     def scene_masked(self, x: torch.Tensor) -> CompositeSample:
         """``max(S_scene, -M)`` (n,) at points ``x`` (n, 3); winner 0 everywhere."""
         check_points(x, self)
-        s = self.scene.sdf(x)
-        evals = torch.ones(x.shape[0], dtype=torch.long, device=x.device)
+        # Through sample_field so that a composite used as a scene reports its full cost.
+        s, _, evals = sample_field(self.scene, x)
         if len(self.removals) > 0:
             regions = [r.evaluate(x) for r in self.removals]
             m = torch.stack([r.sdf.to(s.dtype) for r in regions]).min(dim=0).values
@@ -148,7 +158,7 @@ class CompositeField(Field):
         best, winner, evals = self.scene_masked(x)
         # A loop over the handful of objects; each step is vectorised over all points.
         for placement, iid in zip(self.placements, self.instance_ids, strict=True):
-            sample = placement.sdf(x)
+            sample = placement.evaluate(x)
             v = sample.sdf.to(best.dtype)
             closer = v < best
             best = torch.where(closer, v, best)
@@ -179,7 +189,9 @@ class CompositeField(Field):
                 continue
             c = placement.color(x[pick], None if d is None else d[pick]).to(out.dtype)
             tint = self.tints[k]
-            out[pick] = c if tint is None else c * torch.tensor(tint, dtype=c.dtype, device=c.device)
+            out[pick] = (
+                c if tint is None else c * torch.tensor(tint, dtype=c.dtype, device=c.device)
+            )
         return out
 
     def scale_of(self, instance_id: int) -> float:
@@ -202,6 +214,8 @@ def _placements(
     for k, obj in enumerate(objects):
         if not isinstance(obj, PlacedObject):
             raise TypeError(f"objects[{k}] must be a PlacedObject, got {type(obj).__name__}")
+        if not isinstance(obj.field, Field):
+            raise TypeError(f"objects[{k}].field must be a Field, got {type(obj.field).__name__}")
         iid = obj.instance_id
         if isinstance(iid, bool) or int(iid) != iid or iid < 1:
             raise ValueError(f"objects[{k}]: instance_id must be an integer >= 1, got {iid!r}")
@@ -216,7 +230,9 @@ def _placements(
         if obj.tint is not None:
             tint = tuple(float(v) for v in np.asarray(obj.tint, dtype=np.float64).reshape(-1))
             if len(tint) != 3 or not all(0.0 <= v <= 1.0 for v in tint):
-                raise ValueError(f"objects[{k}]: tint must be 3 numbers in [0, 1], got {obj.tint!r}")
+                raise ValueError(
+                    f"objects[{k}]: tint must be 3 numbers in [0, 1], got {obj.tint!r}"
+                )
         placements.append(Placement(obj.field, obj.library_to_scene, config.cull_pad, config.cull))
         ids.append(int(iid))
         tints.append(tint)

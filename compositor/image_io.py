@@ -113,7 +113,9 @@ def write_instance_png(path: str | os.PathLike, instance_id: torch.Tensor | np.n
     """Write ``instance_id`` (h, w) ints in [-1, 65534] as a 16-bit PNG of ``id + 1``."""
     ids = _numpy(instance_id)
     if ids.ndim != 2 or not np.issubdtype(ids.dtype, np.integer):
-        raise ValueError(f"instance_id must be an (h, w) integer image, got {ids.shape} {ids.dtype}")
+        raise ValueError(
+            f"instance_id must be an (h, w) integer image, got {ids.shape} {ids.dtype}"
+        )
     if ids.size and (ids.min() < -1 or ids.max() > UINT16_MAX - 1):
         raise ValueError(f"instance ids must lie in [-1, 65534], got [{ids.min()}, {ids.max()}]")
     return _atomic_save(path, Image.fromarray((ids.astype(np.int64) + 1).astype(np.uint16)))

@@ -65,8 +65,10 @@ class OrientedBox(torch.nn.Module):
         h = as_float64(half_extents, (3,), "box half_extents")
         if bool((h <= 0).any()):
             raise ValueError(f"box half_extents must all be > 0, got {h.tolist()}")
-        R = torch.eye(3, dtype=torch.float64) if rotation is None else as_float64(
-            rotation, (3, 3), "box rotation"
+        R = (
+            torch.eye(3, dtype=torch.float64)
+            if rotation is None
+            else as_float64(rotation, (3, 3), "box rotation")
         )
         err = float((R.T @ R - torch.eye(3, dtype=torch.float64)).abs().max())
         if err > 1e-5 or float(torch.linalg.det(R)) <= 0:

@@ -6,8 +6,8 @@ A library field lives in its own field frame. ``library_to_scene`` is the simila
 in scene units is ``s * S_lib(T^-1 x)`` (``s`` > 1 makes the object, and its distances,
 bigger in the scene).
 
-Culling: the library surface lies inside the library field's bounds, whose image under
-``T`` is an oriented box. Outside that box (grown by ``pad``) the distance to the box is a
+Culling: the library surface lies inside the library field's bounds (the Field contract),
+whose image under ``T`` is an oriented box. Outside that box (grown by ``pad``) the distance to the box is a
 lower bound of the distance to the object and has the same (positive) sign, so it stands in
 for the field there and the field is evaluated only inside the padded box. Because the
 stand-in is >= ``pad`` wherever it is used, every point closer than ``pad`` to the
@@ -91,11 +91,13 @@ class Placement(torch.nn.Module):
         """(2, 3) float64 outer-frame AABB of the object's box (CPU)."""
         return self.box.aabb()
 
-    def sdf(self, x: torch.Tensor) -> CulledSample:
+    def evaluate(self, x: torch.Tensor) -> CulledSample:
         """Distances (n,) in outer units of points ``x`` (n, 3), culled (see the module)."""
         n = x.shape[0]
         if not self.cull:
-            return CulledSample(self.mapped.sdf(x), torch.ones(n, dtype=torch.long, device=x.device))
+            return CulledSample(
+                self.mapped.sdf(x), torch.ones(n, dtype=torch.long, device=x.device)
+            )
         bound = self.box.sdf(x)
         near = bound <= self.pad
         idx = near.nonzero().squeeze(1)

@@ -112,7 +112,9 @@ class OrientedBoxRegion(RemovalRegion):
         self.box = OrientedBox(center, half_extents, rotation)
 
     def shape_sdf(self, x: torch.Tensor) -> RegionSample:
-        return RegionSample(self.box.sdf(x), torch.zeros(x.shape[0], dtype=torch.long, device=x.device))
+        return RegionSample(
+            self.box.sdf(x), torch.zeros(x.shape[0], dtype=torch.long, device=x.device)
+        )
 
 
 class ShellRegion(RemovalRegion):
@@ -157,5 +159,5 @@ class ShellRegion(RemovalRegion):
         self.placement = Placement(field, library_to_scene, pad=self.dilation + cull_pad, cull=cull)
 
     def shape_sdf(self, x: torch.Tensor) -> RegionSample:
-        sample = self.placement.sdf(x)
+        sample = self.placement.evaluate(x)
         return RegionSample(sample.sdf - self.dilation, sample.evals)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from typing import NamedTuple
 
@@ -30,7 +31,7 @@ def check_camera_outside(field: Field, origin: torch.Tensor) -> None:
         return
     s = sample_field(field, p)
     v = float(s.sdf[0])
-    if v != v or abs(v) == float("inf"):
+    if not math.isfinite(v):
         raise ValueError(
             f"field {field.name or type(field).__name__!r} returned a non-finite SDF ({v}) at "
             f"the camera centre {p[0].tolist()} (field frame)"

@@ -25,11 +25,13 @@ active):
    thicker one, can then be skipped in favour of the one behind it.
 4. A sample with ``|sdf| < tol(t)`` is a hit, with ``tol(t) = max(tol,
    footprint_fraction * t * pixel_angle)``: never finer than a fraction of the pixel
-   footprint. A sign change (a relaxed or minimum step crossed the surface) is bracketed
+   footprint. Its ``t`` then gets one free secant correction ``r / m`` (``m`` the slope
+   above), which removes most of the ``tol / cos(incidence)`` depth error. A sign change (a relaxed or minimum step crossed the surface) is bracketed
    and refined by Illinois false position (or plain bisection) to ``|sdf| < tol(t)``.
 
 A ray whose first sample is inside matter (the bounds or ``near`` cut through an object)
-is a hit at its start. Non-finite SDF values are an error, not a miss.
+is a hit at its start; a ray that leaves the bounds (or ``far``) or runs out of
+``max_steps`` is a miss. Non-finite SDF values are an error, not a miss.
 """
 
 from __future__ import annotations
@@ -51,10 +53,11 @@ from .render_result import Render
 from .shading import check_camera_outside, shade_hits
 
 REFINE_METHODS = ("illinois", "bisection")
+"""Root refinements of a bracketed crossing."""
 ADAPTIVE_MARGIN = 0.95
+"""Fraction of the largest verifiable relaxation that adaptive steps take."""
 MIN_NEWTON_SLOPE = 0.1
 """Smallest SDF slope along the ray for the final secant correction of a hit."""
-"""Fraction of the largest verifiable relaxation that adaptive steps take."""
 
 
 @dataclass(frozen=True)
@@ -112,16 +115,16 @@ class SphereTracerConfig:
         if self.grid_resolution < 0 or not self.grid_lipschitz > 0 or not self.grid_skip_cells > 0:
             raise ValueError("need grid_resolution >= 0, grid_lipschitz > 0, grid_skip_cells > 0")
         if not (0 <= self.near < self.far) or self.bounds_pad < 0:
-            raise ValueError(f"need 0 <= near < far and bounds_pad >= 0, got {self.near}, {self.far}")
+            raise ValueError(
+                f"need 0 <= near < far and bounds_pad >= 0, got {self.near}, {self.far}"
+            )
         if len(self.background) != 3:
             raise ValueError(f"background must be RGB, got {self.background!r}")
 
     @staticmethod
     def plain() -> SphereTracerConfig:
         """Textbook sphere tracing: unrelaxed steps, no skipping, bisection (a reference)."""
-        return SphereTracerConfig(
-            omega=1.0, adaptive=False, grid_resolution=0, refine="bisection"
-        )
+        return SphereTracerConfig(omega=1.0, adaptive=False, grid_resolution=0, refine="bisection")
 
 
 class TraceHits(NamedTuple):
@@ -205,7 +208,9 @@ def trace(
     """
     _check_rays(origins, dirs, near, far)
     if grid is None and config.grid_resolution > 0:
-        grid = DistanceGrid.build(field, config.grid_resolution, config.grid_lipschitz, config.chunk)
+        grid = DistanceGrid.build(
+            field, config.grid_resolution, config.grid_lipschitz, config.chunk
+        )
     dev = field.device
     parts = [
         _trace_chunk(
@@ -276,6 +281,7 @@ def _trace_chunk(
             # A grid step is an unrelaxed step in guaranteed free space: a safe sphere.
             t_prev[si], r_prev[si], safe[si], prev_eval[si] = ti[skip], lbs, True, False
             relaxed[si] = False
+            slope[si] = math.nan  # the grid bound is no SDF value: no slope across it
             t[si] = ti[skip] + lbs
             cont.append(si[t[si] <= t_end[si]])
             idx, ti, p = idx[~skip], ti[~skip], p[~skip]
@@ -335,7 +341,9 @@ def _trace_chunk(
 
     t = torch.where(hit, t, torch.full_like(t, math.inf))
     winner = torch.where(hit, winner, torch.full_like(winner, BACKGROUND_ID))
-    points = torch.where(hit[:, None], o + t.nan_to_num(posinf=0.0)[:, None] * d, torch.zeros_like(o))
+    points = torch.where(
+        hit[:, None], o + t.nan_to_num(posinf=0.0)[:, None] * d, torch.zeros_like(o)
+    )
     return TraceHits(hit, t, points, winner, evals, lookups)
 
 

@@ -73,7 +73,9 @@ class VolumeRendererConfig:
         if not 0.0 < self.mask_threshold < 1.0 or self.shade_min_weight < 0:
             raise ValueError("need 0 < mask_threshold < 1 and shade_min_weight >= 0")
         if not (0 <= self.near < self.far) or self.bounds_pad < 0:
-            raise ValueError(f"need 0 <= near < far and bounds_pad >= 0, got {self.near}, {self.far}")
+            raise ValueError(
+                f"need 0 <= near < far and bounds_pad >= 0, got {self.near}, {self.far}"
+            )
         if len(self.background) != 3:
             raise ValueError(f"background must be RGB, got {self.background!r}")
 
@@ -147,6 +149,8 @@ def integrate(
         raise ValueError(
             f"origins and dirs must both be (n, 3), got {tuple(origins.shape)} and {tuple(dirs.shape)}"
         )
+    if not (0 <= near < far):
+        raise ValueError(f"need 0 <= near < far, got near={near}, far={far}")
     gen = torch.Generator(device="cpu").manual_seed(config.seed) if config.jitter else None
     dev = field.device
     parts = [

@@ -24,7 +24,11 @@ from . import helpers as H
 
 def make_composite(cull: bool = True, tint=None) -> CompositeField:
     region = OrientedBoxRegion(
-        H.REGION_CENTER, H.REGION_HALF, H.REGION_ROT, keep_floor=H.FLOOR_Z, floor_margin=H.FLOOR_MARGIN
+        H.REGION_CENTER,
+        H.REGION_HALF,
+        H.REGION_ROT,
+        keep_floor=H.FLOOR_Z,
+        floor_margin=H.FLOOR_MARGIN,
     )
     placed = PlacedObject(H.library_sphere(), H.LIB_TO_SCENE, H.INSTANCE, tint)
     return CompositeField(H.scene_field(), [placed], [region], CompositeConfig(cull=cull))
@@ -35,7 +39,9 @@ def test_composite_is_a_field_in_the_scene_frame() -> None:
     scene = H.scene_field()
     assert isinstance(comp, Field)
     assert torch.equal(comp.to_world, scene.to_world)
-    assert bool((comp.bounds[0] <= scene.bounds[0]).all() and (comp.bounds[1] >= scene.bounds[1]).all())
+    assert bool(
+        (comp.bounds[0] <= scene.bounds[0]).all() and (comp.bounds[1] >= scene.bounds[1]).all()
+    )
     assert comp.instance_ids == (H.INSTANCE,)
 
 
@@ -129,14 +135,18 @@ def test_shell_region_removes_the_object_and_keeps_its_neighbours() -> None:
     u /= np.linalg.norm(u, axis=1, keepdims=True)
     old_surface = np.array([0.6, 0.0, 0.4]) + 0.3 * u
     assert bool((comp.sdf(H.tensor(old_surface)) > 0.0).all())
-    wall_face = np.column_stack([np.full(300, 0.95), rng.uniform(-0.5, 0.5, 300), rng.uniform(0.05, 0.9, 300)])
+    wall_face = np.column_stack(
+        [np.full(300, 0.95), rng.uniform(-0.5, 0.5, 300), rng.uniform(0.05, 0.9, 300)]
+    )
     floor_top = np.column_stack([rng.uniform(-1.5, 1.5, (300, 2)), np.zeros(300)])
     for surface in (wall_face, floor_top):
         np.testing.assert_allclose(comp.sdf(H.tensor(surface)).numpy(), 0.0, atol=1e-9)
     # Sign of the composite = sign of floor U wall; culled and exact agree near surfaces.
     x = H.random_points(5000, seed=7, lo=(-0.5, -1.0, -0.3), hi=(1.2, 1.0, 1.2))
-    want = np.minimum(H.box_sdf(x, H.FLOOR_CENTER, H.FLOOR_HALF),
-                      H.box_sdf(x, np.array([1.0, 0.0, 1.0]), np.array([0.05, 2.0, 1.0])))
+    want = np.minimum(
+        H.box_sdf(x, H.FLOOR_CENTER, H.FLOOR_HALF),
+        H.box_sdf(x, np.array([1.0, 0.0, 1.0]), np.array([0.05, 2.0, 1.0])),
+    )
     got, ref = comp.sdf(H.tensor(x)).numpy(), exact.sdf(H.tensor(x)).numpy()
     keep = np.abs(want) > 1e-3
     assert np.array_equal(np.sign(got[keep]), np.sign(want[keep]))
@@ -153,8 +163,12 @@ def test_colour_comes_from_the_winner_with_multiplicative_tint() -> None:
     u /= np.linalg.norm(u, axis=1, keepdims=True)
     ball = H.tensor(H.PLACED_CENTER + H.PLACED_RADIUS * u)
     floor = H.tensor(np.column_stack([rng.uniform(-1.8, 1.8, (50, 2)), np.zeros(50)]))
-    np.testing.assert_allclose(comp.color(ball).numpy(), np.tile(np.multiply(H.LIB_COLOR, tint), (50, 1)), atol=1e-6)
-    np.testing.assert_allclose(comp.color(floor).numpy(), np.tile(H.FLOOR_COLOR, (50, 1)), atol=1e-6)
+    np.testing.assert_allclose(
+        comp.color(ball).numpy(), np.tile(np.multiply(H.LIB_COLOR, tint), (50, 1)), atol=1e-6
+    )
+    np.testing.assert_allclose(
+        comp.color(floor).numpy(), np.tile(H.FLOOR_COLOR, (50, 1)), atol=1e-6
+    )
 
 
 class DirectionColour(Sphere):
@@ -203,7 +217,9 @@ def test_invalid_inputs_are_refused() -> None:
     with pytest.raises(ValueError, match="instance_id"):
         CompositeField(scene, [PlacedObject(lib, H.LIB_TO_SCENE, 0)])
     with pytest.raises(ValueError, match="used twice"):
-        CompositeField(scene, [PlacedObject(lib, H.LIB_TO_SCENE, 2), PlacedObject(lib, H.LIB_TO_SCENE, 2)])
+        CompositeField(
+            scene, [PlacedObject(lib, H.LIB_TO_SCENE, 2), PlacedObject(lib, H.LIB_TO_SCENE, 2)]
+        )
     with pytest.raises(ValueError, match="tint"):
         CompositeField(scene, [PlacedObject(lib, H.LIB_TO_SCENE, 2, (1.5, 0.0, 0.0))])
     shear = np.eye(4)
@@ -220,3 +236,21 @@ def test_invalid_inputs_are_refused() -> None:
         CompositeConfig(cull_pad=0.0)
     with pytest.raises(TypeError):
         CompositeField(scene, removals=[object()])  # type: ignore[list-item]
+
+
+def test_existing_meshing_and_rendering_accept_a_composite() -> None:
+    from neural_fields.meshing import extract_mesh
+    from neural_fields.raycast import render_field
+
+    comp = make_composite()
+    box = np.stack([H.PLACED_CENTER - 0.3, H.PLACED_CENTER + 0.3])
+    mesh = extract_mesh(comp, resolution=24, bounds=box, with_color=True)
+    radii = np.linalg.norm(mesh.vertices - H.PLACED_CENTER, axis=1)
+    np.testing.assert_allclose(radii, H.PLACED_RADIUS, atol=5e-3)
+    assert np.allclose(mesh.visual.vertex_colors[:, :3] / 255.0, H.LIB_COLOR, atol=0.01)
+    K = np.array([[20.0, 0.0, 8.5], [0.0, 20.0, 8.5], [0.0, 0.0, 1.0]])  # pixel 8 on axis
+    pose = np.eye(4)  # OpenCV axes looking along +y: x right = +x, y down = -z, z = +y
+    pose[:3, :3] = np.column_stack([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+    pose[:3, 3] = H.PLACED_CENTER + np.array([0.0, -1.5, 0.0])
+    out = render_field(comp, K, pose, 16, 16)
+    assert bool(out.mask[8, 8]) and float(out.depth[8, 8]) == pytest.approx(1.3, abs=1e-3)

@@ -42,7 +42,9 @@ def world_sphere() -> Sphere:
 
 
 def sphere_camera() -> Camera:
-    return Camera.from_fov(W, HGT, 50.0, look_at(WORLD_CENTER + np.array([4.0, 1.0, 1.5]), WORLD_CENTER))
+    return Camera.from_fov(
+        W, HGT, 50.0, look_at(WORLD_CENTER + np.array([4.0, 1.0, 1.5]), WORLD_CENTER)
+    )
 
 
 def boundary(miss: np.ndarray, t_scale: float, cam: Camera, pixels: float = 1.5) -> np.ndarray:
@@ -75,7 +77,9 @@ def test_sphere_depth_mask_normals_in_metres() -> None:
     assert bool((out.depth[~out.mask] == 0).all())
     ids = out.instance_id.numpy().ravel()
     assert bool((ids[mask] == 0).all() and (ids[~mask] == -1).all())
-    np.testing.assert_allclose(out.rgb.numpy().reshape(-1, 3)[mask], np.tile([0.2, 0.4, 0.9], (mask.sum(), 1)), atol=1e-6)
+    np.testing.assert_allclose(
+        out.rgb.numpy().reshape(-1, 3)[mask], np.tile([0.2, 0.4, 0.9], (mask.sum(), 1)), atol=1e-6
+    )
     # Evaluations are counted: a lone sphere costs a handful per hit pixel.
     evals = out.evals_per_pixel.numpy().ravel()
     assert float(np.median(evals[mask])) <= 10
@@ -90,7 +94,7 @@ def test_composite_instance_ids_and_depth() -> None:
     cam = composite_camera()
     out = render(make_composite(), cam)
     o, d = H.pixel_rays(cam.K, cam.camera_to_world, W, HGT)
-    hit_b, t_b, miss_b = H.ray_sphere(o, d, H.PLACED_CENTER, H.PLACED_RADIUS)
+    _, t_b, miss_b = H.ray_sphere(o, d, H.PLACED_CENTER, H.PLACED_RADIUS)
     t_f = H.ray_plane_z(o, d, 0.0)
     p_f = o + np.where(np.isfinite(t_f), t_f, 0.0)[:, None] * d
     on_floor = np.isfinite(t_f) & (np.abs(p_f[:, :2]) <= 2.0).all(axis=1)
@@ -173,12 +177,18 @@ def test_tint_and_colours_in_the_image() -> None:
     floor = out.instance_id == 0
     want_ball = torch.tensor(np.multiply(H.LIB_COLOR, tint), dtype=out.rgb.dtype)
     assert torch.allclose(out.rgb[ball], want_ball.expand(int(ball.sum()), 3), atol=1e-6)
-    assert torch.allclose(out.rgb[floor], torch.tensor(H.FLOOR_COLOR, dtype=out.rgb.dtype).expand(int(floor.sum()), 3), atol=1e-6)
+    assert torch.allclose(
+        out.rgb[floor],
+        torch.tensor(H.FLOOR_COLOR, dtype=out.rgb.dtype).expand(int(floor.sum()), 3),
+        atol=1e-6,
+    )
     assert bool((out.rgb[~out.mask] == 0).all())  # default background is black
 
 
 def test_camera_inside_an_object_is_refused() -> None:
-    inside = Camera.from_fov(W, HGT, 60.0, look_at(H.PLACED_CENTER, H.PLACED_CENTER + [1.0, 0.0, 0.0]))
+    inside = Camera.from_fov(
+        W, HGT, 60.0, look_at(H.PLACED_CENTER, H.PLACED_CENTER + [1.0, 0.0, 0.0])
+    )
     with pytest.raises(ValueError, match="inside matter of instance 7"):
         render(make_composite(), inside)
 
@@ -242,7 +252,9 @@ def test_near_and_far_are_metres() -> None:
 
 
 def test_cameras() -> None:
-    cams = orbit_cameras((0.0, 0.0, 0.5), radius=3.0, height=1.0, n=4, width=32, height_px=24, fov_deg=90.0)
+    cams = orbit_cameras(
+        (0.0, 0.0, 0.5), radius=3.0, height=1.0, n=4, width=32, height_px=24, fov_deg=90.0
+    )
     assert len(cams) == 4
     for cam in cams:
         c = cam.center
@@ -262,10 +274,17 @@ def test_relaxed_steps_do_not_skip_a_thin_sheet_in_front_of_a_body() -> None:
     # A 4 mm sheet 6 mm in front of a sphere: a relaxed step from the bounds' entry jumps
     # over the sheet into the sphere; Keinert's overlap test must send it back.
     field = Union(Box((0.002, 0.5, 0.5)), Sphere(0.4, (0.406, 0.0, 0.0)))
-    yz = torch.stack(torch.meshgrid(torch.linspace(-0.2, 0.2, 9), torch.linspace(-0.2, 0.2, 9), indexing="ij"), -1)
+    yz = torch.stack(
+        torch.meshgrid(torch.linspace(-0.2, 0.2, 9), torch.linspace(-0.2, 0.2, 9), indexing="ij"),
+        -1,
+    )
     o = torch.cat([torch.full((81, 1), -1.5), yz.reshape(-1, 2)], dim=1)
     d = torch.tensor([[1.0, 0.0, 0.0]]).expand(81, 3).contiguous()
-    for cfg in (SphereTracerConfig(), SphereTracerConfig(grid_resolution=0), SphereTracerConfig.plain()):
+    for cfg in (
+        SphereTracerConfig(),
+        SphereTracerConfig(grid_resolution=0),
+        SphereTracerConfig.plain(),
+    ):
         hits = trace(field, o, d, config=cfg)
         assert bool(hits.hit.all())
         np.testing.assert_allclose(hits.t.numpy(), 1.498, atol=1e-5)
