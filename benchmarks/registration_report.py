@@ -27,11 +27,17 @@ def _panel(scene_pts: np.ndarray, lib_pts: np.ndarray, axes: tuple[int, int], si
 
 def before_after_png(result: RegistrationResult, path: Path, size: int = 220) -> None:
     """Scene samples mapped into the library frame (blue) over the library samples (orange):
-    front (x-z) and top (x-y) views, before (initial hypothesis) and after registration."""
+    front (x-z) and top (x-y) views, before registration (centroids and RMS radii matched, no
+    rotation: the raw problem) and after it. Every second scene sample is drawn, so that the
+    library shows through where the two agree."""
     if result.samples is None:
         raise ValueError("the result holds no samples")
     scene, lib = result.samples
-    before = result.hypotheses[0].initial.apply(scene) if result.hypotheses else scene
+    scene = scene[::2]
+    c_s, c_l = scene.mean(axis=0), lib.mean(axis=0)
+    r_s = np.sqrt(((scene - c_s) ** 2).sum(axis=1).mean())
+    r_l = np.sqrt(((lib - c_l) ** 2).sum(axis=1).mean())
+    before = (scene - c_s) * (r_l / r_s) + c_l
     after = result.transform.apply(scene)
     allp = np.concatenate([lib, before, after])
     lo = np.percentile(allp, 1, axis=0)
@@ -40,6 +46,9 @@ def before_after_png(result: RegistrationResult, path: Path, size: int = 220) ->
     sheet = Image.new("RGB", (size * 4, size), (255, 255, 255))
     for i, p in enumerate(panels):
         sheet.paste(p, (i * size, 0))
+    draw = ImageDraw.Draw(sheet)
+    for i, text in enumerate(("before: front", "before: top", "after: front", "after: top")):
+        draw.text((i * size + 4, 2), text, fill=(0, 0, 0))
     with atomic_path(path) as tmp:
         sheet.save(tmp, format="PNG")
 
