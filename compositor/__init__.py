@@ -1,9 +1,12 @@
 """Composite neural fields and render them: scene minus removals plus placed library objects.
 
-See METHOD.md section 9. Everything here works on any :class:`neural_fields.field.Field`.
+See METHOD.md section 9. Everything here works on any :class:`neural_fields.field.Field`;
+:func:`composite_from_stage` builds the composite of a USD stage (section 8), and
+:func:`render_views` / :func:`replace_and_render` render it to folders of images.
 """
 
 from .camera import Camera, CameraRays, camera_rays, look_at, orbit_cameras
+from .cameras_io import OrbitConfig, cameras_from_capture, field_bounds_metres, orbit_around_bounds
 from .composite_field import (
     BACKGROUND_ID,
     SCENE_ID,
@@ -12,20 +15,28 @@ from .composite_field import (
     CompositeSample,
     sample_field,
 )
+from .contact_sheets import contact_sheet
 from .distance_grid import DistanceGrid
+from .from_stage import StageComposite, composite_from_stage
 from .image_io import (
     read_depth_png,
     read_instance_png,
     read_rgb_png,
+    rgb_to_uint8,
     write_depth_png,
     write_instance_png,
     write_rgb_png,
 )
+from .nerfstudio import opencv_to_opengl, transforms_json
 from .oriented_box import OrientedBox
 from .placement import PlacedObject
 from .regions import OrientedBoxRegion, RemovalRegion, ShellRegion
+from .render_folder import RenderConfig, RenderReport, ViewFiles, render_views
 from .render_result import Render
+from .replace import ReplaceConfig, ReplacementResult, pick_replacements, replace_and_render
 from .sphere_tracer import SphereTracerConfig, TraceHits, render, trace
+from .stage_config import StageCompositeConfig
+from .substitution import SubstitutedInstance, build_composite, library_to_scene
 from .volume_renderer import VolumeHits, VolumeRendererConfig, integrate, render_volume
 
 __all__ = [
@@ -37,27 +48,49 @@ __all__ = [
     "CompositeField",
     "CompositeSample",
     "DistanceGrid",
+    "OrbitConfig",
     "OrientedBox",
     "OrientedBoxRegion",
     "PlacedObject",
     "RemovalRegion",
     "Render",
+    "RenderConfig",
+    "RenderReport",
+    "ReplaceConfig",
+    "ReplacementResult",
     "ShellRegion",
     "SphereTracerConfig",
+    "StageComposite",
+    "StageCompositeConfig",
+    "SubstitutedInstance",
     "TraceHits",
+    "ViewFiles",
     "VolumeHits",
     "VolumeRendererConfig",
+    "build_composite",
     "camera_rays",
+    "cameras_from_capture",
+    "composite_from_stage",
+    "contact_sheet",
+    "field_bounds_metres",
     "integrate",
+    "library_to_scene",
     "look_at",
+    "opencv_to_opengl",
+    "orbit_around_bounds",
     "orbit_cameras",
+    "pick_replacements",
     "read_depth_png",
     "read_instance_png",
     "read_rgb_png",
     "render",
+    "render_views",
     "render_volume",
+    "replace_and_render",
+    "rgb_to_uint8",
     "sample_field",
     "trace",
+    "transforms_json",
     "write_depth_png",
     "write_instance_png",
     "write_rgb_png",

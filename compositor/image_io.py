@@ -41,6 +41,13 @@ def _encode(image: Image.Image, f: BinaryIO) -> None:
     image.save(f, format="PNG")
 
 
+def _umask() -> int:
+    """The process's file-creation mask (read by setting it and putting it back)."""
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
 def _atomic_save(path: str | os.PathLike, image: Image.Image) -> Path:
     path = Path(path)
     if not path.parent.is_dir():
@@ -48,6 +55,8 @@ def _atomic_save(path: str | os.PathLike, image: Image.Image) -> Path:
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as f:
+            # mkstemp makes the file private (0600); give the image the usual permissions.
+            os.chmod(tmp, 0o666 & ~_umask())
             _encode(image, f)
             f.flush()
             os.fsync(f.fileno())
@@ -59,16 +68,22 @@ def _atomic_save(path: str | os.PathLike, image: Image.Image) -> Path:
     return path
 
 
-def write_rgb_png(path: str | os.PathLike, rgb: torch.Tensor | np.ndarray) -> Path:
-    """Write ``rgb`` (h, w, 3), floats in [0, 1] or uint8, as an 8-bit PNG; returns the path."""
+def rgb_to_uint8(rgb: torch.Tensor | np.ndarray) -> np.ndarray:
+    """(h, w, 3) uint8 of ``rgb`` (h, w, 3): floats in [0, 1] clipped and rounded, uint8 as is."""
     a = _numpy(rgb)
     if a.ndim != 3 or a.shape[-1] != 3:
         raise ValueError(f"rgb must be (h, w, 3), got {a.shape}")
-    if a.dtype != np.uint8:
-        a = a.astype(np.float64)
-        if not np.isfinite(a).all():
-            raise ValueError("rgb has non-finite values")
-        a = np.round(np.clip(a, 0.0, 1.0) * 255.0).astype(np.uint8)
+    if a.dtype == np.uint8:
+        return a
+    a = a.astype(np.float64)
+    if not np.isfinite(a).all():
+        raise ValueError("rgb has non-finite values")
+    return np.round(np.clip(a, 0.0, 1.0) * 255.0).astype(np.uint8)
+
+
+def write_rgb_png(path: str | os.PathLike, rgb: torch.Tensor | np.ndarray) -> Path:
+    """Write ``rgb`` (h, w, 3), floats in [0, 1] or uint8, as an 8-bit PNG; returns the path."""
+    a = rgb_to_uint8(rgb)
     return _atomic_save(path, Image.fromarray(np.ascontiguousarray(a)))
 
 

@@ -6,7 +6,10 @@ active):
 1. Rays are clipped to the field's bounds (and ``[near, far]``).
 2. Empty-space skipping: where the coarse :class:`~compositor.distance_grid.DistanceGrid`
    guarantees at least ``grid_skip_cells`` cells of free space, the ray steps that far for
-   one table look-up and no field evaluation.
+   one table look-up and no field evaluation. Not from the landing point of an unverified
+   relaxed step, though, unless the grid's free sphere there overlaps the last safe sphere
+   (the test of step 3 with the bound as ``|r|``): a relaxed step may have jumped over a thin
+   surface, and free space around its landing point says nothing about the segment behind.
 3. Otherwise the field is evaluated and the ray takes an over-relaxed step ``w * sdf``
    (Keinert et al. 2014, "Enhanced sphere tracing"). A relaxed step is safe only if the
    unbounding spheres before and after it overlap, ``r_prev + |r| >= step``; if they do
@@ -276,7 +279,12 @@ def _trace_chunk(
         if grid is not None:
             lb = grid.lower_bound(p)
             lookups[idx] += 1
-            skip = lb >= skip_min
+            # A point reached by a relaxed (unverified) step may lie beyond a thin surface the
+            # step jumped over: its free sphere proves nothing about the segment behind it
+            # unless it overlaps the last safe sphere (Keinert's test, with the bound as |r|).
+            # Otherwise the point is evaluated, and the failure test below sends it back.
+            verified = ~relaxed[idx] | (r_prev[idx] + lb >= ti - t_prev[idx])
+            skip = (lb >= skip_min) & verified
             si, lbs = idx[skip], lb[skip]
             # A grid step is an unrelaxed step in guaranteed free space: a safe sphere.
             t_prev[si], r_prev[si], safe[si], prev_eval[si] = ti[skip], lbs, True, False

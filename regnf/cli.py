@@ -18,6 +18,7 @@ def _commands() -> dict[str, type]:
     from benchmarks.cli import BenchEncodings, BenchFields, BenchRegistration
     from regnf.commands_fields import Distill, Mesh, Synth, Train
     from regnf.commands_registration import Register
+    from regnf.commands_render import RenderStage, ReplaceInstances
     from regnf.commands_stage import StageAddInstance, StageExport, StageNew, StageShow
 
     return {
@@ -30,6 +31,8 @@ def _commands() -> dict[str, type]:
         "stage add-instance": StageAddInstance,
         "stage show": StageShow,
         "stage export": StageExport,
+        "render": RenderStage,
+        "replace": ReplaceInstances,
         "bench fields": BenchFields,
         "bench registration": BenchRegistration,
         "bench encodings": BenchEncodings,

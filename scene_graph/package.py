@@ -9,15 +9,25 @@ specification admits no other file types.
 
 from __future__ import annotations
 
+import contextlib
+import dataclasses
 import os
 import tempfile
+from collections.abc import Iterator
 from pathlib import Path
 
 from pxr import Sdf, UsdUtils
 
 from . import layout as L
-from .embedded_checkpoint import CHECKPOINT_SUFFIX, embedded_name, write_embedded_checkpoint
+from .embedded_checkpoint import (
+    CHECKPOINT_SUFFIX,
+    checkpoint_file,
+    embedded_name,
+    is_embedded,
+    write_embedded_checkpoint,
+)
 from .errors import StageError
+from .model import ComposedScene
 from .transaction import file_transaction
 from .usd_read import open_stage, read_stage
 from .usd_write import write_stage
@@ -27,14 +37,16 @@ def export_stage(stage_path: str | os.PathLike, out_path: str | os.PathLike) -> 
     """Export ``stage_path`` to ``out_path``; the format follows its suffix.
 
     ``.usda`` / ``.usdc``: the whole stage is written again beside ``out_path`` (root layer in
-    that format, assets as usual). ``.usdz``: one self-contained package. The stage is read
-    and checked first; nothing is written if that fails.
+    that format, assets as usual; from a package, its checkpoints are unpacked). ``.usdz``:
+    one self-contained package. The stage is read and checked first; nothing is written if
+    that fails.
     """
     src = Path(stage_path).absolute()
     out = Path(out_path).absolute()
     scene = read_stage(src)
     if out.suffix in (".usda", ".usdc"):
-        write_stage(scene, out)
+        with _unpacked(scene) as plain:
+            write_stage(plain, out)
         return out
     if out.suffix != ".usdz":
         raise StageError(out, "/", "export to .usda, .usdc or .usdz")
@@ -63,6 +75,23 @@ def export_stage(stage_path: str | os.PathLike, out_path: str | os.PathLike) -> 
             writer.AddFile(str(file), rel)
         writer.Save()
     return out
+
+
+@contextlib.contextmanager
+def _unpacked(scene: ComposedScene) -> Iterator[ComposedScene]:
+    """``scene`` with every checkpoint embedded in a package as a plain (temporary) file."""
+    with contextlib.ExitStack() as stack:
+
+        def plain(rec):
+            if not is_embedded(str(rec.checkpoint)):
+                return rec
+            return dataclasses.replace(rec, checkpoint=stack.enter_context(checkpoint_file(rec.checkpoint)))
+
+        yield dataclasses.replace(
+            scene,
+            scene=plain(scene.scene),
+            library={name: plain(rec) for name, rec in scene.library.items()},
+        )
 
 
 def _packaged_layer(layer: Sdf.Layer, dest: Path) -> Path:

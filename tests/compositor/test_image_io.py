@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+import stat
 from pathlib import Path
 
 import numpy as np
@@ -88,3 +90,12 @@ def test_a_failed_write_leaves_nothing_behind(
 def test_missing_folder_is_a_clear_error(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="does not exist"):
         write_rgb_png(tmp_path / "nope" / "c.png", np.zeros((2, 2, 3)))
+
+
+def test_written_images_get_the_usual_permissions(tmp_path: Path) -> None:
+    mask = os.umask(0o022)
+    try:
+        p = write_rgb_png(tmp_path / "a.png", np.zeros((2, 2, 3), dtype=np.uint8))
+    finally:
+        os.umask(mask)
+    assert stat.S_IMODE(p.stat().st_mode) == 0o644  # not mkstemp's private 0600

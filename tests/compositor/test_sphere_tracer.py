@@ -288,3 +288,19 @@ def test_relaxed_steps_do_not_skip_a_thin_sheet_in_front_of_a_body() -> None:
         hits = trace(field, o, d, config=cfg)
         assert bool(hits.hit.all())
         np.testing.assert_allclose(hits.t.numpy(), 1.498, atol=1e-5)
+
+
+def test_relaxed_step_over_a_thin_plate_is_not_taken_for_free_space() -> None:
+    """Regression: a relaxed step that jumps over a thin table top must be verified before the
+    distance grid may skip on from its landing point (the grid bound there says nothing about
+    the segment behind it). The default tracer sees every pixel the textbook one sees."""
+    floor = Box((1.5, 1.5, 0.05), (0.0, 0.0, -0.05), color=(0.5, 0.5, 0.5))
+    top = Box((0.45, 0.3, 0.0125), (0.3, 0.2, 0.45), color=(0.8, 0.5, 0.2))
+    leg = Box((0.02, 0.02, 0.22), (0.0, 0.0, 0.22), color=(0.8, 0.5, 0.2))
+    field = Union(floor, top, leg)
+    cam = Camera.from_fov(96, 72, 62.0, look_at((1.3, -1.25, 1.06), (0.0, 0.0, 0.22)))
+    fast = render(field, cam, SphereTracerConfig())
+    plain = render(field, cam, SphereTracerConfig.plain())
+    assert int((fast.mask != plain.mask).sum()) == 0
+    assert int((fast.instance_id != plain.instance_id).sum()) == 0
+    assert float((fast.depth - plain.depth).abs().max()) < 1e-3

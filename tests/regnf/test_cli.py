@@ -15,7 +15,8 @@ from tests.neural_fields.capture_helpers import write_analytic_capture
 def test_help_lists_every_command(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["--help"]) == 0
     out = capsys.readouterr().out
-    for cmd in ("synth", "train", "distill", "mesh", "register", "bench fields", "bench registration"):
+    for cmd in ("synth", "train", "distill", "mesh", "register", "render", "replace", "bench fields",
+                "bench registration"):
         assert cmd in out
 
 

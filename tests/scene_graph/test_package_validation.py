@@ -100,3 +100,15 @@ def test_usdz_validation_reports_no_errors(stage_path, tmp_path):
     report = validate_stage(export_stage(stage_path, tmp_path / "v.usdz"))
     assert len(report.validators) > 10
     assert report.errors == []
+
+
+def test_a_package_exports_back_to_a_plain_stage(stage_path, tmp_path):
+    """Exporting a .usdz to .usda unpacks its checkpoints beside the new stage, byte for byte."""
+    usdz = export_stage(stage_path, tmp_path / "pkg" / "scene.usdz")
+    plain = export_stage(usdz, tmp_path / "plain" / "scene.usda")
+    back = read_stage(plain)
+    _same_instances(read_stage(stage_path), back)
+    for name in ("c", "dc", "t"):
+        assert back.library[name].checkpoint == tmp_path / "plain" / "fields" / f"{name}.safetensors"
+        assert back.library[name].checkpoint.read_bytes() == (stage_path.parent / "fields" / f"{name}.safetensors").read_bytes()
+    assert (tmp_path / "plain" / "fields" / "scene_field.safetensors").is_file()

@@ -1,0 +1,202 @@
+"""A composite field from a USD stage: the scene field, minus and plus its instances.
+
+Works on everything :func:`scene_graph.read_stage` reads: .usda / .usdc stages, replacement
+layers (an instance then SHOWS the newly selected object but the ORIGINAL one, the object
+that was registered, is removed) and .usdz packages (checkpoints carried inside). Frames and
+removal regions are those of :mod:`compositor.substitution`.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+import torch
+
+from neural_fields.checkpoint import CheckpointError, load_field
+from neural_fields.field import Field
+from scene_graph import ComposedScene, FieldRecord, RegistrationProvenance, StageError, read_stage
+from scene_graph import layout as L
+from scene_graph.embedded_checkpoint import checkpoint_file
+from scene_graph.usd_read import open_stage, regnf_data
+
+from .composite_field import CompositeField
+from .oriented_box import OrientedBox
+from .stage_config import DEFAULT_STAGE_COMPOSITE, StageCompositeConfig
+from .substitution import SubstitutedInstance, build_composite, check_z_up
+
+TO_WORLD_ATOL = 1e-9
+"""A stage's recorded to_world must match its checkpoint's to this (absolute, per entry)."""
+MAX_LAYER_DEPTH = 16
+"""Longest chain of replacement layers followed to find an instance's original object."""
+
+
+class StageComposite(NamedTuple):
+    """A stage turned into one field."""
+
+    field: CompositeField
+    """The composite, in the scene field frame (the scene's ``to_world``)."""
+    scene: ComposedScene
+    """The stage as read."""
+    instance_ids: dict[str, int]
+    """Stage instance id -> integer id >= 1 in renders (empty in ``scene`` mode)."""
+
+
+def composite_from_stage(
+    stage_path: str | os.PathLike,
+    config: StageCompositeConfig = DEFAULT_STAGE_COMPOSITE,
+    device: torch.device | str = "cpu",
+) -> StageComposite:
+    """Load a stage's fields and compose them (see the module).
+
+    Parameters
+    ----------
+    stage_path : str or PathLike
+        A regnf stage, replacement layer or .usdz package.
+    config : StageCompositeConfig
+    device : torch.device or str
+        Where every field is loaded.
+
+    Returns
+    -------
+    StageComposite
+        Instance ids are numbered 1, 2, ... in the stage's instance order.
+
+    Raises
+    ------
+    StageError
+        Naming the stage (or checkpoint) and prim: anything :func:`read_stage` refuses, a
+        checkpoint that does not load, a recorded ``to_world`` that disagrees with its
+        checkpoint, a scene field frame that is not +Z up, an unusable proposal box.
+    """
+    path = Path(stage_path).absolute()
+    scene = read_stage(path)
+    originals = original_selections(path, scene) if config.mode == "substitute" else {}
+    return composite_from_scene(scene, originals, path, config, device)
+
+
+def composite_from_scene(
+    scene: ComposedScene,
+    originals: dict[str, str],
+    stage_path: str | os.PathLike,
+    config: StageCompositeConfig = DEFAULT_STAGE_COMPOSITE,
+    device: torch.device | str = "cpu",
+) -> StageComposite:
+    """:func:`composite_from_stage` of a stage already read (or changed in memory).
+
+    Parameters
+    ----------
+    scene : ComposedScene
+        What the stage holds; each instance shows its ``library_name``.
+    originals : dict
+        Instance id -> the library object to remove (see :func:`original_selections`);
+        unused in ``scene`` mode.
+    stage_path : str or PathLike
+        The stage ``scene`` comes from, named in errors.
+    config : StageCompositeConfig
+    device : torch.device or str
+    """
+    path = Path(stage_path).absolute()
+    scene_field = _load(path, L.SCENE, scene.scene, device)
+    if config.mode == "scene":
+        return StageComposite(build_composite(scene_field, [], config), scene, {})
+    try:
+        check_z_up(scene.scene.to_world, f"scene field {scene.scene.name!r}")
+    except ValueError as exc:
+        raise StageError(path, L.SCENE, str(exc)) from exc
+    cache: dict[str, Field] = {}
+    specs, ids = [], {}
+    for k, (iid, inst) in enumerate(scene.instances.items(), start=1):
+        where = L.instance_path(iid)
+        original = originals.get(iid, inst.library_name)
+        for name in (original, inst.library_name):
+            if name not in scene.library:
+                raise StageError(path, where, f"library object {name!r} is not in the stage's library "
+                                 f"{sorted(scene.library)}")
+        load = _loader(path, where, scene, cache, device)
+        specs.append(SubstitutedInstance(
+            instance_id=k,
+            shown=load(inst.library_name),
+            original=load(original),
+            object_to_scene=inst.object_to_scene,
+            proposal=_proposal(path, where, inst.registration),
+            name=iid,
+        ))
+        ids[iid] = k
+    try:
+        field = build_composite(scene_field, specs, config)
+    except ValueError as exc:
+        raise StageError(path, L.INSTANCES, str(exc)) from exc
+    return StageComposite(field, scene, ids)
+
+
+def original_selections(stage_path: str | os.PathLike, scene: ComposedScene, depth: int = 0) -> dict[str, str]:
+    """Instance id -> the library object that was REGISTERED (the one to remove).
+
+    The registration provenance's library name when recorded; otherwise, for a replacement
+    layer, the selection of the stage beneath it (recursively); otherwise the selection.
+    """
+    path = Path(stage_path).absolute()
+    base = replacement_base(path)
+    below: dict[str, str] = {}
+    if base is not None:
+        if depth >= MAX_LAYER_DEPTH:
+            raise StageError(path, "/", f"more than {MAX_LAYER_DEPTH} nested replacement layers")
+        below = original_selections(base, read_stage(base, check_checkpoints=False), depth + 1)
+    out = {}
+    for iid, inst in scene.instances.items():
+        reg = inst.registration
+        out[iid] = reg.library_name if reg is not None and reg.library_name else below.get(iid, inst.library_name)
+    return out
+
+
+def replacement_base(stage_path: str | os.PathLike) -> Path | None:
+    """The stage a replacement layer sits over, or None for a plain stage or package."""
+    path = Path(stage_path).absolute()
+    if path.suffix == ".usdz":
+        return None
+    stage = open_stage(path)  # held: the layer lives only as long as its stage
+    layer = stage.GetRootLayer()
+    rel = regnf_data(layer, str(path)).get("replacementOf")
+    return Path(layer.ComputeAbsolutePath(rel)) if rel else None
+
+
+def _load(stage: Path, prim: str, rec: FieldRecord, device: torch.device | str) -> Field:
+    """Load ``rec``'s checkpoint (from inside a package too) and check its ``to_world``."""
+    try:
+        with checkpoint_file(rec.checkpoint) as ckpt:
+            field = load_field(ckpt, device)
+    except CheckpointError as exc:
+        raise StageError(rec.checkpoint, prim, f"checkpoint of {rec.name!r} in {stage}: {exc.problem}") from exc
+    got = field.to_world.detach().cpu().double().numpy()
+    err = float(np.abs(got - rec.to_world).max())
+    if err > TO_WORLD_ATOL:
+        raise StageError(stage, prim, f"the stage records a to_world for {rec.name!r} that differs from "
+                         f"its checkpoint's {rec.checkpoint} by {err:.3g}")
+    return field
+
+
+def _loader(
+    stage: Path, where: str, scene: ComposedScene, cache: dict[str, Field], device: torch.device | str
+) -> Callable[[str], Field]:
+    """A function loading library objects by name, each once (shared by its instances)."""
+
+    def load(name: str) -> Field:
+        if name not in cache:
+            cache[name] = _load(stage, f"{where} (library object {name!r})", scene.library[name], device)
+        return cache[name]
+
+    return load
+
+
+def _proposal(stage: Path, where: str, reg: RegistrationProvenance | None) -> OrientedBox | None:
+    """The registration's proposal box (scene field frame), if recorded."""
+    if reg is None or reg.proposal_center is None or reg.proposal_half_extents is None:
+        return None
+    try:
+        return OrientedBox(reg.proposal_center, reg.proposal_half_extents, reg.proposal_rotation)
+    except ValueError as exc:
+        raise StageError(stage, where, f"unusable registration proposal box: {exc}") from exc

@@ -1,0 +1,283 @@
+"""Render a field from many cameras into a folder: images, a contact sheet and ``render.json``.
+
+Per view ``k`` (4 digits): ``rgb_k.png`` (8-bit), ``depth_k.png`` (16-bit millimetres, 0 no
+hit) and ``instance_k.png`` (16-bit ``id + 1``: 0 background, 1 scene, ``i + 1`` instance
+``i``); see :mod:`compositor.image_io`. Then ``contact_sheet.png`` (the RGB views tiled) and
+``render.json`` (cameras, settings, timings, field evaluations per pixel).
+
+Nothing half-done is ever left in the folder: every camera is checked first (a camera
+inside matter is refused before anything is rendered), the views are written to a hidden
+staging folder inside the output folder, and only when all of them are done are they moved
+into place, ``render.json`` last. On any error the staging folder is removed and the output
+folder is as it was.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import re
+import shutil
+import tempfile
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal, NamedTuple
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from neural_fields.field import Field
+from synthetic.atomic_io import write_json
+
+from .camera import Camera
+from .contact_sheets import contact_sheet
+from .distance_grid import DistanceGrid
+from .image_io import rgb_to_uint8, write_depth_png, write_instance_png, write_rgb_png
+from .render_result import Render
+from .shading import check_camera_outside
+from .sphere_tracer import SphereTracerConfig, render
+from .volume_renderer import VolumeRendererConfig, render_volume
+
+RENDERERS = ("sphere", "volume")
+"""The renderers :func:`render_views` can use."""
+RENDER_JSON = "render.json"
+"""The report written last into the output folder."""
+CONTACT_SHEET = "contact_sheet.png"
+"""The RGB views tiled on one image."""
+VIEW_FILE_RE = re.compile(r"^(rgb|depth|instance)_\d{4,}\.png$")
+"""Per-view files this module writes (older ones are removed when overwriting)."""
+
+
+@dataclass(frozen=True)
+class RenderConfig:
+    """How :func:`render_views` renders and writes."""
+
+    renderer: Literal["sphere", "volume"] = "sphere"
+    """``sphere``: the sphere tracer (fast, exact hits); ``volume``: NeuS-style integration."""
+    sphere: SphereTracerConfig = field(default_factory=SphereTracerConfig)
+    """Settings of the sphere tracer."""
+    volume: VolumeRendererConfig = field(default_factory=VolumeRendererConfig)
+    """Settings of the volume renderer."""
+    sheet_columns: int = 0
+    """Tiles per row of the contact sheet; 0: about square."""
+    sheet_tile_width: int = 192
+    """Largest width of a contact-sheet tile, pixels."""
+    overwrite: bool = False
+    """Render into a folder that already holds a render (its old view files are replaced)."""
+    progress: bool = True
+    """Show a progress bar."""
+
+    def __post_init__(self) -> None:
+        if self.renderer not in RENDERERS:
+            raise ValueError(f"renderer must be one of {RENDERERS}, got {self.renderer!r}")
+
+
+class ViewFiles(NamedTuple):
+    """The files of one view, relative to the output folder."""
+
+    rgb: str
+    """8-bit RGB PNG."""
+    depth: str
+    """16-bit millimetre depth PNG (0: no hit)."""
+    instance: str
+    """16-bit instance PNG storing id + 1."""
+
+
+class RenderReport(NamedTuple):
+    """What :func:`render_views` wrote."""
+
+    out: Path
+    """The output folder."""
+    views: list[ViewFiles]
+    """Per camera, in order."""
+    json_path: Path
+    """``render.json``."""
+    seconds: list[float]
+    """Render time per view (tracing, shading and writing), seconds."""
+    evals_per_pixel_mean: float
+    """Field evaluations per pixel over all views (composite costs included)."""
+
+
+def view_files(k: int) -> ViewFiles:
+    """File names of view ``k``."""
+    return ViewFiles(f"rgb_{k:04d}.png", f"depth_{k:04d}.png", f"instance_{k:04d}.png")
+
+
+def camera_json(camera: Camera) -> dict:
+    """A camera as JSON: OpenCV axes, metres, pixel centres at ``u + 0.5``."""
+    return {
+        "K": camera.K.tolist(),
+        "width": camera.width,
+        "height": camera.height,
+        "camera_to_world": camera.camera_to_world.tolist(),
+    }
+
+
+def jsonable(value: Any) -> Any:
+    """``value`` with tuples as lists and non-finite floats as None (strict JSON)."""
+    if isinstance(value, Mapping):
+        return {str(k): jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [jsonable(v) for v in value]
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+def check_cameras(field: Field, cameras: Sequence[Camera]) -> None:
+    """Refuse (``ValueError`` naming the camera) any camera whose centre is inside matter."""
+    world_to_field = np.linalg.inv(field.to_world.detach().cpu().double().numpy())
+    for k, cam in enumerate(cameras):  # one SDF query per camera
+        if not isinstance(cam, Camera):
+            raise TypeError(f"cameras[{k}] must be a Camera, got {type(cam).__name__}")
+        origin = world_to_field[:3, :3] @ cam.center + world_to_field[:3, 3]
+        try:
+            check_camera_outside(field, torch.as_tensor(origin))
+        except ValueError as exc:
+            raise ValueError(f"camera {k} at {np.round(cam.center, 4).tolist()} m: {exc}") from exc
+
+
+def render_one(field: Field, camera: Camera, config: RenderConfig, grid: DistanceGrid | None) -> Render:
+    """One view with the configured renderer (``grid`` for the sphere tracer)."""
+    if config.renderer == "volume":
+        return render_volume(field, camera, config.volume)
+    return render(field, camera, config.sphere, grid)
+
+
+def render_views(
+    field: Field,
+    cameras: Sequence[Camera],
+    out: str | os.PathLike,
+    config: RenderConfig = RenderConfig(),
+    metadata: Mapping[str, Any] | None = None,
+) -> RenderReport:
+    """Render ``field`` from every camera into ``out`` (see the module for the files).
+
+    Parameters
+    ----------
+    field : Field
+        Any field (a composite reports instance ids and its full cost).
+    cameras : sequence of Camera
+        Posed in the field's metres; at least one.
+    out : str or PathLike
+        Output folder (created if needed).
+    config : RenderConfig
+    metadata : mapping, optional
+        Extra JSON-serialisable entries for ``render.json`` (stage, mode, instance ids...).
+
+    Raises
+    ------
+    ValueError
+        No camera, a camera inside matter, an output folder that already holds a render
+        (unless ``overwrite``), non-finite field values; nothing is written then.
+    """
+    if len(cameras) == 0:
+        raise ValueError("nothing to render: no camera")
+    out = Path(out)
+    if (out / RENDER_JSON).exists() and not config.overwrite:
+        raise ValueError(f"{out} already holds a render ({RENDER_JSON}); overwrite it explicitly")
+    check_cameras(field, cameras)
+    out.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=".render-", dir=out))
+    try:
+        report = _render_into(field, cameras, out, staging, config, dict(metadata or {}))
+        _commit(staging, out, report.views, config.overwrite)
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+    return report
+
+
+def _render_into(
+    field: Field,
+    cameras: Sequence[Camera],
+    out: Path,
+    staging: Path,
+    config: RenderConfig,
+    metadata: dict,
+) -> RenderReport:
+    t_start = time.perf_counter()
+    grid = None
+    if config.renderer == "sphere" and config.sphere.grid_resolution > 0:
+        s = config.sphere
+        grid = DistanceGrid.build(field, s.grid_resolution, s.grid_lipschitz, s.chunk)
+    t_grid = time.perf_counter() - t_start
+    views, seconds, stats, thumbs = [], [], [], []
+    total_evals, total_pixels = 0, 0
+    bar = tqdm(cameras, desc=f"render {len(cameras)} views", unit="view", disable=not config.progress)
+    for k, cam in enumerate(bar):  # a loop over views; each view is vectorised over its pixels
+        t0 = time.perf_counter()
+        r = render_one(field, cam, config, grid)
+        names = view_files(k)
+        rgb8 = rgb_to_uint8(r.rgb)
+        write_rgb_png(staging / names.rgb, rgb8)
+        write_depth_png(staging / names.depth, r.depth, r.mask)
+        write_instance_png(staging / names.instance, r.instance_id)
+        thumbs.append(rgb8)
+        seconds.append(time.perf_counter() - t0)
+        evals = int(r.evals_per_pixel.sum())
+        total_evals += evals
+        total_pixels += cam.width * cam.height
+        ids = r.instance_id.detach().cpu()
+        stats.append({
+            "index": k,
+            **names._asdict(),
+            "seconds": seconds[-1],
+            "evals_per_pixel_mean": evals / (cam.width * cam.height),
+            "lookups_per_pixel_mean": float(r.lookups_per_pixel.double().mean()),
+            "hit_fraction": float(r.mask.double().mean()),
+            "instance_pixels": {str(int(i)): int(c) for i, c in zip(*torch.unique(ids, return_counts=True))},
+        })
+        views.append(names)
+    sheet = contact_sheet(thumbs, config.sheet_columns, config.sheet_tile_width)
+    write_rgb_png(staging / CONTACT_SHEET, sheet)
+    epp = total_evals / total_pixels
+    settings = config.volume if config.renderer == "volume" else config.sphere
+    payload = {
+        **metadata,
+        "renderer": config.renderer,
+        "renderer_config": dataclasses.asdict(settings),
+        "field": {"name": field.name, "label": field.label, "to_world": field.to_world.tolist()},
+        "files": {
+            "depth_png": "uint16 millimetres of z-depth along the optical axis, 0 = no hit",
+            "instance_png": "uint16 id + 1: 0 background, 1 scene, i + 1 instance i",
+            "contact_sheet": CONTACT_SHEET,
+        },
+        "cameras": [camera_json(c) for c in cameras],
+        "views": stats,
+        "evals_per_pixel_mean": epp,
+        "timings": {
+            "distance_grid_seconds": t_grid,
+            "render_seconds_total": float(sum(seconds)),
+            "per_view_seconds_mean": float(np.mean(seconds)),
+            "total_seconds": time.perf_counter() - t_start,
+        },
+    }
+    write_json(staging / RENDER_JSON, jsonable(payload))
+    return RenderReport(out, views, out / RENDER_JSON, seconds, epp)
+
+
+def _commit(staging: Path, out: Path, views: list[ViewFiles], overwrite: bool) -> None:
+    """Move the staged files into ``out`` (``render.json`` last); drop stale view files."""
+    new = {name for v in views for name in v}
+    for name in sorted(new) + [CONTACT_SHEET, RENDER_JSON]:
+        os.replace(staging / name, out / name)
+    staging.rmdir()
+    if overwrite:
+        for p in out.iterdir():  # files of an earlier render with more views
+            if VIEW_FILE_RE.match(p.name) and p.name not in new:
+                p.unlink()
+
+
+def read_render_json(out: str | os.PathLike) -> dict:
+    """The ``render.json`` of a render folder."""
+    path = Path(out) / RENDER_JSON
+    try:
+        return json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise ValueError(f"{path}: cannot read the render report ({exc})") from exc

@@ -1,0 +1,147 @@
+"""CLI commands ``regnf render`` and ``regnf replace``: composites of a stage, rendered to a folder."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Literal
+
+from rich.console import Console
+from tyro.conf import Positional
+
+if TYPE_CHECKING:
+    from compositor import Camera, CompositeField
+    from compositor.render_folder import RenderConfig
+    from compositor.stage_config import StageCompositeConfig
+
+console = Console(stderr=True)
+
+
+@dataclass
+class _Views:
+    """Options shared by both commands: the stage, the cameras, the renderer and the composite."""
+
+    stage: Positional[Path]
+    """The stage (.usda, .usdc, a replacement layer or a .usdz package)."""
+    out: Path
+    """Output folder: rgb_XXXX.png, depth_XXXX.png (16-bit mm), instance_XXXX.png, contact_sheet.png,
+    render.json (replace adds replacement.usda over the stage, exported there, and transforms.json)."""
+    capture: Path | None = None
+    """Render the cameras of this capture folder (meta_data.json), posed in metres."""
+    orbit: int | None = None
+    """Instead of --capture: this many cameras on a circle inside the scene's bounds."""
+    orbit_radius: float | None = None
+    """Horizontal orbit radius in metres (default: 0.4 of the bounds' smaller horizontal side)."""
+    orbit_elevation: float = 30.0
+    """Orbit cameras look down at the target at this angle, degrees."""
+    fov: float = 60.0
+    """Horizontal field of view of orbit cameras, degrees."""
+    width: int | None = None
+    """Image width (orbit default 320; capture default: its own, K scaled when changed)."""
+    height: int | None = None
+    """Image height (orbit default 240; capture default: its own, or in proportion to --width)."""
+    frames: tuple[int, ...] = ()
+    """Capture frames to render (indices; default all)."""
+    renderer: Literal["sphere", "volume"] = "sphere"
+    """sphere: sphere tracer (fast); volume: NeuS-style volume rendering."""
+    samples: int = 200
+    """Volume renderer: uniform samples per ray."""
+    lipschitz: float = 1.0
+    """Sphere tracer: Lipschitz bound assumed by empty-space skipping (> 1 for fields that overestimate)."""
+    removal: Literal["box", "shell"] = "box"
+    """What is cut out of the scene per instance: its oriented box or a shell around its surface."""
+    box_pad: float = 0.05
+    """Relative growth of the removal box."""
+    shell_dilation: float = 0.05
+    """Dilation of the shell removal, metres."""
+    tint: bool = False
+    """Tint every placed object with its own colour."""
+    overwrite: bool = False
+    """Render into a folder that already holds a render."""
+    device: str = "cpu"
+    """Torch device."""
+
+    def cameras(self, field: CompositeField) -> list[Camera]:
+        from compositor.cameras_io import (
+            OrbitConfig,
+            cameras_from_capture,
+            field_bounds_metres,
+            orbit_around_bounds,
+        )
+
+        if (self.capture is None) == (self.orbit is None):
+            raise SystemExit("give the cameras: --capture DIR or --orbit N (one of them)")
+        try:
+            if self.capture is not None:
+                return cameras_from_capture(self.capture, self.width, self.height, self.frames or None)
+            cfg = OrbitConfig(n=self.orbit, width=self.width or 320, height=self.height or 240,
+                              fov_deg=self.fov, radius=self.orbit_radius, elevation_deg=self.orbit_elevation)
+            return orbit_around_bounds(field_bounds_metres(field.scene), cfg)
+        except ValueError as exc:  # CaptureError is a ValueError naming the file
+            raise SystemExit(f"regnf: cameras: {exc}") from exc
+
+    def render_config(self) -> RenderConfig:
+        from compositor.render_folder import RenderConfig
+        from compositor.sphere_tracer import SphereTracerConfig
+        from compositor.volume_renderer import VolumeRendererConfig
+
+        return RenderConfig(renderer=self.renderer, sphere=SphereTracerConfig(grid_lipschitz=self.lipschitz),
+                            volume=VolumeRendererConfig(n_samples=self.samples), overwrite=self.overwrite)
+
+    def composite_config(self, mode: str) -> StageCompositeConfig:
+        from compositor.stage_config import StageCompositeConfig
+
+        return StageCompositeConfig(mode=mode, removal=self.removal, box_pad=self.box_pad,
+                                    shell_dilation=self.shell_dilation, tint=self.tint)
+
+
+@dataclass
+class RenderStage(_Views):
+    """Render a stage's scene field alone, or with every instance substituted by its library field."""
+
+    mode: Literal["scene", "substitute"] = field(kw_only=True)
+    """scene: the scene field alone; substitute: instances removed and their library fields placed."""
+
+    def run(self) -> None:
+        from compositor.from_stage import composite_from_stage
+        from compositor.render_folder import render_views
+        from scene_graph import StageError
+
+        t0 = time.perf_counter()
+        try:
+            comp = composite_from_stage(self.stage, self.composite_config(self.mode), self.device)
+            cams = self.cameras(comp.field)
+            meta = {"stage": str(self.stage.absolute()), "mode": self.mode,
+                    "instance_ids": comp.instance_ids, "load_seconds": time.perf_counter() - t0}
+            report = render_views(comp.field, cams, self.out, self.render_config(), meta)
+        except (StageError, ValueError) as exc:
+            raise SystemExit(f"regnf render: {exc}") from exc
+        console.print(f"[green]rendered[/] {len(report.views)} views of {self.stage} ({self.mode}) -> {self.out} "
+                      f"in {sum(report.seconds):.1f} s, {report.evals_per_pixel_mean:.1f} evaluations per pixel")
+
+
+@dataclass
+class ReplaceInstances(_Views):
+    """Swap every instance for a random library object of its class, render it, write transforms.json."""
+
+    seed: int = 0
+    """Seed of the random choices (the same seed gives the same outputs)."""
+
+    def run(self) -> None:
+        from compositor.from_stage import composite_from_stage
+        from compositor.replace import ReplaceConfig, replace_and_render
+        from scene_graph import StageError
+
+        try:
+            # The cameras need the scene's bounds: the scene field alone is enough for that.
+            scene_only = composite_from_stage(self.stage, self.composite_config("scene"), self.device)
+            cams = self.cameras(scene_only.field)
+            cfg = ReplaceConfig(self.composite_config("substitute"), self.render_config(), self.device)
+            result = replace_and_render(self.stage, self.seed, self.out, cams, cfg)
+        except (StageError, ValueError) as exc:
+            raise SystemExit(f"regnf replace: {exc}") from exc
+        for iid, name in result.selections.items():
+            console.print(f"  {iid} -> {name}")
+        console.print(f"[green]replaced[/] {len(result.selections)} instances (seed {self.seed}): {result.layer}, "
+                      f"{len(result.render.views)} views, {result.transforms}")

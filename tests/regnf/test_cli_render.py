@@ -1,0 +1,111 @@
+"""``regnf render`` and ``regnf replace`` on a stage of tiny neural fields."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from compositor import read_instance_png
+from compositor.replace import pick_replacements
+from regnf.cli import main
+from scene_graph import add_instance, export_stage, read_stage
+from tests.scene_graph.helpers import make_stage, similarity
+
+VIEWS = ["--orbit", "3", "--orbit-radius", "4.5", "--width", "24", "--height", "18"]
+"""Cameras well outside the tiny scene blob (radius ~1.5 m around (0, 0, 1.5))."""
+
+
+@pytest.fixture(scope="module")
+def stage(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    path = make_stage(tmp_path_factory.mktemp("cli_render"), names=("c", "dc", "fc", "t"))
+    add_instance(path, "c", similarity(0.5, (2.2, -0.5, 0.0), 1.0))
+    add_instance(path, "dc", similarity(1.5, (-2.2, 0.4, 0.0), 1.0))
+    add_instance(path, "t", similarity(-0.3, (0.3, 2.3, 0.0), 1.0))
+    return path
+
+
+def files(folder: Path) -> dict[str, str]:
+    """Name -> sha256 of every file directly in ``folder``."""
+    return {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(folder.iterdir()) if p.is_file()}
+
+
+@pytest.mark.parametrize("mode", ["scene", "substitute"])
+def test_render_writes_every_view(stage: Path, tmp_path: Path, mode: str) -> None:
+    out = tmp_path / mode
+    assert main(["render", str(stage), "--mode", mode, "--out", str(out), *VIEWS]) == 0
+    expect = {f"{k}_{i:04d}.png" for k in ("rgb", "depth", "instance") for i in range(3)}
+    assert set(files(out)) == expect | {"contact_sheet.png", "render.json"}
+    data = json.loads((out / "render.json").read_text())
+    assert data["mode"] == mode and len(data["cameras"]) == 3 and data["evals_per_pixel_mean"] > 0
+    ids = set(np.unique(np.concatenate([read_instance_png(out / f"instance_{i:04d}.png").ravel() for i in range(3)])))
+    if mode == "scene":
+        assert data["instance_ids"] == {} and ids <= {-1, 0}
+    else:
+        assert data["instance_ids"] == {"c_1": 1, "dc_1": 2, "t_1": 3} and ids <= {-1, 0, 1, 2, 3}
+
+
+def test_render_refuses_a_camera_inside_the_scene(stage: Path, tmp_path: Path) -> None:
+    out = tmp_path / "bad"
+    # A tight, steep orbit puts the cameras inside the scene blob.
+    args = ["render", str(stage), "--mode", "scene", "--out", str(out), "--orbit", "2",
+            "--orbit-radius", "0.1", "--orbit-elevation", "85", "--width", "8", "--height", "6"]
+    with pytest.raises(SystemExit, match="camera 0 .*inside matter of the scene"):
+        main(args)
+    assert not out.exists() or not any(out.rglob("*"))  # no image, no staging folder
+
+
+def test_render_needs_cameras(stage: Path, tmp_path: Path) -> None:
+    with pytest.raises(SystemExit, match="--capture DIR or --orbit N"):
+        main(["render", str(stage), "--mode", "scene", "--out", str(tmp_path / "x")])
+
+
+def test_replace_is_training_data_and_deterministic(stage: Path, tmp_path: Path) -> None:
+    outs = [tmp_path / "a", tmp_path / "b"]
+    for out in outs:
+        assert main(["replace", str(stage), "--seed", "5", "--out", str(out), *VIEWS]) == 0
+    a, b = files(outs[0]), files(outs[1])
+    assert a.keys() == b.keys()
+    differ = sorted(k for k in a if a[k] != b[k])
+    assert differ == ["render.json"]  # only its timings and absolute paths differ
+    data = json.loads((outs[0] / "transforms.json").read_text())
+    assert (data["w"], data["h"]) == (24, 18) and data["fl_x"] == pytest.approx(data["fl_y"])
+    assert len(data["frames"]) == 3
+    cams = json.loads((outs[0] / "render.json").read_text())["cameras"]
+    for frame, cam in zip(data["frames"], cams, strict=True):
+        for key in ("file_path", "depth_file_path", "mask_path"):
+            assert (outs[0] / frame[key]).is_file()
+        M = np.asarray(frame["transform_matrix"])
+        np.testing.assert_allclose(M, np.asarray(cam["camera_to_world"]) @ np.diag([1.0, -1.0, -1.0, 1.0]))
+        np.testing.assert_allclose(M[:3, :3].T @ M[:3, :3], np.eye(3), atol=1e-12)
+        assert np.linalg.det(M[:3, :3]) == pytest.approx(1.0)
+    # The layer swaps every chair for another chair; the only table stays.
+    swapped = read_stage(outs[0] / "replacement.usda")
+    chosen = {iid: inst.library_name for iid, inst in swapped.instances.items()}
+    assert chosen == data["regnf"]["selections"] == pick_replacements(read_stage(stage), 5)
+    assert chosen["c_1"] in ("dc", "fc") and chosen["dc_1"] in ("c", "fc") and chosen["t_1"] == "t"
+
+
+def test_pick_replacements_depends_on_the_seed_only(stage: Path) -> None:
+    scene = read_stage(stage)
+    picks = [pick_replacements(scene, seed) for seed in range(12)]
+    assert picks == [pick_replacements(scene, seed) for seed in range(12)]
+    assert len({tuple(sorted(p.items())) for p in picks}) > 1
+    for p in picks:
+        for iid, name in p.items():
+            assert scene.library[name].label == scene.library[scene.instances[iid].library_name].label
+
+
+def test_replace_from_a_package_unpacks_it(stage: Path, tmp_path: Path) -> None:
+    usdz = export_stage(stage, tmp_path / "pkg" / "room.usdz")
+    out = tmp_path / "out"
+    views = ["--orbit", "1", "--orbit-radius", "4.5", "--width", "12", "--height", "9"]
+    assert main(["replace", str(usdz), "--seed", "5", "--out", str(out), *views]) == 0
+    assert (out / "room.usda").is_file() and (out / "fields" / "c.safetensors").is_file()
+    assert {i: s.library_name for i, s in read_stage(out / "replacement.usda").instances.items()} == \
+        pick_replacements(read_stage(stage), 5)
+    with pytest.raises(SystemExit, match="already holds replacement.usda"):
+        main(["replace", str(usdz), "--seed", "6", "--out", str(out), *views])
