@@ -122,3 +122,33 @@ class BenchRegistration:
             write_text(self.markdown, text)
         console.print(text)
         console.print(f"results: {self.json}; before/after pictures: {pngs}/")
+
+
+@dataclass
+class BenchRender:
+    """Sphere tracer against volume rendering on the composite room; object completion."""
+
+    json: Path = Path("out/bench_render.json")
+    """Where to write the rows and the completion record (JSON); PNGs go beside it."""
+    markdown: Path | None = None
+    """Also write the tables as Markdown here."""
+    device: str = "cpu"
+    """Torch device."""
+    cache_dir: Path = dataclasses.field(default_factory=default_cache_dir)
+    """Cache directory (fields are trained there if missing)."""
+
+    def run(self) -> None:
+        from benchmarks.render import run_render_benchmark
+        from benchmarks.render_report import markdown_tables, write_images
+
+        command = f"regnf bench render --json {self.json}"
+        result, images = run_render_benchmark(Cache(self.cache_dir), device=self.device)
+        pngs = write_images(images, self.json.parent, self.json.stem)
+        write_json(self.json, {"meta": run_meta(command, self.device), **result})
+        text = f"Command: `{command}`\n\n{markdown_tables(result)}"
+        if self.markdown:
+            from synthetic.atomic_io import write_text
+
+            write_text(self.markdown, text)
+        console.print(text)
+        console.print(f"results: {self.json}; images: {', '.join(str(p) for p in pngs)}")

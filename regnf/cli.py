@@ -15,7 +15,7 @@ os.environ.setdefault("PYOPENGL_PLATFORM", "egl")  # headless pyrender
 
 def _commands() -> dict[str, type]:
     # Imported lazily so that `regnf --help` answers at once.
-    from benchmarks.cli import BenchEncodings, BenchFields, BenchRegistration
+    from benchmarks.cli import BenchEncodings, BenchFields, BenchRegistration, BenchRender
     from regnf.commands_fields import Distill, Mesh, Synth, Train
     from regnf.commands_registration import Register
     from regnf.commands_render import RenderStage, ReplaceInstances
@@ -35,6 +35,7 @@ def _commands() -> dict[str, type]:
         "replace": ReplaceInstances,
         "bench fields": BenchFields,
         "bench registration": BenchRegistration,
+        "bench render": BenchRender,
         "bench encodings": BenchEncodings,
     }
 
