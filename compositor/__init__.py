@@ -2,7 +2,9 @@
 
 See METHOD.md section 9. Everything here works on any :class:`neural_fields.field.Field`;
 :func:`composite_from_stage` builds the composite of a USD stage (section 8), and
-:func:`render_views` / :func:`replace_and_render` render it to folders of images.
+:func:`render_views` / :func:`replace_and_render` render it to folders of images (and,
+optionally, a GIF or MP4 sequence). Cameras come from a capture, an orbit, or the
+``UsdGeom.Camera`` prims of a stage (:func:`cameras_from_usd`, :func:`camera_to_usd`).
 """
 
 from .camera import Camera, CameraRays, camera_rays, look_at, orbit_cameras
@@ -34,9 +36,11 @@ from .regions import OrientedBoxRegion, RemovalRegion, ShellRegion
 from .render_folder import RenderConfig, RenderReport, ViewFiles, render_views
 from .render_result import Render
 from .replace import ReplaceConfig, ReplacementResult, pick_replacements, replace_and_render
+from .sequence_io import SequenceBackendError, write_gif, write_mp4
 from .sphere_tracer import SphereTracerConfig, TraceHits, render, trace
 from .stage_config import StageCompositeConfig
 from .substitution import SubstitutedInstance, build_composite, library_to_scene
+from .usd_cameras import camera_to_usd, cameras_from_usd, write_cameras_usd
 from .volume_renderer import VolumeHits, VolumeRendererConfig, integrate, render_volume
 
 __all__ = [
@@ -58,6 +62,7 @@ __all__ = [
     "RenderReport",
     "ReplaceConfig",
     "ReplacementResult",
+    "SequenceBackendError",
     "ShellRegion",
     "SphereTracerConfig",
     "StageComposite",
@@ -69,7 +74,9 @@ __all__ = [
     "VolumeRendererConfig",
     "build_composite",
     "camera_rays",
+    "camera_to_usd",
     "cameras_from_capture",
+    "cameras_from_usd",
     "composite_from_stage",
     "contact_sheet",
     "field_bounds_metres",
@@ -91,7 +98,10 @@ __all__ = [
     "sample_field",
     "trace",
     "transforms_json",
+    "write_cameras_usd",
     "write_depth_png",
+    "write_gif",
     "write_instance_png",
+    "write_mp4",
     "write_rgb_png",
 ]

@@ -2,8 +2,10 @@
 
 Per view ``k`` (4 digits): ``rgb_k.png`` (8-bit), ``depth_k.png`` (16-bit millimetres, 0 no
 hit) and ``instance_k.png`` (16-bit ``id + 1``: 0 background, 1 scene, ``i + 1`` instance
-``i``); see :mod:`compositor.image_io`. Then ``contact_sheet.png`` (the RGB views tiled) and
-``render.json`` (cameras, settings, timings, field evaluations per pixel).
+``i``); see :mod:`compositor.image_io`. Then ``contact_sheet.png`` (the RGB views tiled),
+optionally ``sequence.gif`` or ``sequence.mp4`` (the RGB views in order, see
+:mod:`compositor.sequence_io`), and ``render.json`` (cameras, settings, timings, field
+evaluations per pixel).
 
 Nothing half-done is ever left in the folder: every camera is checked first (a camera
 inside matter is refused before anything is rendered), the views are written to a hidden
@@ -39,6 +41,7 @@ from .contact_sheets import contact_sheet
 from .distance_grid import DistanceGrid
 from .image_io import rgb_to_uint8, write_depth_png, write_instance_png, write_rgb_png
 from .render_result import Render
+from .sequence_io import SEQUENCE_FORMATS, require_mp4, write_sequence
 from .shading import check_camera_outside
 from .sphere_tracer import SphereTracerConfig, render
 from .volume_renderer import VolumeRendererConfig, render_volume
@@ -51,6 +54,10 @@ CONTACT_SHEET = "contact_sheet.png"
 """The RGB views tiled on one image."""
 VIEW_FILE_RE = re.compile(r"^(rgb|depth|instance)_\d{4,}\.png$")
 """Per-view files this module writes (older ones are removed when overwriting)."""
+SEQUENCE_STEM = "sequence"
+"""The RGB views in order: ``sequence.gif`` or ``sequence.mp4``."""
+SEQUENCE_FILE_RE = re.compile(r"^sequence\.(gif|mp4)$")
+"""Sequence files this module writes (one of another format is removed when overwriting)."""
 
 
 @dataclass(frozen=True)
@@ -67,6 +74,10 @@ class RenderConfig:
     """Tiles per row of the contact sheet; 0: about square."""
     sheet_tile_width: int = 192
     """Largest width of a contact-sheet tile, pixels."""
+    sequence: Literal["none", "gif", "mp4"] = "none"
+    """Also write the RGB views in order as ``sequence.gif`` or ``sequence.mp4`` (one image size needed)."""
+    sequence_fps: float = 10.0
+    """Frames per second of the sequence."""
     overwrite: bool = False
     """Render into a folder that already holds a render (its old view files are replaced)."""
     progress: bool = True
@@ -75,6 +86,15 @@ class RenderConfig:
     def __post_init__(self) -> None:
         if self.renderer not in RENDERERS:
             raise ValueError(f"renderer must be one of {RENDERERS}, got {self.renderer!r}")
+        if self.sequence not in SEQUENCE_FORMATS:
+            raise ValueError(f"sequence must be one of {SEQUENCE_FORMATS}, got {self.sequence!r}")
+        if not (math.isfinite(self.sequence_fps) and self.sequence_fps > 0):
+            raise ValueError(f"sequence_fps must be finite and > 0, got {self.sequence_fps}")
+
+    @property
+    def sequence_name(self) -> str | None:
+        """``sequence.gif`` or ``sequence.mp4``, None without a sequence."""
+        return None if self.sequence == "none" else f"{SEQUENCE_STEM}.{self.sequence}"
 
 
 class ViewFiles(NamedTuple):
@@ -101,6 +121,8 @@ class RenderReport(NamedTuple):
     """Render time per view (tracing, shading and writing), seconds."""
     evals_per_pixel_mean: float
     """Field evaluations per pixel over all views (composite costs included)."""
+    sequence: Path | None = None
+    """``sequence.gif`` or ``sequence.mp4``, None without a sequence."""
 
 
 def view_files(k: int) -> ViewFiles:
@@ -142,6 +164,26 @@ def check_cameras(field: Field, cameras: Sequence[Camera]) -> None:
             raise ValueError(f"camera {k} at {np.round(cam.center, 4).tolist()} m: {exc}") from exc
 
 
+def check_sequence(cameras: Sequence[Camera], config: RenderConfig) -> None:
+    """Refuse a sequence that cannot be written: views of different sizes, MP4 without its package.
+
+    Raises
+    ------
+    ValueError
+        Cameras of different image sizes.
+    compositor.sequence_io.SequenceBackendError
+        An MP4 sequence without ``imageio-ffmpeg`` (an ``ImportError``).
+    """
+    if config.sequence == "none":
+        return
+    sizes = sorted({(c.width, c.height) for c in cameras})
+    if len(sizes) > 1:
+        raise ValueError(f"a {config.sequence} sequence needs views of one size, the cameras have "
+                         f"{', '.join(f'{w} x {h}' for w, h in sizes)}")
+    if config.sequence == "mp4":
+        require_mp4()
+
+
 def render_one(field: Field, camera: Camera, config: RenderConfig, grid: DistanceGrid | None) -> Render:
     """One view with the configured renderer (``grid`` for the sphere tracer)."""
     if config.renderer == "volume":
@@ -174,19 +216,23 @@ def render_views(
     ------
     ValueError
         No camera, a camera inside matter, an output folder that already holds a render
-        (unless ``overwrite``), non-finite field values; nothing is written then.
+        (unless ``overwrite``), non-finite field values, a sequence of views of different
+        sizes; nothing is written then.
+    compositor.sequence_io.SequenceBackendError
+        An MP4 sequence without its package (an ``ImportError``); nothing is written then.
     """
     if len(cameras) == 0:
         raise ValueError("nothing to render: no camera")
     out = Path(out)
     if (out / RENDER_JSON).exists() and not config.overwrite:
         raise ValueError(f"{out} already holds a render ({RENDER_JSON}); overwrite it explicitly")
+    check_sequence(cameras, config)
     check_cameras(field, cameras)
     out.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=".render-", dir=out))
     try:
         report = _render_into(field, cameras, out, staging, config, dict(metadata or {}))
-        _commit(staging, out, report.views, config.overwrite)
+        _commit(staging, out, report.views, config)
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
         raise
@@ -236,6 +282,8 @@ def _render_into(
         views.append(names)
     sheet = contact_sheet(thumbs, config.sheet_columns, config.sheet_tile_width)
     write_rgb_png(staging / CONTACT_SHEET, sheet)
+    if config.sequence_name is not None:
+        write_sequence(staging / config.sequence_name, thumbs, config.sequence, config.sequence_fps)
     epp = total_evals / total_pixels
     settings = config.volume if config.renderer == "volume" else config.sphere
     payload = {
@@ -247,6 +295,8 @@ def _render_into(
             "depth_png": "uint16 millimetres of z-depth along the optical axis, 0 = no hit",
             "instance_png": "uint16 id + 1: 0 background, 1 scene, i + 1 instance i",
             "contact_sheet": CONTACT_SHEET,
+            "sequence": config.sequence_name,
+            "sequence_fps": config.sequence_fps if config.sequence_name else None,
         },
         "cameras": [camera_json(c) for c in cameras],
         "views": stats,
@@ -259,18 +309,21 @@ def _render_into(
         },
     }
     write_json(staging / RENDER_JSON, jsonable(payload))
-    return RenderReport(out, views, out / RENDER_JSON, seconds, epp)
+    sequence = out / config.sequence_name if config.sequence_name else None
+    return RenderReport(out, views, out / RENDER_JSON, seconds, epp, sequence)
 
 
-def _commit(staging: Path, out: Path, views: list[ViewFiles], overwrite: bool) -> None:
-    """Move the staged files into ``out`` (``render.json`` last); drop stale view files."""
+def _commit(staging: Path, out: Path, views: list[ViewFiles], config: RenderConfig) -> None:
+    """Move the staged files into ``out`` (``render.json`` last); drop stale view and sequence files."""
     new = {name for v in views for name in v}
-    for name in sorted(new) + [CONTACT_SHEET, RENDER_JSON]:
+    extra = [CONTACT_SHEET] + ([config.sequence_name] if config.sequence_name else [])
+    for name in sorted(new) + extra + [RENDER_JSON]:
         os.replace(staging / name, out / name)
     staging.rmdir()
-    if overwrite:
-        for p in out.iterdir():  # files of an earlier render with more views
-            if VIEW_FILE_RE.match(p.name) and p.name not in new:
+    if config.overwrite:
+        for p in out.iterdir():  # files of an earlier render with more views or another sequence
+            stale_view = VIEW_FILE_RE.match(p.name) and p.name not in new
+            if stale_view or (SEQUENCE_FILE_RE.match(p.name) and p.name != config.sequence_name):
                 p.unlink()
 
 

@@ -31,7 +31,7 @@ from synthetic.atomic_io import write_json
 from .camera import Camera
 from .from_stage import composite_from_scene, composite_from_stage, original_selections
 from .nerfstudio import transforms_json
-from .render_folder import RenderConfig, RenderReport, check_cameras, render_views
+from .render_folder import RenderConfig, RenderReport, check_cameras, check_sequence, render_views
 from .stage_config import StageCompositeConfig
 
 LAYER_NAME = "replacement.usda"
@@ -132,7 +132,8 @@ def replace_and_render(
         timings vary).
     out : str or PathLike
         Output folder: ``replacement.usda`` (over the stage, exported beside it if needed),
-        the views, ``contact_sheet.png``, ``render.json`` and ``transforms.json``.
+        the views, ``contact_sheet.png``, the sequence if ``config.render`` asks for one,
+        ``render.json`` and ``transforms.json``.
     cameras : sequence of Camera
         Posed in scene metres.
     config : ReplaceConfig
@@ -142,7 +143,10 @@ def replace_and_render(
     StageError
         The stage cannot be read or the layer cannot be written (the message names the file).
     ValueError
-        No camera, a camera inside matter, an existing layer in ``out`` (unless overwriting).
+        No camera, a camera inside matter, an existing layer in ``out`` (unless overwriting),
+        a sequence of views of different sizes.
+    compositor.sequence_io.SequenceBackendError
+        An MP4 sequence without its package (an ``ImportError``); nothing is written then.
     """
     t0 = time.perf_counter()
     src = Path(stage).absolute()
@@ -153,6 +157,7 @@ def replace_and_render(
         raise ValueError(f"the stage is {LAYER_NAME} of the output folder itself; choose another output folder")
     if len(cameras) == 0:
         raise ValueError("nothing to render: no camera")
+    check_sequence(cameras, config.render)
     composite_cfg = dataclasses.replace(config.composite, mode="substitute")
     device = torch.device(config.device)
     scene = read_stage(src)

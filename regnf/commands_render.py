@@ -5,10 +5,10 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Literal
+from typing import TYPE_CHECKING, Annotated, Literal
 
 from rich.console import Console
-from tyro.conf import Positional
+from tyro.conf import Positional, arg
 
 if TYPE_CHECKING:
     from compositor import Camera, CompositeField
@@ -26,11 +26,16 @@ class _Views:
     """The stage (.usda, .usdc, a replacement layer or a .usdz package)."""
     out: Path
     """Output folder: rgb_XXXX.png, depth_XXXX.png (16-bit mm), instance_XXXX.png, contact_sheet.png,
-    render.json (replace adds replacement.usda over the stage, exported there, and transforms.json)."""
+    sequence.gif|mp4 (with --sequence), render.json (replace adds replacement.usda over the stage,
+    exported there, and transforms.json)."""
     capture: Path | None = None
     """Render the cameras of this capture folder (meta_data.json), posed in metres."""
     orbit: int | None = None
     """Instead of --capture: this many cameras on a circle inside the scene's bounds."""
+    usd_camera: Annotated[tuple[str, ...], arg(metavar="PRIM [PRIM ...]")] = ()
+    """Instead of --capture or --orbit: these UsdGeom.Camera prims of the stage (or of --camera-stage)."""
+    camera_stage: Path | None = None
+    """Read the --usd-camera prims from this stage (Z up, any metersPerUnit) instead of the rendered one."""
     orbit_radius: float | None = None
     """Horizontal orbit radius in metres (default: 0.4 of the bounds' smaller horizontal side)."""
     orbit_elevation: float = 30.0
@@ -38,9 +43,10 @@ class _Views:
     fov: float = 60.0
     """Horizontal field of view of orbit cameras, degrees."""
     width: int | None = None
-    """Image width (orbit default 320; capture default: its own, K scaled when changed)."""
+    """Image width (orbit and USD cameras default 320; capture default: its own, K scaled when changed)."""
     height: int | None = None
-    """Image height (orbit default 240; capture default: its own, or in proportion to --width)."""
+    """Image height (orbit default 240; capture default: its own, or in proportion to --width; USD
+    cameras: from the aperture's aspect ratio)."""
     frames: tuple[int, ...] = ()
     """Capture frames to render (indices; default all)."""
     renderer: Literal["sphere", "volume"] = "sphere"
@@ -57,10 +63,30 @@ class _Views:
     """Dilation of the shell removal, metres."""
     tint: bool = False
     """Tint every placed object with its own colour."""
+    sequence: Literal["none", "gif", "mp4"] = "none"
+    """Also write the RGB views in order as sequence.gif or sequence.mp4 (mp4 needs imageio-ffmpeg)."""
+    fps: float = 10.0
+    """Frames per second of --sequence."""
     overwrite: bool = False
     """Render into a folder that already holds a render."""
     device: str = "cpu"
     """Torch device."""
+
+    def check_options(self) -> None:
+        """Refuse, before loading anything, no or several camera sources and an MP4 without its package."""
+        from compositor.sequence_io import SequenceBackendError, require_mp4
+
+        sources = [self.capture is not None, self.orbit is not None, bool(self.usd_camera)]
+        if sum(sources) != 1:
+            raise SystemExit("give the cameras: --capture DIR, --orbit N or --usd-camera PRIM [PRIM ...] "
+                             "(one of them)")
+        if self.camera_stage is not None and not self.usd_camera:
+            raise SystemExit("--camera-stage names the stage of the --usd-camera prims: give them too")
+        if self.sequence == "mp4":
+            try:
+                require_mp4()
+            except SequenceBackendError as exc:
+                raise SystemExit(f"regnf: --sequence mp4: {exc}") from exc
 
     def cameras(self, field: CompositeField) -> list[Camera]:
         from compositor.cameras_io import (
@@ -69,16 +95,20 @@ class _Views:
             field_bounds_metres,
             orbit_around_bounds,
         )
+        from compositor.usd_cameras import cameras_from_usd
 
-        if (self.capture is None) == (self.orbit is None):
-            raise SystemExit("give the cameras: --capture DIR or --orbit N (one of them)")
+        self.check_options()
         try:
             if self.capture is not None:
                 return cameras_from_capture(self.capture, self.width, self.height, self.frames or None)
+            if self.usd_camera:
+                # The rendered stage is Z up in metres (read_stage checks it); another one must be Z up.
+                return cameras_from_usd(self.camera_stage or self.stage, self.usd_camera, self.width or 320,
+                                        self.height, up_axis="Z")
             cfg = OrbitConfig(n=self.orbit, width=self.width or 320, height=self.height or 240,
                               fov_deg=self.fov, radius=self.orbit_radius, elevation_deg=self.orbit_elevation)
             return orbit_around_bounds(field_bounds_metres(field.scene), cfg)
-        except ValueError as exc:  # CaptureError is a ValueError naming the file
+        except ValueError as exc:  # CaptureError and StageError are ValueErrors naming the file
             raise SystemExit(f"regnf: cameras: {exc}") from exc
 
     def render_config(self) -> RenderConfig:
@@ -87,7 +117,8 @@ class _Views:
         from compositor.volume_renderer import VolumeRendererConfig
 
         return RenderConfig(renderer=self.renderer, sphere=SphereTracerConfig(grid_lipschitz=self.lipschitz),
-                            volume=VolumeRendererConfig(n_samples=self.samples), overwrite=self.overwrite)
+                            volume=VolumeRendererConfig(n_samples=self.samples), sequence=self.sequence,
+                            sequence_fps=self.fps, overwrite=self.overwrite)
 
     def composite_config(self, mode: str) -> StageCompositeConfig:
         from compositor.stage_config import StageCompositeConfig
@@ -108,6 +139,7 @@ class RenderStage(_Views):
         from compositor.render_folder import render_views
         from scene_graph import StageError
 
+        self.check_options()
         t0 = time.perf_counter()
         try:
             comp = composite_from_stage(self.stage, self.composite_config(self.mode), self.device)
@@ -133,6 +165,7 @@ class ReplaceInstances(_Views):
         from compositor.replace import ReplaceConfig, replace_and_render
         from scene_graph import StageError
 
+        self.check_options()
         try:
             # The cameras need the scene's bounds: the scene field alone is enough for that.
             scene_only = composite_from_stage(self.stage, self.composite_config("scene"), self.device)

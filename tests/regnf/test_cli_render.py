@@ -8,9 +8,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from PIL import Image
+from pxr import Usd, UsdGeom
 
-from compositor import read_instance_png
+from compositor import Camera, read_depth_png, read_instance_png, read_rgb_png
 from compositor.replace import pick_replacements
+from compositor.sequence_io import mp4_available
+from compositor.usd_cameras import camera_to_usd, write_cameras_usd
 from regnf.cli import main
 from scene_graph import add_instance, export_stage, read_stage
 from tests.scene_graph.helpers import make_stage, similarity
@@ -59,8 +63,93 @@ def test_render_refuses_a_camera_inside_the_scene(stage: Path, tmp_path: Path) -
 
 
 def test_render_needs_cameras(stage: Path, tmp_path: Path) -> None:
-    with pytest.raises(SystemExit, match="--capture DIR or --orbit N"):
+    with pytest.raises(SystemExit, match=r"--capture DIR, --orbit N or --usd-camera PRIM \[PRIM ...\] \(one of"):
         main(["render", str(stage), "--mode", "scene", "--out", str(tmp_path / "x")])
+
+
+def cameras_of(out: Path) -> list[Camera]:
+    """The cameras recorded in a render folder's render.json."""
+    data = json.loads((out / "render.json").read_text())["cameras"]
+    return [Camera(np.asarray(c["K"]), c["width"], c["height"], np.asarray(c["camera_to_world"])) for c in data]
+
+
+def assert_same_view(a: Path, b: Path) -> None:
+    """Two renders of one camera: equal up to USD's 32-bit focal length (an 8-bit step at most)."""
+    rgb_a, rgb_b = read_rgb_png(a).astype(int), read_rgb_png(b).astype(int)
+    assert np.abs(rgb_a - rgb_b).max() <= 1
+    depth_a, depth_b = read_depth_png(a.with_name(a.name.replace("rgb", "depth"))), \
+        read_depth_png(b.with_name(b.name.replace("rgb", "depth")))
+    assert np.abs(depth_a - depth_b).max() <= 0.001
+
+
+def test_render_from_usd_cameras(stage: Path, tmp_path: Path) -> None:
+    orbit = tmp_path / "orbit"
+    assert main(["render", str(stage), "--mode", "scene", "--out", str(orbit), *VIEWS]) == 0
+    cams = cameras_of(orbit)
+    # From another stage, in the order given; the height follows from the aperture.
+    write_cameras_usd(tmp_path / "cams.usda", cams)
+    out = tmp_path / "usd"
+    assert main(["render", str(stage), "--mode", "scene", "--out", str(out), "--camera-stage",
+                 str(tmp_path / "cams.usda"), "--usd-camera", "/Cameras/view_0002", "/Cameras/view_0000",
+                 "--width", "24"]) == 0
+    for got, want in zip(cameras_of(out), [cams[2], cams[0]], strict=True):
+        assert (got.width, got.height) == (24, 18)
+        np.testing.assert_allclose(got.camera_to_world, want.camera_to_world, atol=1e-9)
+        np.testing.assert_allclose(got.K, want.K, rtol=1e-6)
+    assert_same_view(out / "rgb_0000.png", orbit / "rgb_0002.png")
+    assert_same_view(out / "rgb_0001.png", orbit / "rgb_0000.png")
+    # From the rendered stage itself: a copy of the stage (beside its fields) holding a camera.
+    own = stage.with_name("with_camera.usda")
+    own.write_bytes(stage.read_bytes())
+    usd = Usd.Stage.Open(str(own))
+    camera_to_usd(usd, "/Cameras/hero", cams[1])
+    usd.Save()
+    out = tmp_path / "own"
+    assert main(["render", str(own), "--mode", "scene", "--out", str(out), "--usd-camera", "/Cameras/hero",
+                 "--width", "24", "--height", "18"]) == 0
+    assert_same_view(out / "rgb_0000.png", orbit / "rgb_0001.png")
+
+
+def test_usd_camera_mistakes(stage: Path, tmp_path: Path) -> None:
+    out = tmp_path / "x"
+    args = ["render", str(stage), "--mode", "scene", "--out", str(out)]
+    with pytest.raises(SystemExit, match="one of them"):
+        main([*args, "--usd-camera", "/Cameras/view_0000", *VIEWS])
+    with pytest.raises(SystemExit, match="--camera-stage names the stage of the --usd-camera prims"):
+        main([*args, "--camera-stage", str(stage), *VIEWS])
+    with pytest.raises(SystemExit, match=rf"regnf: cameras: {stage}: prim /Cameras/nope: no such prim"):
+        main([*args, "--usd-camera", "/Cameras/nope"])
+    y_up = Usd.Stage.CreateNew(str(tmp_path / "y_up.usda"))
+    UsdGeom.SetStageUpAxis(y_up, UsdGeom.Tokens.y)
+    UsdGeom.Camera.Define(y_up, "/cam")
+    y_up.Save()
+    with pytest.raises(SystemExit, match=r"y_up.usda: prim /: upAxis is Y, expected Z"):
+        main([*args, "--usd-camera", "/cam", "--camera-stage", str(tmp_path / "y_up.usda")])
+    assert not out.exists()
+
+
+def gif_frames(path: Path) -> int:
+    with Image.open(path) as im:
+        return im.n_frames
+
+
+def test_render_and_replace_write_a_sequence(stage: Path, tmp_path: Path) -> None:
+    out = tmp_path / "render"
+    assert main(["render", str(stage), "--mode", "substitute", "--out", str(out), *VIEWS,
+                 "--sequence", "gif", "--fps", "5"]) == 0
+    assert gif_frames(out / "sequence.gif") == 3
+    assert json.loads((out / "render.json").read_text())["files"]["sequence"] == "sequence.gif"
+    out = tmp_path / "replace"
+    assert main(["replace", str(stage), "--seed", "5", "--out", str(out), *VIEWS, "--sequence", "gif"]) == 0
+    assert gif_frames(out / "sequence.gif") == 3 and (out / "transforms.json").is_file()
+
+
+@pytest.mark.skipif(mp4_available(), reason="imageio-ffmpeg is installed")
+def test_mp4_without_its_package_is_refused_at_once(stage: Path, tmp_path: Path) -> None:
+    for command in (["render", str(stage), "--mode", "scene"], ["replace", str(stage)]):
+        with pytest.raises(SystemExit, match="--sequence mp4: writing MP4 needs the package imageio-ffmpeg"):
+            main([*command, "--out", str(tmp_path / "x"), *VIEWS, "--sequence", "mp4"])
+    assert not (tmp_path / "x").exists()
 
 
 def test_replace_is_training_data_and_deterministic(stage: Path, tmp_path: Path) -> None:
