@@ -29,6 +29,7 @@ from tqdm import tqdm
 
 from compositor import Camera, look_at, render, render_volume
 from compositor.distance_grid import DistanceGrid
+from compositor.oriented_box import OrientedBox
 from compositor.sphere_tracer import SphereTracerConfig
 from compositor.stage_config import StageCompositeConfig
 from compositor.substitution import SubstitutedInstance, build_composite
@@ -70,6 +71,11 @@ class RenderBenchConfig:
     same PSNR against the reference, 32.6 and 32.5 dB)."""
     volume: VolumeRendererConfig = VolumeRendererConfig()
     """The volume renderer's settings (the authors' 200 uniform samples per ray)."""
+    completion_removal: StageCompositeConfig = StageCompositeConfig(mode="substitute", box_pad=0.25)
+    """Removal for completion: the proposal and the object's box grown by 25 %. A low-coverage
+    field smears an object into the space behind it that it never saw; measured (mean over the
+    5 chairs, PSNR gain / depth error ratio): box_pad 0.05: +5.0 dB / 0.45, 0.25: +5.8 dB /
+    0.35, 0.4: +6.1 dB / 0.31 (a larger box also cuts more of the neighbourhood)."""
     remnant_tolerance: float = 0.05
     """A removed object's pixel that shows the scene more than this (metres) in front of the
     empty room counts as a remnant."""
@@ -92,7 +98,9 @@ def reference_renderer(room: Room, width: int = WIDTH, height: int = HEIGHT) -> 
 
 
 def substituted_composite(scene: Field, library: dict[str, Field], instances: Sequence,
-                          progress: bool = False) -> tuple[Field, list[dict]]:
+                          progress: bool = False,
+                          composite: StageCompositeConfig = StageCompositeConfig(mode="substitute"),
+                          ) -> tuple[Field, list[dict]]:
     """``scene`` with each instance whose library object is in ``library`` registered (with its
     true box as the proposal, the paper's assumption) and substituted. Returns the composite
     and one record per registration (confidence, seconds)."""
@@ -103,14 +111,16 @@ def substituted_composite(scene: Field, library: dict[str, Field], instances: Se
         if lib is None:
             continue
         t0 = time.perf_counter()
-        res = register(scene, lib, proposal_from_instance(inst, S))
+        proposal = proposal_from_instance(inst, S)
+        res = register(scene, lib, proposal)
         L = lib.to_world.detach().cpu().double().numpy()
         O = S @ res.transform.inverse().matrix() @ np.linalg.inv(L)
-        specs.append(SubstitutedInstance(len(specs) + 1, lib, lib, O, None, inst.id))
+        box = OrientedBox(proposal.center, proposal.half_extents, proposal.rotation)
+        specs.append(SubstitutedInstance(len(specs) + 1, lib, lib, O, box, inst.id))
         records.append({"instance": inst.id, "object": inst.library, "confidence": res.confidence,
                         "accepted": res.accepted, "seconds": time.perf_counter() - t0,
                         "max_abs_error_vs_truth": float(np.abs(O - inst.object_to_world).max())})
-    return build_composite(scene, specs, StageCompositeConfig(mode="substitute")), records
+    return build_composite(scene, specs, composite), records
 
 
 def unseen_cameras(room: Room, centre: np.ndarray, config: RenderBenchConfig,
@@ -202,7 +212,8 @@ def completion(cache: Cache, library: dict[str, Field], config: RenderBenchConfi
     low = RoomCaptureConfig(coverage="low")
     capture = cache.room_capture(ROOM, low)
     scene = load_field(cache.scene_field(ROOM, "low", device), device=device)
-    field, records = substituted_composite(scene, library, capture.instances, progress)
+    field, records = substituted_composite(scene, library, capture.instances, progress,
+                                           config.completion_removal)
     room = make_room(ROOM, seed=low.seed)
     meshes = room.instance_meshes()
     grid_before = DistanceGrid.build(scene, resolution=config.sphere.grid_resolution,
