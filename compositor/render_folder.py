@@ -66,8 +66,10 @@ class RenderConfig:
 
     renderer: Literal["sphere", "volume"] = "sphere"
     """``sphere``: the sphere tracer (fast, exact hits); ``volume``: NeuS-style integration."""
-    sphere: SphereTracerConfig = field(default_factory=SphereTracerConfig)
-    """Settings of the sphere tracer."""
+    sphere: SphereTracerConfig = field(default_factory=lambda: SphereTracerConfig(footprint_fraction=0.05))
+    """Settings of the sphere tracer: hits to 5 % of a pixel's footprint (the tracer's own
+    default, 1e-4, is for exact depth; 0.05 costs 18 % fewer evaluations at the same PSNR,
+    see docs/benchmarks.md)."""
     volume: VolumeRendererConfig = field(default_factory=VolumeRendererConfig)
     """Settings of the volume renderer."""
     sheet_columns: int = 0

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -113,10 +114,10 @@ class _Views:
 
     def render_config(self) -> RenderConfig:
         from compositor.render_folder import RenderConfig
-        from compositor.sphere_tracer import SphereTracerConfig
         from compositor.volume_renderer import VolumeRendererConfig
 
-        return RenderConfig(renderer=self.renderer, sphere=SphereTracerConfig(grid_lipschitz=self.lipschitz),
+        sphere = dataclasses.replace(RenderConfig().sphere, grid_lipschitz=self.lipschitz)
+        return RenderConfig(renderer=self.renderer, sphere=sphere,
                             volume=VolumeRendererConfig(n_samples=self.samples), sequence=self.sequence,
                             sequence_fps=self.fps, overwrite=self.overwrite)
 
