@@ -19,8 +19,8 @@ def markdown_tables(result: dict) -> str:
         out.append(f"| {r['scene']} | {r['renderer']} | {r['width']}x{r['height']} | "
                    f"{r['evals_per_pixel']:.1f} | {r['seconds']:.2f} | {r['psnr_vs_reference']:.2f} |")
     c = result["completion"]
-    out += ["", f"Object completion, {c['scene']}, {c['views_per_object']} unseen views per object "
-            "(object pixels only):", "",
+    out += ["", (f"Object completion, {c['scene']}, {c['views_per_object']} unseen views per object "
+                 "(object pixels only):"), "",
             "| object | PSNR before (dB) | PSNR after (dB) | depth MAE before (m) | depth MAE after (m) |",
             "|---|---|---|---|---|"]
     for o in [*c["objects"], {"object": "**mean**", **c}]:
@@ -28,10 +28,10 @@ def markdown_tables(result: dict) -> str:
                    f"{o['depth_mae_before']:.4f} | {o['depth_mae_after']:.4f} |")
     r = result.get("replacement")
     if r:
-        out += ["", f"Random instance replacement, {r['scene']}, every instance swapped for another object "
-                f"of its class, {r['views']} views:", "",
-                "| seed | selections | floor gap (% of height) | heading error (rad) | penetration (mm) "
-                "| remnant pixels / removed-object pixels |", "|---|---|---|---|---|---|"]
+        out += ["", (f"Random instance replacement, {r['scene']}, every instance swapped for another object "
+                     f"of its class, {r['views']} views:"), "",
+                ("| seed | selections | floor gap (% of height) | heading error (rad) | penetration (mm) "
+                 "| remnant pixels / removed-object pixels |"), "|---|---|---|---|---|---|"]
         for x in r["seeds"]:
             sel = ", ".join(f"{k}->{v}" for k, v in x["selections"].items())
             out.append(f"| {x['seed']} | {sel} | {100 * x['floor_gap_rel_height_max']:.2f} | "

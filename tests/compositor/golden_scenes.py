@@ -17,7 +17,6 @@ on its own), so a substitution shows.
 from __future__ import annotations
 
 import functools
-
 from dataclasses import dataclass
 from pathlib import Path
 

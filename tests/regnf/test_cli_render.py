@@ -145,7 +145,7 @@ def test_render_and_replace_write_a_sequence(stage: Path, tmp_path: Path) -> Non
 
 def test_mp4_without_its_package_is_refused_at_once(stage: Path, tmp_path: Path,
                                                     monkeypatch: pytest.MonkeyPatch) -> None:
-    import compositor.sequence_io as sequence_io
+    from compositor import sequence_io
 
     monkeypatch.setattr(sequence_io.importlib.util, "find_spec", lambda name: None)  # as if not installed
     for command in (["render", str(stage), "--mode", "scene"], ["replace", str(stage)]):
