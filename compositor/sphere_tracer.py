@@ -47,7 +47,7 @@ from typing import NamedTuple
 import torch
 
 from neural_fields.field import DEFAULT_CHUNK, Field
-from neural_fields.raycast import ray_aabb
+from neural_fields.raycast import check_rays, ray_aabb
 
 from .camera import Camera, CameraRays, camera_rays
 from .composite_field import BACKGROUND_ID, CompositeSample, sample_field
@@ -160,19 +160,6 @@ def _sample_checked(field: Field, p: torch.Tensor) -> CompositeSample:
     return s
 
 
-def _check_rays(origins: torch.Tensor, dirs: torch.Tensor, near: float, far: float) -> None:
-    if origins.ndim != 2 or origins.shape[-1] != 3 or origins.shape != dirs.shape:
-        raise ValueError(
-            f"origins and dirs must both be (n, 3), got {tuple(origins.shape)} and {tuple(dirs.shape)}"
-        )
-    if not (0 <= near < far):
-        raise ValueError(f"need 0 <= near < far, got near={near}, far={far}")
-    if dirs.shape[0] > 0:
-        norm_err = float((torch.linalg.vector_norm(dirs, dim=-1) - 1.0).abs().max())
-        if not norm_err < 1e-4:
-            raise ValueError(f"dirs must be unit vectors (largest |norm - 1| = {norm_err:.3g})")
-
-
 @torch.no_grad()
 def trace(
     field: Field,
@@ -209,7 +196,7 @@ def trace(
     TraceHits
         On the field's device.
     """
-    _check_rays(origins, dirs, near, far)
+    check_rays(origins, dirs, near, far, unit=True)
     if grid is None and config.grid_resolution > 0:
         grid = DistanceGrid.build(
             field, config.grid_resolution, config.grid_lipschitz, config.chunk

@@ -251,7 +251,7 @@ def camera_to_usd(stage: Usd.Stage, path: str, camera: Camera) -> UsdGeom.Camera
 def write_cameras_usd(
     path: str | os.PathLike, cameras: Sequence[Camera], parent: str = "/Cameras"
 ) -> Path:
-    """Write ``cameras`` into a new stage (Z up, metres) as ``{parent}/view_XXXX``, atomically.
+    """Write ``cameras`` into a new stage (Z up, metres) as ``{parent}/view_0000``, ``view_0001``, ..., atomically.
 
     Parameters
     ----------

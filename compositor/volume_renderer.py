@@ -26,7 +26,7 @@ from typing import NamedTuple
 import torch
 
 from neural_fields.field import Field
-from neural_fields.raycast import ray_aabb
+from neural_fields.raycast import check_rays, ray_aabb
 
 from .camera import Camera, camera_rays
 from .composite_field import BACKGROUND_ID, sample_field
@@ -145,12 +145,7 @@ def integrate(
 
     ``near`` and ``far`` are FIELD units here. Computed ``config.chunk`` rays at a time.
     """
-    if origins.ndim != 2 or origins.shape[-1] != 3 or origins.shape != dirs.shape:
-        raise ValueError(
-            f"origins and dirs must both be (n, 3), got {tuple(origins.shape)} and {tuple(dirs.shape)}"
-        )
-    if not (0 <= near < far):
-        raise ValueError(f"need 0 <= near < far, got near={near}, far={far}")
+    check_rays(origins, dirs, near, far)
     gen = torch.Generator(device="cpu").manual_seed(config.seed) if config.jitter else None
     dev = field.device
     parts = [

@@ -194,7 +194,10 @@ def ray_aabb(
     return tmin.max(dim=-1).values, tmax.min(dim=-1).values
 
 
-def _check_rays(origins: torch.Tensor, dirs: torch.Tensor, near: float, far: float) -> None:
+def check_rays(origins: torch.Tensor, dirs: torch.Tensor, near: float, far: float,
+               unit: bool = False) -> None:
+    """Raise ``ValueError`` unless ``origins``, ``dirs`` are both (n, 3), ``0 <= near < far``
+    and (with ``unit``) every direction has unit length."""
     if origins.ndim != 2 or origins.shape[-1] != 3 or origins.shape != dirs.shape:
         raise ValueError(
             "origins and dirs must both be (n, 3), got "
@@ -202,6 +205,10 @@ def _check_rays(origins: torch.Tensor, dirs: torch.Tensor, near: float, far: flo
         )
     if not (near >= 0 and far > near):
         raise ValueError(f"need 0 <= near < far, got near={near}, far={far}")
+    if unit and dirs.shape[0] > 0:
+        norm_err = float((torch.linalg.vector_norm(dirs, dim=-1) - 1.0).abs().max())
+        if not norm_err < 1e-4:
+            raise ValueError(f"dirs must be unit vectors (largest |norm - 1| = {norm_err:.3g})")
 
 
 @torch.no_grad()
@@ -238,7 +245,7 @@ def sphere_trace(
     TraceResult
         On the device of ``origins``; computed on the field's device.
     """
-    _check_rays(origins, dirs, near, far)
+    check_rays(origins, dirs, near, far)
     out_device, dev = origins.device, field.device
     parts = [
         _trace_chunk(

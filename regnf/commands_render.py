@@ -26,7 +26,7 @@ class _Views:
     stage: Positional[Path]
     """The stage (.usda, .usdc, a replacement layer or a .usdz package)."""
     out: Path
-    """Output folder: rgb_XXXX.png, depth_XXXX.png (16-bit mm), instance_XXXX.png, contact_sheet.png,
+    """Output folder: rgb_0000.png, ... (one per view), depth_*.png (16-bit mm), instance_*.png, contact_sheet.png,
     sequence.gif|mp4 (with --sequence), render.json (replace adds replacement.usda over the stage,
     exported there, and transforms.json)."""
     capture: Path | None = None
