@@ -35,6 +35,7 @@ from compositor.stage_config import StageCompositeConfig
 from compositor.substitution import SubstitutedInstance, build_composite
 from compositor.volume_renderer import VolumeRendererConfig
 from neural_fields.checkpoint import load_field
+from neural_fields.evaluation import psnr, world_to_field
 from neural_fields.field import Field
 from neural_fields.meshing import extract_mesh
 from registration.ground_truth import proposal_from_instance
@@ -83,12 +84,6 @@ class RenderBenchConfig:
     matched_footprint_fraction: float = 0.3
     """Hit tolerance of the ``sphere-matched`` row, which trades the sphere tracer's extra
     quality for fewer evaluations until its PSNR is that of the volume renderer."""
-
-
-def psnr(a: np.ndarray, b: np.ndarray) -> float:
-    """PSNR in dB of two arrays of values in [0, 1]."""
-    mse = float(np.mean((np.asarray(a, np.float64) - np.asarray(b, np.float64)) ** 2))
-    return -10.0 * math.log10(max(mse, 1e-12))
 
 
 def reference_renderer(room: Room, width: int = WIDTH, height: int = HEIGHT) -> RGBDRenderer:
@@ -150,10 +145,8 @@ def unseen_cameras(room: Room, centre: np.ndarray, config: RenderBenchConfig,
 
 def _free_at(field: Field, point: np.ndarray) -> float:
     """SDF of ``field`` (metres) at a point in metres."""
-    W = field.to_world.detach().cpu().double().numpy()
-    x = np.linalg.solve(W, np.append(point, 1.0))[:3]
     with torch.no_grad():
-        d = field.sdf(torch.as_tensor(x[None], dtype=torch.float32, device=field.device))
+        d = field.sdf(world_to_field(field, np.asarray(point, np.float64)[None]))
     return float(d[0]) * field.world_scale
 
 
@@ -349,8 +342,7 @@ def replacement(cache: Cache, library: dict[str, Field], config: RenderBenchConf
                     L2 = library[other].to_world.detach().cpu().double().numpy()
                     penetration = max(penetration, float(-_sdf_metres(library[other], pts, O2 @ L2).min()))
             with torch.no_grad():
-                rest = field.scene_masked(torch.as_tensor(np.linalg.solve(S, np.c_[pts, np.ones(len(pts))].T).T[:, :3],
-                                                          dtype=torch.float32, device=field.device)).sdf
+                rest = field.scene_masked(world_to_field(field, pts)).sdf  # the composite's frame is the scene's
             above = pts[:, 2] > 0.02  # the base touches the floor by design
             if above.any():
                 penetration = max(penetration, float(-(rest.detach().double().cpu().numpy()[above]).min()
