@@ -7,6 +7,7 @@ import platform
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import torch
 from rich.console import Console
@@ -99,15 +100,35 @@ class BenchRegistration:
     """Torch device."""
     cache_dir: Path = dataclasses.field(default_factory=default_cache_dir)
     """Cache directory (fields are trained there if missing)."""
+    executor: Literal["local", "ray"] = "local"
+    """local: a process pool on this machine; ray: a Ray cluster (pip install 'regnf[distributed]')."""
+    address: str | None = None
+    """Ray cluster to join ('auto', 'ray://head:10001'); default: a local Ray instance."""
+    workers: int = 1
+    """Pairs at once; 1 (the default) times each pair on the whole machine."""
+    threads_per_task: int = 0
+    """Torch threads per pair; 0: the CPU count / workers."""
 
     def run(self) -> None:
+        import os
+
         from benchmarks.registration import PAPER_REGNF, run_registration_benchmark
         from benchmarks.registration_report import before_after_png, medians, table_one, table_two
+        from regnf.executors import ExecutorConfig
 
         command = ("regnf bench registration" + (" --quick" if self.quick else "")
-                   + ("" if self.single_view else " --no-single-view") + f" --json {self.json}")
+                   + ("" if self.single_view else " --no-single-view") + f" --json {self.json}"
+                   + (f" --executor {self.executor}" if self.executor != "local" else "")
+                   + (f" --workers {self.workers}" if self.workers != 1 else ""))
+        threads = self.threads_per_task or max(1, (os.cpu_count() or 1) // max(1, self.workers))
+        try:
+            executor = ExecutorConfig(kind=self.executor, workers=self.workers, threads_per_task=threads,
+                                      address=self.address)
+        except ValueError as exc:
+            raise SystemExit(f"regnf bench registration: {exc}") from exc
         rows = run_registration_benchmark(Cache(self.cache_dir), quick=self.quick,
-                                          single_view=self.single_view, device=self.device)
+                                          single_view=self.single_view, device=self.device,
+                                          executor=executor)
         pngs = self.json.parent / (self.json.stem + "_png")
         for r in rows:
             if r["method"] == "regnf" and r["views"] == "multi":

@@ -11,6 +11,8 @@ from __future__ import annotations
 import dataclasses
 import time
 from collections.abc import Callable
+from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -27,6 +29,7 @@ from registration.register import RegistrationConfig, paper_method, register, si
 from registration.result import RegistrationResult
 from registration.transform import SimilarityTransform
 from regnf.cache import Cache
+from regnf.executors import ExecutorConfig, run_tasks
 from synthetic.capture import RoomCaptureConfig
 from synthetic.library import make_library_object
 
@@ -112,35 +115,92 @@ def run_pair(scene_name: str, obj: str, scene: Field, library: Field, capture, m
     return rows
 
 
-def run_registration_benchmark(cache: Cache, quick: bool = False, single_view: bool = True,
-                               methods=METHODS, device: str = "cpu") -> list[dict]:
-    """All rows: Table I (every method), Table II (single view, default method), scale sweep."""
+class PairTask(NamedTuple):
+    """One scene/object pair of the benchmark, as sent to a worker."""
+
+    cache_root: str
+    """Cache directory holding the fields (made beforehand by the driver)."""
+    scene: str
+    """Room name."""
+    obj: str
+    """Library object name."""
+    methods: tuple[str, ...]
+    """Methods to run."""
+    single_view: bool
+    """Table II: sample the scene from one uninformative view."""
+    library_factor: float = 1.0
+    """Scale sweep: the library field in a frame this many times larger (1: as trained)."""
+    device: str = "cpu"
+    """Torch device."""
+
+
+def benchmark_tasks(cache: Cache, quick: bool = False, single_view: bool = True,
+                    methods=METHODS, device: str = "cpu") -> list[PairTask]:
+    """Table I (every method), Table II (single view, ``regnf``), the scale sweep: one task per pair."""
     pairs = QUICK_PAIRS if quick else TABLE_I_PAIRS
-    cfg = RegistrationConfig()
-    rows: list[dict] = []
-    scenes: dict[str, tuple[Field, object]] = {}
-    for scene_name, obj in tqdm(pairs, desc="bench registration", disable=not cache.progress):
-        if scene_name not in scenes:
-            capture = cache.room_capture(scene_name, RoomCaptureConfig(coverage="full"))
-            scenes[scene_name] = (load_field(cache.scene_field(scene_name, "full", device), device=device), capture)
-        scene, capture = scenes[scene_name]
-        library = load_field(cache.object_field(obj, "rgbd", device), device=device)
-        rows += run_pair(scene_name, obj, scene, library, capture, methods, False, cfg)
+    root = str(cache.root)
+    tasks = [PairTask(root, scene, obj, tuple(methods), False, 1.0, device) for scene, obj in pairs]
     if single_view and not quick:
-        seen = set()
-        for scene_name, obj in pairs:
-            if obj in seen:
-                continue
-            seen.add(obj)
-            scene, capture = scenes[scene_name]
-            library = load_field(cache.object_field(obj, "rgbd", device), device=device)
-            rows += run_pair(scene_name, obj, scene, library, capture, ("regnf",), True, cfg)
+        first = {}
+        for scene, obj in pairs:
+            first.setdefault(obj, scene)
+        tasks += [PairTask(root, scene, obj, ("regnf",), True, 1.0, device) for obj, scene in first.items()]
     if not quick:
-        scene, capture = scenes["ac-room"]
-        base = load_field(cache.object_field("dc", "rgbd", device), device=device)
-        for factor in (0.25, 4.0):
-            rows_f = run_pair("ac-room", "dc", scene, scaled_library(base, factor), capture, ("regnf",), False, cfg)
-            for r in rows_f:
-                r["method"] = f"regnf (library x{factor:g})"
-            rows += rows_f
+        tasks += [PairTask(root, "ac-room", "dc", ("regnf",), False, f, device) for f in (0.25, 4.0)]
+    return tasks
+
+
+def prepare_fields(cache: Cache, tasks: list[PairTask]) -> None:
+    """Make every field and capture the tasks need (here, once), so that workers only read them."""
+    for scene in sorted({t.scene for t in tasks}):
+        cache.room_capture(scene, RoomCaptureConfig(coverage="full"))
+        cache.scene_field(scene, "full", tasks[0].device)
+    for obj in sorted({t.obj for t in tasks}):
+        cache.object_field(obj, "rgbd", tasks[0].device)
+
+
+# Per worker process: scene fields and captures already loaded (a worker runs many pairs).
+_LOADED: dict[tuple[str, str], tuple[Field, object]] = {}
+
+
+def run_pair_task(task: PairTask) -> list[dict]:
+    """The rows of one pair (runs in a worker; fields must already be in the cache)."""
+    cache = Cache(Path(task.cache_root), progress=False)
+    key = (task.scene, task.device)
+    if key not in _LOADED:
+        capture = cache.room_capture(task.scene, RoomCaptureConfig(coverage="full"))
+        _LOADED[key] = (load_field(cache.scene_field(task.scene, "full", task.device), device=task.device), capture)
+    scene, capture = _LOADED[key]
+    library = load_field(cache.object_field(task.obj, "rgbd", task.device), device=task.device)
+    if task.library_factor != 1.0:
+        library = scaled_library(library, task.library_factor)
+    rows = run_pair(task.scene, task.obj, scene, library, capture, task.methods, task.single_view,
+                    RegistrationConfig())
+    if task.library_factor != 1.0:
+        for r in rows:
+            r["method"] = f"regnf (library x{task.library_factor:g})"
     return rows
+
+
+def run_registration_benchmark(cache: Cache, quick: bool = False, single_view: bool = True,
+                               methods=METHODS, device: str = "cpu",
+                               executor: ExecutorConfig | None = None) -> list[dict]:
+    """All rows: Table I (every method), Table II (single view, default method), scale sweep.
+
+    The pairs run as tasks on ``executor`` (default: a local pool of one worker using every
+    core, so each pair's time is that of a whole machine); rows come back in task order
+    whatever the order of completion. A pair that fails stops the benchmark with its error.
+    """
+    executor = executor or ExecutorConfig(workers=1, threads_per_task=max(1, torch.get_num_threads()))
+    tasks = benchmark_tasks(cache, quick, single_view, methods, device)
+    prepare_fields(cache, tasks)
+    results: dict[int, list[dict]] = {}
+    bar = tqdm(total=len(tasks), desc=f"bench registration ({executor.kind})", disable=not cache.progress)
+    for outcome in run_tasks(run_pair_task, tasks, executor):
+        if outcome.error is not None:
+            t = tasks[outcome.index]
+            raise RuntimeError(f"registration benchmark, pair {t.scene}/{t.obj}: {outcome.error}")
+        results[outcome.index] = outcome.value
+        bar.update(1)
+    bar.close()
+    return [row for i in range(len(tasks)) for row in results[i]]

@@ -110,6 +110,8 @@ class OrbitConfig:
     """Height of the target above the box's bottom, as a fraction of the box's height."""
     elevation_deg: float = 30.0
     """Angle of the cameras above the horizontal plane of the target, degrees."""
+    azimuth_offset_deg: float = 0.0
+    """Azimuth of camera 0, degrees (the others follow at equal steps)."""
 
     def __post_init__(self) -> None:
         if self.n < 1 or self.width < 1 or self.height < 1:
@@ -120,13 +122,15 @@ class OrbitConfig:
             raise ValueError(f"radius must be finite and > 0, got {self.radius}")
         if not self.radius_fraction > 0 or not -90.0 < self.elevation_deg < 90.0:
             raise ValueError("need radius_fraction > 0 and -90 < elevation_deg < 90")
+        if not math.isfinite(self.azimuth_offset_deg):
+            raise ValueError(f"azimuth_offset_deg must be finite, got {self.azimuth_offset_deg}")
 
 
 def orbit_around_bounds(bounds: np.ndarray, config: OrbitConfig = OrbitConfig()) -> list[Camera]:
     """Cameras on a horizontal circle around the centre of ``bounds`` (2, 3) metres, looking at it.
 
     The target is the box's horizontal centre at ``target_height_fraction`` of its height
-    (furniture stands low in a room); camera ``k`` sits at azimuth ``2 pi k / n``.
+    (furniture stands low in a room); camera ``k`` sits at azimuth ``offset + 2 pi k / n``.
     """
     b = np.asarray(bounds, dtype=np.float64)
     if b.shape != (2, 3) or not np.isfinite(b).all() or not (b[1] > b[0]).all():
@@ -137,7 +141,7 @@ def orbit_around_bounds(bounds: np.ndarray, config: OrbitConfig = OrbitConfig())
     up = radius * math.tan(math.radians(config.elevation_deg))
     cams = []
     for k in range(config.n):  # a handful of cameras
-        a = 2.0 * math.pi * k / config.n
+        a = math.radians(config.azimuth_offset_deg) + 2.0 * math.pi * k / config.n
         eye = target + np.array([radius * math.cos(a), radius * math.sin(a), up])
         cams.append(Camera.from_fov(config.width, config.height, config.fov_deg, look_at(eye, target)))
     return cams

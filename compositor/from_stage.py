@@ -9,7 +9,7 @@ removal regions are those of :mod:`compositor.substitution`.
 from __future__ import annotations
 
 import os
-from collections.abc import Callable
+from collections.abc import Callable, MutableMapping
 from pathlib import Path
 from typing import NamedTuple
 
@@ -84,6 +84,7 @@ def composite_from_scene(
     stage_path: str | os.PathLike,
     config: StageCompositeConfig = DEFAULT_STAGE_COMPOSITE,
     device: torch.device | str = "cpu",
+    loaded: MutableMapping[str, Field] | None = None,
 ) -> StageComposite:
     """:func:`composite_from_stage` of a stage already read (or changed in memory).
 
@@ -98,9 +99,13 @@ def composite_from_scene(
         The stage ``scene`` comes from, named in errors.
     config : StageCompositeConfig
     device : torch.device or str
+    loaded : mutable mapping, optional
+        Fields already loaded, by checkpoint identifier; new ones are added. A worker that
+        composes many variants of one stage loads each checkpoint once (the composite only
+        reads its fields).
     """
     path = Path(stage_path).absolute()
-    scene_field = _load(path, L.SCENE, scene.scene, device)
+    scene_field = _load(path, L.SCENE, scene.scene, device, loaded)
     if config.mode == "scene":
         return StageComposite(build_composite(scene_field, [], config), scene, {})
     try:
@@ -116,7 +121,7 @@ def composite_from_scene(
             if name not in scene.library:
                 raise StageError(path, where, f"library object {name!r} is not in the stage's library "
                                  f"{sorted(scene.library)}")
-        load = _loader(path, where, scene, cache, device)
+        load = _loader(path, where, scene, cache, device, loaded)
         specs.append(SubstitutedInstance(
             instance_id=k,
             shown=load(inst.library_name),
@@ -164,8 +169,12 @@ def replacement_base(stage_path: str | os.PathLike) -> Path | None:
     return Path(layer.ComputeAbsolutePath(rel)) if rel else None
 
 
-def _load(stage: Path, prim: str, rec: FieldRecord, device: torch.device | str) -> Field:
+def _load(stage: Path, prim: str, rec: FieldRecord, device: torch.device | str,
+          loaded: MutableMapping[str, Field] | None = None) -> Field:
     """Load ``rec``'s checkpoint (from inside a package too) and check its ``to_world``."""
+    key = f"{rec.checkpoint}@{device}"
+    if loaded is not None and key in loaded:
+        return loaded[key]
     try:
         with checkpoint_file(rec.checkpoint) as ckpt:
             field = load_field(ckpt, device)
@@ -176,17 +185,20 @@ def _load(stage: Path, prim: str, rec: FieldRecord, device: torch.device | str) 
     if err > TO_WORLD_ATOL:
         raise StageError(stage, prim, f"the stage records a to_world for {rec.name!r} that differs from "
                          f"its checkpoint's {rec.checkpoint} by {err:.3g}")
+    if loaded is not None:
+        loaded[key] = field
     return field
 
 
 def _loader(
-    stage: Path, where: str, scene: ComposedScene, cache: dict[str, Field], device: torch.device | str
+    stage: Path, where: str, scene: ComposedScene, cache: dict[str, Field], device: torch.device | str,
+    loaded: MutableMapping[str, Field] | None = None,
 ) -> Callable[[str], Field]:
     """A function loading library objects by name, each once (shared by its instances)."""
 
     def load(name: str) -> Field:
         if name not in cache:
-            cache[name] = _load(stage, f"{where} (library object {name!r})", scene.library[name], device)
+            cache[name] = _load(stage, f"{where} (library object {name!r})", scene.library[name], device, loaded)
         return cache[name]
 
     return load

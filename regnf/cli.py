@@ -17,6 +17,7 @@ def _commands() -> dict[str, type]:
     # Imported lazily so that `regnf --help` answers at once.
     from benchmarks.cli import BenchEncodings, BenchFields, BenchRegistration, BenchRender
     from regnf.commands_fields import Distill, Mesh, Synth, Train
+    from regnf.commands_generate import Generate
     from regnf.commands_registration import Register
     from regnf.commands_render import RenderStage, ReplaceInstances
     from regnf.commands_stage import StageAddInstance, StageExport, StageNew, StageShow
@@ -33,6 +34,7 @@ def _commands() -> dict[str, type]:
         "stage export": StageExport,
         "render": RenderStage,
         "replace": ReplaceInstances,
+        "generate": Generate,
         "bench fields": BenchFields,
         "bench registration": BenchRegistration,
         "bench render": BenchRender,
