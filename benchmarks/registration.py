@@ -16,6 +16,7 @@ from typing import NamedTuple
 
 import numpy as np
 import torch
+import trimesh
 from tqdm import tqdm
 
 from neural_fields.analytic import Transformed
@@ -79,17 +80,35 @@ def evaluate(result: RegistrationResult, truth: SimilarityTransform, scene: Fiel
     return errs._asdict()
 
 
-def run_pair(scene_name: str, obj: str, scene: Field, library: Field, capture, methods, single_view: bool,
-             cfg: RegistrationConfig, seed: int = 0) -> list[dict]:
-    inst = find_instance(capture.instances, obj)
+class PairTruth(NamedTuple):
+    """The ground truth of one instance, for the metrics."""
+
+    truth: SimilarityTransform
+    """True scene field frame -> library field frame."""
+    proposal: object
+    """The instance's true box as a proposal (scene field frame)."""
+    surface_lib: np.ndarray
+    """(2000, 3) points on the library object's true surface, library field frame."""
+    diagonal_m: float
+    """The object's bounding-box diagonal, metres."""
+
+
+def pair_truth(inst, scene: Field, library: Field, seed: int = 0) -> PairTruth:
+    """Truth of capture instance ``inst`` for ``library`` registered in ``scene``."""
     S = scene.to_world.detach().cpu().double().numpy()
     L = library.to_world.detach().cpu().double().numpy()
     truth = true_scene_to_library(S, inst.object_to_world, L)
-    proposal = proposal_from_instance(inst, S)
-    mesh = make_library_object(obj).mesh
+    mesh = make_library_object(inst.library).mesh
     diag = float(np.linalg.norm(mesh.bounds[1] - mesh.bounds[0]))
-    pts_m, _ = __import__("trimesh").sample.sample_surface(mesh, 2000, seed=seed)
+    pts_m, _ = trimesh.sample.sample_surface(mesh, 2000, seed=seed)
     surface_lib = (np.asarray(pts_m) - L[:3, 3]) @ np.linalg.inv(L[:3, :3]).T
+    return PairTruth(truth, proposal_from_instance(inst, S), surface_lib, diag)
+
+
+def run_pair(scene_name: str, obj: str, scene: Field, library: Field, capture, methods, single_view: bool,
+             cfg: RegistrationConfig, seed: int = 0) -> list[dict]:
+    inst = find_instance(capture.instances, obj)
+    truth, proposal, surface_lib, diag = pair_truth(inst, scene, library, seed)
     if single_view:
         cfg = dataclasses.replace(cfg, scene_sampling=dataclasses.replace(cfg.scene_sampling, views="single"))
     runners: dict[str, Callable[[], RegistrationResult]] = {

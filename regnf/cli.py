@@ -16,6 +16,7 @@ os.environ.setdefault("PYOPENGL_PLATFORM", "egl")  # headless pyrender
 def _commands() -> dict[str, type]:
     # Imported lazily so that `regnf --help` answers at once.
     from benchmarks.cli import BenchEncodings, BenchFields, BenchRegistration, BenchRender
+    from regnf.commands_demo import Demo
     from regnf.commands_fields import Distill, Mesh, Synth, Train
     from regnf.commands_generate import Generate
     from regnf.commands_registration import Register
@@ -23,6 +24,8 @@ def _commands() -> dict[str, type]:
     from regnf.commands_stage import StageAddInstance, StageExport, StageNew, StageShow
 
     return {
+        "demo": Demo,
+        "generate": Generate,
         "synth": Synth,
         "train": Train,
         "distill": Distill,
@@ -34,7 +37,6 @@ def _commands() -> dict[str, type]:
         "stage export": StageExport,
         "render": RenderStage,
         "replace": ReplaceInstances,
-        "generate": Generate,
         "bench fields": BenchFields,
         "bench registration": BenchRegistration,
         "bench render": BenchRender,

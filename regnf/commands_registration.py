@@ -40,6 +40,22 @@ def load_box_metres(path: Path) -> np.ndarray:
     return c + (signs * h) @ R.T
 
 
+def registration_payload(result, scene, library, scene_path: Path, library_path: Path) -> dict:
+    """What ``regnf register --out`` writes (and a stage records): the result, the fields, and the
+    object -> scene transform in metres."""
+    S = scene.to_world.detach().cpu().double().numpy()
+    L = library.to_world.detach().cpu().double().numpy()
+    object_to_scene = S @ result.transform.inverse().matrix() @ np.linalg.inv(L)
+    return {
+        **result.to_json(),
+        "scene_field": str(scene_path),
+        "library_field": str(library_path),
+        "library_name": library.name,
+        "library_label": library.label,
+        "object_to_scene_metres": object_to_scene.tolist(),
+    }
+
+
 @dataclass
 class Register:
     """Find the 7-DoF similarity of a library object inside a scene field (Reg-NF)."""
@@ -91,16 +107,7 @@ class Register:
 
             cfg = dataclasses.replace(cfg, init=dataclasses.replace(cfg.init, top_k=self.top_k))
         result = register(scene, library, proposal, cfg)
-        L = library.to_world.detach().cpu().double().numpy()
-        object_to_scene = S @ result.transform.inverse().matrix() @ np.linalg.inv(L)
-        payload = {
-            **result.to_json(),
-            "scene_field": str(self.scene),
-            "library_field": str(self.library),
-            "library_name": library.name,
-            "library_label": library.label,
-            "object_to_scene_metres": object_to_scene.tolist(),
-        }
+        payload = registration_payload(result, scene, library, self.scene, self.library)
         write_json(self.out, payload)
         t = result.transform
         summary = (f"s = {t.s:.4f}, |t| = {np.linalg.norm(t.t):.4f}, confidence {result.confidence:.3f}, "

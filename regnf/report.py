@@ -36,6 +36,7 @@ Summary keys (all optional; paths relative to ``out``)::
                      trans_m, trans_rel_diag, scale_rel, seconds,
                      history: [{iteration, loss, s, ...}]}]
     thresholds:    {rot_geodesic_rad, trans_rel_diag, scale_rel}
+    registration_note: a paragraph under the registration table
     sections:      [{title, text, images: [{path, caption}]}]
     files:         [{path, what}]
 """
@@ -389,7 +390,8 @@ def _render_page(summary: Mapping[str, Any], sections: Sequence[Mapping[str, Any
         "<body>",
         _header_html(summary, title, sections),
         _timings_html(steps, _number(summary.get("total_seconds")), timings_rel),
-        _registration_html(registrations, summary.get("thresholds") or {}),
+        _registration_html(registrations, summary.get("thresholds") or {},
+                           str(summary.get("registration_note") or "")),
         _loss_html(loss_rel),
         *(_section_html(i, s) for i, s in enumerate(sections)),
         _files_html(files),
@@ -472,8 +474,8 @@ def _registration_row(values: Mapping[str, float | None], thresholds: Mapping[st
 
 
 def _registration_html(registrations: Sequence[Mapping[str, Any]],
-                       thresholds: Mapping[str, Any]) -> str:
-    """The table of registration errors against ground truth, with a median row."""
+                       thresholds: Mapping[str, Any], note: str = "") -> str:
+    """The table of registration errors against ground truth, with a median row, then ``note``."""
     out = ['<section id="registration"><h2>Registration against ground truth</h2>']
     if not registrations:
         out.append("<p>No registrations.</p></section>")
@@ -500,6 +502,8 @@ def _registration_html(registrations: Sequence[Mapping[str, Any]],
                + _cell(f"{n_accepted}/{len(registrations)}")
                + _registration_row(medians, thresholds) + "</tr></tfoot></table>")
     out.append(_targets_note(thresholds))
+    if note:
+        out.append(f"<p>{_e(note)}</p>")
     out.append("</section>")
     return "\n".join(out)
 

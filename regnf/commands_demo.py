@@ -1,0 +1,31 @@
+"""CLI command ``regnf demo``: the whole tool on one synthetic room, ending in report.html."""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated
+
+from tyro.conf import OmitArgPrefixes
+
+from regnf.cache import default_cache_dir
+from regnf.demo import DemoConfig
+
+
+@dataclass
+class Demo:
+    """Run the end-to-end demo: capture, fields, registration, stage, composites, usdz, report.html."""
+
+    out: Path = Path("out/demo")
+    """Output folder (its stage, renders and report are replaced on every run)."""
+    demo: Annotated[DemoConfig, OmitArgPrefixes] = dataclasses.field(default_factory=DemoConfig)
+    """What the demo makes."""
+    cache_dir: Path = dataclasses.field(default_factory=default_cache_dir)
+    """Cache of captures and trained fields (reused: a second run trains nothing)."""
+
+    def run(self) -> None:
+        from regnf.cache import Cache
+        from regnf.demo import run_demo
+
+        run_demo(self.out, self.demo, Cache(self.cache_dir))

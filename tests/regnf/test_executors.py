@@ -1,0 +1,46 @@
+"""The executors: every task's outcome comes back, errors per task, threads pinned."""
+
+from __future__ import annotations
+
+import pytest
+
+from regnf.executors import ExecutorConfig, run_tasks
+
+
+def square_or_fail(x: int) -> tuple[int, int]:
+    """x squared and the worker's torch thread count; raises for negative x."""
+    import torch
+
+    if x < 0:
+        raise ValueError(f"negative input {x}")
+    return x * x, torch.get_num_threads()
+
+
+def test_local_pool_returns_every_outcome_and_the_errors() -> None:
+    tasks = [3, -1, 4, -5, 0]
+    outcomes = list(run_tasks(square_or_fail, tasks, ExecutorConfig(workers=2, threads_per_task=1)))
+    assert sorted(o.index for o in outcomes) == list(range(len(tasks)))
+    by_index = {o.index: o for o in outcomes}
+    for i, x in enumerate(tasks):
+        if x < 0:
+            assert by_index[i].value is None
+            assert by_index[i].error.startswith(f"ValueError: negative input {x}")
+            assert "Traceback" in by_index[i].error
+        else:
+            assert by_index[i].error is None and by_index[i].value == (x * x, 1)
+
+
+def test_threads_per_task_are_pinned() -> None:
+    outcomes = list(run_tasks(square_or_fail, [2, 3], ExecutorConfig(workers=1, threads_per_task=2)))
+    assert {o.value[1] for o in outcomes} == {2}
+
+
+def test_no_task_runs_nothing() -> None:
+    assert list(run_tasks(square_or_fail, [], ExecutorConfig())) == []
+
+
+@pytest.mark.parametrize("kwargs", [{"kind": "spark"}, {"workers": -1}, {"threads_per_task": 0},
+                                    {"address": "auto"}])
+def test_bad_settings_are_refused(kwargs: dict) -> None:
+    with pytest.raises(ValueError):
+        ExecutorConfig(**kwargs)
