@@ -213,3 +213,18 @@ def test_other_settings_in_the_same_folder_are_refused(stage: Path, reference: P
     other = GenerateConfig(variants=N, cameras=OrbitConfig(n=3, width=32, height=18, radius=4.5))
     with pytest.raises(ValueError, match="generation.json.*other settings"):
         generate(stage, out, other, progress=False)
+
+
+def test_a_package_is_unpacked_once_and_gives_the_same_variants(stage: Path, reference: Path,
+                                                                 tmp_path: Path) -> None:
+    from scene_graph import export_stage
+
+    package = export_stage(stage, tmp_path / "scene.usdz")
+    out = tmp_path / "data"
+    report = generate(package, out, config(n=2), progress=False)
+    assert report.made == [0, 1]
+    assert (out / "stage" / "scene.usda").is_file()
+    ref = {r["seed"]: r for r in load_rows(reference)}
+    for r in load_rows(out):
+        assert r["selections"] == ref[r["seed"]]["selections"]
+        assert_same_images(out / r["variant"], reference / r["variant"], 3)

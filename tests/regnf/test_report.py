@@ -191,11 +191,13 @@ def test_summary_text_is_escaped(tmp_path: Path) -> None:
     summary["sections"][0]["text"] = f"a & b {evil}"
     summary["title"] = f"demo {evil}"
     summary["registrations"][0]["instance"] = '"c_1"><b>'
+    summary["registration_note"] = f"1 of 3 rejected {evil}"
     path = write_report(tmp_path, summary)
     text = path.read_text(encoding="utf-8")
     assert "<script" not in text and "<b>" not in text
     assert "&lt;script&gt;alert(&#x27;x&#x27;)&lt;/script&gt;" in text
     assert "a &amp; b" in text
+    assert "1 of 3 rejected &lt;script&gt;" in text
     page = _parse(path)
     assert evil in page.img_alt
     assert '"c_1"><b>' in [row[0][1] for row in page.rows]
