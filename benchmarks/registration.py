@@ -26,12 +26,14 @@ from neural_fields.similarity import similarity_matrix
 from registration.baselines import register_fgr, register_init_only, register_nerf2nerf
 from registration.ground_truth import find_instance, proposal_from_instance, true_scene_to_library
 from registration.metrics import registration_errors
+from registration.proposal import ProposalBox
 from registration.register import RegistrationConfig, paper_method, register, single_hypothesis
 from registration.result import RegistrationResult
 from registration.transform import SimilarityTransform
 from regnf.cache import Cache
 from regnf.executors import ExecutorConfig, run_tasks
 from synthetic.capture import RoomCaptureConfig
+from synthetic.instance import Instance
 from synthetic.library import make_library_object
 
 TABLE_I_PAIRS: tuple[tuple[str, str], ...] = (
@@ -85,7 +87,7 @@ class PairTruth(NamedTuple):
 
     truth: SimilarityTransform
     """True scene field frame -> library field frame."""
-    proposal: object
+    proposal: ProposalBox
     """The instance's true box as a proposal (scene field frame)."""
     surface_lib: np.ndarray
     """(2000, 3) points on the library object's true surface, library field frame."""
@@ -93,7 +95,7 @@ class PairTruth(NamedTuple):
     """The object's bounding-box diagonal, metres."""
 
 
-def pair_truth(inst, scene: Field, library: Field, seed: int = 0) -> PairTruth:
+def pair_truth(inst: Instance, scene: Field, library: Field, seed: int = 0) -> PairTruth:
     """Truth of capture instance ``inst`` for ``library`` registered in ``scene``."""
     S = scene.to_world.detach().cpu().double().numpy()
     L = library.to_world.detach().cpu().double().numpy()

@@ -89,6 +89,10 @@ class Generate:
             raise SystemExit(f"regnf generate: {exc}") from exc
         except ImportError as exc:  # the ray executor without Ray
             raise SystemExit(f"regnf generate: {exc}") from exc
+        except KeyboardInterrupt:
+            console.print(f"[yellow]interrupted[/]: finished variants are kept in {self.out}; "
+                          "run the same command again to resume")
+            raise SystemExit(130) from None
         for problem in report.problems:
             console.print(f"[yellow]redone[/]: {problem}")
         for seed, error in sorted(report.failed.items()):

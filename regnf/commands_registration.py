@@ -5,12 +5,17 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from rich.console import Console
 
 from neural_fields.checkpoint import load_field
 from synthetic.atomic_io import write_json
+
+if TYPE_CHECKING:
+    from neural_fields.field import Field
+    from registration.result import RegistrationResult
 
 console = Console(stderr=True)
 
@@ -40,7 +45,8 @@ def load_box_metres(path: Path) -> np.ndarray:
     return c + (signs * h) @ R.T
 
 
-def registration_payload(result, scene, library, scene_path: Path, library_path: Path) -> dict:
+def registration_payload(result: RegistrationResult, scene: Field, library: Field, scene_path: Path,
+                         library_path: Path) -> dict:
     """What ``regnf register --out`` writes (and a stage records): the result, the fields, and the
     object -> scene transform in metres."""
     S = scene.to_world.detach().cpu().double().numpy()

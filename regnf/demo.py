@@ -31,19 +31,26 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import datetime
+import os
 import platform
 import shutil
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 import torch
 from rich.console import Console
 
 from .cache import Cache, default_cache_dir
+
+if TYPE_CHECKING:
+    from compositor.camera import Camera
+    from scene_graph.validation import ValidationReport
+    from synthetic.rooms import Room
+    from synthetic.sdfstudio_format import Capture
 
 console = Console(stderr=True)
 
@@ -102,14 +109,12 @@ class StepLog:
 
 def machine() -> dict[str, Any]:
     """Where the demo ran."""
-    import os
-
     return {"cpu_count": os.cpu_count(), "torch_threads": torch.get_num_threads(),
             "torch": torch.__version__, "python": platform.python_version(), "platform": platform.platform()}
 
 
-def _register_all(stage: Path, out: Path, scene_path: Path, library_paths: dict[str, Path], capture,
-                   device: str) -> list[dict[str, Any]]:
+def _register_all(stage: Path, out: Path, scene_path: Path, library_paths: dict[str, Path],
+                   capture: Capture, device: str) -> list[dict[str, Any]]:
     """Register every capture instance with its library object; accepted ones go into the stage."""
     from benchmarks.registration import evaluate, pair_truth
     from neural_fields.checkpoint import load_field
@@ -145,7 +150,7 @@ def _register_all(stage: Path, out: Path, scene_path: Path, library_paths: dict[
     return rows
 
 
-def _completion(stage: Path, room, capture, config: DemoConfig, out: Path) -> dict[str, Any]:
+def _completion(stage: Path, room: Room, config: DemoConfig, out: Path) -> dict[str, Any]:
     """Per object, one view from a side the capture never saw: truth | scene field | substituted."""
     from benchmarks.render import RenderBenchConfig, reference_renderer, unseen_cameras
     from compositor.distance_grid import DistanceGrid
@@ -185,7 +190,8 @@ def _completion(stage: Path, room, capture, config: DemoConfig, out: Path) -> di
     return {"image": str(path.relative_to(out)), "objects": per_object}
 
 
-def _orbit_cameras(stage: Path, config: DemoConfig):
+def _orbit_cameras(stage: Path, config: DemoConfig) -> list[Camera]:
+    """The orbit around the scene field's bounds that the scene, substitution and replacements share."""
     from compositor.cameras_io import OrbitConfig, field_bounds_metres, orbit_around_bounds
     from compositor.from_stage import composite_from_stage
     from compositor.stage_config import StageCompositeConfig
@@ -195,7 +201,9 @@ def _orbit_cameras(stage: Path, config: DemoConfig):
     return orbit_around_bounds(field_bounds_metres(scene), orbit)
 
 
-def _render_mode(stage: Path, mode: str, cameras, out: Path, config: DemoConfig) -> dict[str, Any]:
+def _render_mode(stage: Path, mode: str, cameras: list[Camera], out: Path,
+                 config: DemoConfig) -> dict[str, Any]:
+    """Render the stage's composite in ``mode`` into ``out``; its speed."""
     from compositor.from_stage import composite_from_stage
     from compositor.render_folder import RenderConfig, render_views
     from compositor.stage_config import StageCompositeConfig
@@ -256,7 +264,7 @@ def run_demo(out: str | Path = Path("out/demo"), config: DemoConfig = DemoConfig
             renders[mode] = _render_mode(stage, mode, cameras, out / "renders" / mode, config)
     room = make_room(config.room, seed=capture_cfg.seed)
     with log.step("render object completion", "one unseen view per object, against ground truth"):
-        completion = _completion(stage, room, capture, config, out)
+        completion = _completion(stage, room, config, out)
     replacements = []
     for seed in config.replacement_seeds:
         with log.step(f"random replacement, seed {seed}", f"{len(cameras)} orbit views"):
@@ -278,7 +286,9 @@ def run_demo(out: str | Path = Path("out/demo"), config: DemoConfig = DemoConfig
 
 
 def _summary(config: DemoConfig, out: Path, stage: Path, usdz: Path, log: StepLog, registrations: list,
-             renders: dict, completion: dict, replacements: list, validation, total: float) -> dict[str, Any]:
+             renders: dict, completion: dict, replacements: list, validation: ValidationReport,
+             total: float) -> dict[str, Any]:
+    """Everything the report shows (see :func:`regnf.report.write_report` for the keys)."""
     rel = lambda p: str(Path(p).relative_to(out))
     objs = completion["objects"]
     gain = np.nanmean([o["psnr_substitute"] - o["psnr_scene"] for o in objs]) if objs else float("nan")
