@@ -47,7 +47,7 @@ from typing import NamedTuple
 import torch
 
 from neural_fields.field import DEFAULT_CHUNK, Field
-from neural_fields.raycast import check_rays, ray_aabb
+from neural_fields.raycast import by_chunks, check_rays, ray_aabb
 
 from .camera import Camera, CameraRays, camera_rays
 from .composite_field import BACKGROUND_ID, CompositeSample, sample_field
@@ -202,24 +202,14 @@ def trace(
             field, config.grid_resolution, config.grid_lipschitz, config.chunk
         )
     dev = field.device
-    parts = [
-        _trace_chunk(
-            field,
-            origins[i : i + config.chunk].to(dev),
-            dirs[i : i + config.chunk].to(dev),
-            near,
-            far,
-            config,
-            grid,
-            pixel_angle,
-        )
-        for i in range(0, origins.shape[0], config.chunk)
-    ]
-    if not parts:
+
+    def empty() -> TraceHits:
         z = torch.zeros(0, device=dev)
         zl = z.long()
         return TraceHits(z.bool(), z, torch.zeros(0, 3, device=dev), zl, zl, zl)
-    return TraceHits(*(torch.cat([p[k] for p in parts]) for k in range(len(TraceHits._fields))))
+
+    return by_chunks(origins, dirs, config.chunk, dev,
+                     lambda o, d: _trace_chunk(field, o, d, near, far, config, grid, pixel_angle), empty)
 
 
 def _trace_chunk(

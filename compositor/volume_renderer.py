@@ -26,7 +26,7 @@ from typing import NamedTuple
 import torch
 
 from neural_fields.field import Field
-from neural_fields.raycast import check_rays, ray_aabb
+from neural_fields.raycast import by_chunks, check_rays, ray_aabb
 
 from .camera import Camera, camera_rays
 from .composite_field import BACKGROUND_ID, sample_field
@@ -148,22 +148,13 @@ def integrate(
     check_rays(origins, dirs, near, far)
     gen = torch.Generator(device="cpu").manual_seed(config.seed) if config.jitter else None
     dev = field.device
-    parts = [
-        _integrate_chunk(
-            field,
-            origins[i : i + config.chunk].to(dev),
-            dirs[i : i + config.chunk].to(dev),
-            near,
-            far,
-            config,
-            gen,
-        )
-        for i in range(0, origins.shape[0], config.chunk)
-    ]
-    if not parts:
+
+    def empty() -> VolumeHits:
         z = torch.zeros(0, device=dev)
         return VolumeHits(z.new_zeros(0, 3), z, z.new_zeros(0, 3), z, z.long(), z.long())
-    return VolumeHits(*(torch.cat([p[k] for p in parts]) for k in range(len(VolumeHits._fields))))
+
+    return by_chunks(origins, dirs, config.chunk, dev,
+                     lambda o, d: _integrate_chunk(field, o, d, near, far, config, gen), empty)
 
 
 def _integrate_chunk(

@@ -14,14 +14,17 @@ a camera posed in metres). Depths are z-depths in field units.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import NamedTuple, TypeVar
 
 import numpy as np
 import torch
 
 from .field import DEFAULT_CHUNK, Field
+
+Rays = TypeVar("Rays", bound=tuple)
+"""A named tuple of per-ray tensors (first dimension: the ray)."""
 
 
 @dataclass(frozen=True)
@@ -211,6 +214,36 @@ def check_rays(origins: torch.Tensor, dirs: torch.Tensor, near: float, far: floa
             raise ValueError(f"dirs must be unit vectors (largest |norm - 1| = {norm_err:.3g})")
 
 
+def by_chunks(
+    origins: torch.Tensor,
+    dirs: torch.Tensor,
+    chunk: int,
+    device: torch.device | str,
+    per_chunk: Callable[[torch.Tensor, torch.Tensor], Rays],
+    empty: Callable[[], Rays],
+) -> Rays:
+    """``per_chunk`` on ``chunk`` rays at a time (moved to ``device``), results concatenated.
+
+    Parameters
+    ----------
+    origins, dirs : (n, 3) float
+        The rays.
+    chunk : int
+        Rays per call (bounds the memory of one call).
+    device : torch.device or str
+        Where each chunk is computed (the field's device).
+    per_chunk : callable
+        ``(origins, dirs) -> named tuple`` of tensors whose first dimension is the chunk's rays.
+    empty : callable
+        The result for no ray at all.
+    """
+    parts = [per_chunk(origins[i : i + chunk].to(device), dirs[i : i + chunk].to(device))
+             for i in range(0, origins.shape[0], chunk)]
+    if not parts:
+        return empty()
+    return type(parts[0])(*(torch.cat(list(per_ray)) for per_ray in zip(*parts, strict=True)))
+
+
 @torch.no_grad()
 def sphere_trace(
     field: Field,
@@ -246,22 +279,14 @@ def sphere_trace(
         On the device of ``origins``; computed on the field's device.
     """
     check_rays(origins, dirs, near, far)
-    out_device, dev = origins.device, field.device
-    parts = [
-        _trace_chunk(
-            field,
-            origins[i : i + config.chunk].to(dev),
-            dirs[i : i + config.chunk].to(dev),
-            near,
-            far,
-            config,
-        )
-        for i in range(0, origins.shape[0], config.chunk)
-    ]
-    if not parts:
+
+    def empty() -> TraceResult:
         z = origins.new_zeros(0)
         return TraceResult(z.bool(), z, origins.new_zeros(0, 3), z.long())
-    return TraceResult(*(torch.cat([p[k] for p in parts]).to(out_device) for k in range(4)))
+
+    hits = by_chunks(origins, dirs, config.chunk, field.device,
+                     lambda o, d: _trace_chunk(field, o, d, near, far, config), empty)
+    return TraceResult(*(x.to(origins.device) for x in hits))
 
 
 def _trace_chunk(
