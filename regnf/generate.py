@@ -28,6 +28,7 @@ that failed.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import math
 import os
@@ -227,8 +228,6 @@ def render_variant(task: VariantTask) -> VariantOutput:
 
 
 def _settings_key(settings: dict[str, Any]) -> str:
-    import hashlib
-
     return hashlib.sha256(json.dumps(settings, sort_keys=True).encode()).hexdigest()[:16]
 
 
