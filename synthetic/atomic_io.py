@@ -14,6 +14,21 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+TEMP_PREFIX = ".regnf-tmp-"
+"""Prefix of every temporary file or folder regnf makes beside a destination. A leftover one
+(from a killed run) is ours to remove; nothing without it is."""
+
+
+def user_mode(path: str | os.PathLike, directory: bool = False) -> None:
+    """Give ``path`` the permissions a plain ``open`` or ``mkdir`` would under the user's umask.
+
+    ``tempfile.mkstemp`` and ``mkdtemp`` make private (0600 / 0700) entries; a stage or data
+    set shared with a cluster must be readable as the user's umask says.
+    """
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(path, (0o777 if directory else 0o666) & ~umask)
+
 
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[Path]:
@@ -25,15 +40,12 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
     dest = Path(path)
     dest.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(
-        prefix=f".{dest.name}.", suffix=suffix if suffix is not None else "".join(dest.suffixes[-1:]),
+        prefix=f"{TEMP_PREFIX}{dest.name}.", suffix=suffix if suffix is not None else "".join(dest.suffixes[-1:]),
         dir=dest.parent,
     )
     os.close(fd)
     tmp_path = Path(tmp)
-    # mkstemp makes the file private (0600); give the result the usual permissions.
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(tmp_path, 0o666 & ~umask)
+    user_mode(tmp_path)
     try:
         yield tmp_path
         os.replace(tmp_path, dest)
