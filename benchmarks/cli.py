@@ -13,9 +13,17 @@ import torch
 from rich.console import Console
 
 from regnf.cache import Cache, default_cache_dir
+from regnf.preflight import check_output_file
 from synthetic.atomic_io import write_json
 
 console = Console(stderr=True)
+
+
+def check_outputs(command: object) -> None:
+    """Refuse, before a benchmark's minutes of work, a ``--json`` or ``--markdown`` that cannot be written."""
+    check_output_file(command.json, "--json")
+    if getattr(command, "markdown", None) is not None:
+        check_output_file(command.markdown, "--markdown")
 
 
 def run_meta(command: str, device: str) -> dict:
@@ -46,6 +54,7 @@ class BenchFields:
     """Cache directory (fields already there are reused, not retrained)."""
 
     def run(self) -> None:
+        check_outputs(self)
         from benchmarks.fields import (
             contact_sheet,
             markdown_table,
@@ -77,6 +86,7 @@ class BenchEncodings:
     """Torch device."""
 
     def run(self) -> None:
+        check_outputs(self)
         from benchmarks.encodings import markdown_table, run_encodings_benchmark
 
         rows = run_encodings_benchmark(self.device)
@@ -110,6 +120,7 @@ class BenchRegistration:
     """Torch threads per pair; 0: the CPU count / workers."""
 
     def run(self) -> None:
+        check_outputs(self)
         import os
 
         from benchmarks.registration import PAPER_REGNF, run_registration_benchmark
@@ -159,6 +170,7 @@ class BenchRender:
     """Cache directory (fields are trained there if missing)."""
 
     def run(self) -> None:
+        check_outputs(self)
         from benchmarks.render import run_render_benchmark
         from benchmarks.render_report import markdown_tables, write_images
 

@@ -32,6 +32,11 @@ SCENE_ID = 0
 """Winner id of the scene field."""
 BACKGROUND_ID = -1
 """Instance id of a pixel that hit nothing."""
+MAX_COMPONENTS = 1024
+"""Most placed objects, and most removal regions, one composite takes. Every query loops over
+its components (vectorised over the points), so a frame's cost grows with their number: at
+1024 a 320 x 240 view already takes minutes on 2 CPU cores. A stage with more instances is
+refused when the composite is built, before any rendering."""
 
 
 @dataclass(frozen=True)
@@ -105,6 +110,9 @@ class CompositeField(Field):
     ) -> None:
         if not isinstance(scene, Field):
             raise TypeError(f"the scene must be a Field, got {type(scene).__name__}")
+        for what, items in (("placed objects", objects), ("removal regions", removals)):
+            if len(items) > MAX_COMPONENTS:
+                raise ValueError(f"a composite takes at most {MAX_COMPONENTS} {what}, got {len(items)}")
         placements, ids, tints = _placements(scene, objects, config)
         for k, r in enumerate(removals):
             if not isinstance(r, RemovalRegion):
@@ -143,9 +151,12 @@ class CompositeField(Field):
         # Through sample_field so that a composite used as a scene reports its full cost.
         s, _, evals = sample_field(self.scene, x)
         if len(self.removals) > 0:
-            regions = [r.evaluate(x) for r in self.removals]
-            m = torch.stack([r.sdf.to(s.dtype) for r in regions]).min(dim=0).values
-            evals = evals + torch.stack([r.evals for r in regions]).sum(dim=0)
+            # A running min, not a stack: memory stays one value per point however many regions.
+            m = None
+            for region in self.removals:
+                r = region.evaluate(x)
+                m = r.sdf.to(s.dtype) if m is None else torch.minimum(m, r.sdf.to(s.dtype))
+                evals = evals + r.evals
             s = torch.maximum(s, -m)
         return CompositeSample(s, torch.zeros_like(evals), evals)
 

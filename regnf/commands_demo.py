@@ -27,5 +27,7 @@ class Demo:
     def run(self) -> None:
         from regnf.cache import Cache
         from regnf.demo import run_demo
+        from regnf.preflight import check_output_dir
 
+        check_output_dir(self.out)
         run_demo(self.out, self.demo, Cache(self.cache_dir))

@@ -12,9 +12,15 @@ from rich.console import Console
 
 from neural_fields.checkpoint import load_field
 from neural_fields.field import FieldInfo, Symmetry
-from neural_fields.meshing import extract_mesh, save_mesh
+from neural_fields.meshing import MESH_FORMATS, extract_mesh, save_mesh
 from neural_fields.presets import object_mesh_preset, object_rgbd_preset, scene_rgbd_preset
 from regnf.cache import Cache, capture_info, default_cache_dir
+from regnf.preflight import (
+    check_input_file,
+    check_mesh_resolution,
+    check_output_dir,
+    check_output_file,
+)
 from synthetic.atomic_io import write_bytes
 from synthetic.capture import ObjectCaptureConfig, RoomCaptureConfig, capture_object, capture_room
 from synthetic.library import LIBRARY_NAMES
@@ -24,12 +30,17 @@ from synthetic.sdfstudio_format import load_capture
 console = Console(stderr=True)
 
 
+
+def check_checkpoint_out(out: Path | None) -> None:
+    """Refuse, before any work, an ``--out`` that is not a writable ``.safetensors`` file name."""
+    if out is not None:
+        check_output_file(out, "--out", suffix=".safetensors")
+
+
 def copy_out(path: Path, out: Path | None) -> None:
-    """Copy a cached checkpoint to ``out`` (atomically), if asked."""
+    """Copy a cached checkpoint to ``out`` (atomically), if asked (checked by the cache on the way in)."""
     if out is None:
         return
-    if out.suffix != ".safetensors":
-        raise SystemExit(f"{out}: checkpoints are .safetensors files")
     write_bytes(out, path.read_bytes())
     console.print(f"-> {out}")
 
@@ -54,6 +65,8 @@ class Synth:
         unknown = [n for n in names if n not in LIBRARY_NAMES and n not in ROOM_NAMES]
         if unknown:
             raise SystemExit(f"unknown object or room {unknown}; choose from {LIBRARY_NAMES + ROOM_NAMES}")
+        if self.out is not None:
+            check_output_dir(self.out)
         cache = Cache(self.cache_dir)
         coverages = ("full", "low") if self.coverage == "both" else (self.coverage,)
         for name in names:
@@ -92,6 +105,9 @@ class Train:
     """Cache directory: the same data and settings are never trained twice."""
 
     def run(self) -> None:
+        check_checkpoint_out(self.out)
+        if self.steps is not None and self.steps < 1:
+            raise SystemExit(f"--steps must be at least 1, got {self.steps}")
         capture = load_capture(self.capture)
         preset = object_rgbd_preset if self.preset == "object" else scene_rgbd_preset
         cfg = preset(self.device, self.seed)
@@ -126,8 +142,10 @@ class Distill:
     def run(self) -> None:
         import trimesh
 
-        if not self.mesh.is_file():
-            raise SystemExit(f"{self.mesh}: no such mesh file")
+        check_input_file(self.mesh, "--mesh", "mesh file")
+        check_checkpoint_out(self.out)
+        if self.steps is not None and self.steps < 1:
+            raise SystemExit(f"--steps must be at least 1, got {self.steps}")
         try:
             mesh = trimesh.load(self.mesh, force="mesh")
         except Exception as exc:  # trimesh raises many types for unreadable files
@@ -161,6 +179,10 @@ class Mesh:
     """Torch device."""
 
     def run(self) -> None:
+        check_output_file(self.out, "--out")
+        if self.out.suffix.lower() not in MESH_FORMATS:
+            raise SystemExit(f"--out {self.out}: a mesh is written as one of {', '.join(MESH_FORMATS)}")
+        check_mesh_resolution(self.resolution)
         field = load_field(self.field, device=self.device)
         with torch.no_grad():
             mesh = extract_mesh(field, resolution=self.resolution, in_world=self.world)

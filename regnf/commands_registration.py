@@ -11,6 +11,7 @@ import numpy as np
 from rich.console import Console
 
 from neural_fields.checkpoint import load_field
+from regnf.preflight import check_output_file
 from synthetic.atomic_io import write_json
 
 if TYPE_CHECKING:
@@ -21,28 +22,43 @@ console = Console(stderr=True)
 
 
 def load_box_metres(path: Path) -> np.ndarray:
-    """(8, 3) box corners in scene metres from a JSON file.
+    """(8, 3) box corners in scene metres from a JSON file, checked to form a real box.
 
     Accepted: ``{"corners": [[x, y, z] x 8]}`` or ``{"center": [..], "size": [..], "yaw": rad}``.
+    A box of zero or negative size, a mirrored one or corners that form no box are refused
+    with a message naming the file (``SystemExit``, before anything is loaded).
     """
+    from registration.proposal import ProposalBox
+
     try:
         data = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise SystemExit(f"{path}: cannot read the box ({exc})") from exc
-    if "corners" in data:
-        corners = np.asarray(data["corners"], dtype=np.float64)
-        if corners.shape != (8, 3) or not np.isfinite(corners).all():
-            raise SystemExit(f"{path}: 'corners' must be 8 finite [x, y, z] points")
-        return corners
+    if not isinstance(data, dict):
+        raise SystemExit(f"{path}: a box is a JSON object with 'corners' or 'center' + 'size' (+ 'yaw')")
     try:
-        c = np.asarray(data["center"], dtype=np.float64)
-        h = 0.5 * np.asarray(data["size"], dtype=np.float64)
-        yaw = float(data.get("yaw", 0.0))
-    except (KeyError, TypeError, ValueError) as exc:
+        if "corners" in data:
+            corners = np.asarray(data["corners"], dtype=np.float64)
+            if corners.shape != (8, 3) or not np.isfinite(corners).all():
+                raise ValueError("'corners' must be 8 finite [x, y, z] points")
+        else:
+            c = np.asarray(data["center"], dtype=np.float64)
+            size = np.asarray(data["size"], dtype=np.float64)
+            yaw = float(data.get("yaw", 0.0))
+            if c.shape != (3,) or size.shape != (3,) or not (np.isfinite(c).all() and np.isfinite(size).all()
+                                                              and np.isfinite(yaw)):
+                raise ValueError("'center' and 'size' must be 3 finite numbers each, 'yaw' a finite angle")
+            if not (size > 0).all():
+                raise ValueError(f"'size' must be positive on every axis, got {size.tolist()}")
+            signs = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=np.float64)
+            R = np.array([[np.cos(yaw), -np.sin(yaw), 0.0], [np.sin(yaw), np.cos(yaw), 0.0], [0.0, 0.0, 1.0]])
+            corners = c + (signs * 0.5 * size) @ R.T
+        ProposalBox.from_corners(corners)  # refuses degenerate, mirrored or non-box corners
+    except KeyError as exc:
         raise SystemExit(f"{path}: expected 'corners' or 'center' + 'size' (+ 'yaw'), got {sorted(data)}") from exc
-    signs = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=np.float64)
-    R = np.array([[np.cos(yaw), -np.sin(yaw), 0.0], [np.sin(yaw), np.cos(yaw), 0.0], [0.0, 0.0, 1.0]])
-    return c + (signs * h) @ R.T
+    except (TypeError, ValueError) as exc:
+        raise SystemExit(f"{path}: not a usable box: {exc}") from exc
+    return corners
 
 
 def registration_payload(result: RegistrationResult, scene: Field, library: Field, scene_path: Path,
@@ -87,24 +103,40 @@ class Register:
     device: str = "cpu"
     """Torch device."""
 
-    def run(self) -> None:
+    def proposal_corners(self) -> np.ndarray:
+        """(8, 3) corners of the proposal box in scene metres, from --box or --capture/--instance."""
         from registration.ground_truth import find_instance
+        from synthetic.sdfstudio_format import load_capture
+
+        if self.box is not None:
+            return load_box_metres(self.box)
+        if self.capture is None or self.instance is None:
+            raise SystemExit("give a proposal box: --box BOX.json, or --capture DIR --instance ID")
+        capture = load_capture(self.capture)
+        match = [i for i in capture.instances if i.id == self.instance]
+        try:
+            inst = match[0] if match else find_instance(capture.instances, self.instance)
+        except ValueError as exc:
+            raise SystemExit(f"{capture.root}: {exc}") from exc
+        if inst.box_corners is None:
+            raise SystemExit(f"{capture.root}: instance {self.instance!r} has no box_corners")
+        return np.asarray(inst.box_corners, dtype=np.float64)
+
+    def run(self) -> None:
         from registration.proposal import ProposalBox
         from registration.register import RegistrationConfig, register
 
+        # Everything that can be checked is checked before the registration's seconds of work.
+        check_output_file(self.out, "--out")
+        if self.stage is not None:
+            from scene_graph import check_writable
+
+            check_writable(self.stage)
+        if self.top_k is not None and self.top_k < 1:
+            raise SystemExit(f"--top-k must be at least 1, got {self.top_k}")
+        corners = self.proposal_corners()
         scene = load_field(self.scene, device=self.device)
         library = load_field(self.library, device=self.device)
-        if self.box is not None:
-            corners = load_box_metres(self.box)
-        elif self.capture is not None and self.instance is not None:
-            from synthetic.sdfstudio_format import load_capture
-
-            instances = load_capture(self.capture).instances
-            match = [i for i in instances if i.id == self.instance]
-            inst = match[0] if match else find_instance(instances, self.instance)
-            corners = np.asarray(inst.box_corners, dtype=np.float64)
-        else:
-            raise SystemExit("give a proposal box: --box BOX.json, or --capture DIR --instance ID")
         S = scene.to_world.detach().cpu().double().numpy()
         proposal = ProposalBox.from_corners(corners).transformed(np.linalg.inv(S))
         cfg = RegistrationConfig()

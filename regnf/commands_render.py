@@ -11,6 +11,8 @@ from typing import TYPE_CHECKING, Annotated, Literal
 from rich.console import Console
 from tyro.conf import Positional, arg
 
+from regnf.preflight import check_image_size, check_output_dir
+
 if TYPE_CHECKING:
     from compositor import Camera, CompositeField
     from compositor.render_folder import RenderConfig
@@ -88,6 +90,16 @@ class _Views:
                 require_mp4()
             except SequenceBackendError as exc:
                 raise SystemExit(f"regnf: --sequence mp4: {exc}") from exc
+        if self.orbit is not None and self.orbit < 1:
+            raise SystemExit(f"--orbit must be at least 1 camera, got {self.orbit}")
+        for option, value in (("--width", self.width), ("--height", self.height)):
+            if value is not None and value < 1:
+                raise SystemExit(f"{option} must be at least 1, got {value}")
+        if self.capture is None:  # orbit and USD cameras: the size is known now
+            check_image_size(self.width or 320, self.height or self.width or 240)
+        elif self.width is not None and self.height is not None:
+            check_image_size(self.width, self.height)
+        check_output_dir(self.out)
 
     def cameras(self, field: CompositeField) -> list[Camera]:
         from compositor.cameras_io import (
@@ -101,16 +113,20 @@ class _Views:
         self.check_options()
         try:
             if self.capture is not None:
-                return cameras_from_capture(self.capture, self.width, self.height, self.frames or None)
-            if self.usd_camera:
+                cams = cameras_from_capture(self.capture, self.width, self.height, self.frames or None)
+            elif self.usd_camera:
                 # The rendered stage is Z up in metres (read_stage checks it); another one must be Z up.
-                return cameras_from_usd(self.camera_stage or self.stage, self.usd_camera, self.width or 320,
+                cams = cameras_from_usd(self.camera_stage or self.stage, self.usd_camera, self.width or 320,
                                         self.height, up_axis="Z")
-            cfg = OrbitConfig(n=self.orbit, width=self.width or 320, height=self.height or 240,
-                              fov_deg=self.fov, radius=self.orbit_radius, elevation_deg=self.orbit_elevation)
-            return orbit_around_bounds(field_bounds_metres(field.scene), cfg)
+            else:
+                cfg = OrbitConfig(n=self.orbit, width=self.width or 320, height=self.height or 240,
+                                  fov_deg=self.fov, radius=self.orbit_radius, elevation_deg=self.orbit_elevation)
+                cams = orbit_around_bounds(field_bounds_metres(field.scene), cfg)
         except ValueError as exc:  # CaptureError and StageError are ValueErrors naming the file
             raise SystemExit(f"regnf: cameras: {exc}") from exc
+        for cam in cams:  # a capture's own size, or a USD camera's aspect ratio, is known only now
+            check_image_size(cam.width, cam.height, "image size")
+        return cams
 
     def render_config(self) -> RenderConfig:
         from compositor.render_folder import RenderConfig

@@ -8,6 +8,8 @@ from pathlib import Path
 
 from rich.console import Console
 
+from regnf.preflight import check_mesh_resolution, check_output_file
+
 console = Console(stderr=True)
 
 
@@ -35,6 +37,12 @@ class StageNew:
     def run(self) -> None:
         from scene_graph import ProxyConfig, StageError, new_stage
 
+        if self.out.suffix not in (".usda", ".usdc"):
+            raise SystemExit(f"regnf stage new: {self.out} must end in .usda or .usdc")
+        check_output_file(self.out, "--out")
+        if self.proxy_resolution < 4:
+            raise SystemExit(f"--proxy-resolution must be at least 4, got {self.proxy_resolution}")
+        check_mesh_resolution(self.proxy_resolution, "--proxy-resolution")
         try:
             scene = new_stage(self.out, self.scene, self.library,
                               ProxyConfig(resolution=self.proxy_resolution, device=self.device),
@@ -63,12 +71,14 @@ class StageAddInstance:
 
         try:
             data = json.loads(self.result.read_text())
-        except (OSError, json.JSONDecodeError) as exc:
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
             raise SystemExit(f"{self.result}: cannot read the registration result ({exc})") from exc
+        if not isinstance(data, dict):
+            raise SystemExit(f"{self.result}: a registration result is a JSON object (from `regnf register --out`)")
         try:
             iid = add_instance_from_registration(self.stage, data, force=self.force, instance_id=self.id)
         except StageError as exc:
-            raise _fail(exc) from exc
+            raise SystemExit(f"regnf stage add-instance ({self.result}): {exc}") from exc
         console.print(f"[green]added[/] instance {iid!r} ({data.get('library_name')}) to {self.stage}")
 
 
@@ -109,8 +119,8 @@ class StageExport:
         if not targets:
             raise SystemExit("regnf stage export: give --usdz, --usdc and/or --usda")
         for out, suffix in ((self.usdz, ".usdz"), (self.usdc, ".usdc"), (self.usda, ".usda")):
-            if out is not None and out.suffix != suffix:
-                raise SystemExit(f"regnf stage export: {out} must end in {suffix}")
+            if out is not None:
+                check_output_file(out, suffix.replace(".", "--"), suffix=suffix)
         try:
             for out in targets:
                 export_stage(self.stage, out)

@@ -10,6 +10,7 @@ import trimesh
 from neural_fields.checkpoint import load_field
 from regnf.cli import main
 from tests.neural_fields.capture_helpers import write_analytic_capture
+from tests.regnf.cli_helpers import assert_fails
 
 
 def test_help_lists_every_command(capsys: pytest.CaptureFixture[str]) -> None:
@@ -57,9 +58,8 @@ def test_distill_uses_the_cache_and_meshes(tmp_path: Path) -> None:
     assert len(trimesh.load(tmp_path / "m.ply").faces) > 0
 
 
-def test_distill_rejects_a_missing_mesh(tmp_path: Path) -> None:
-    with pytest.raises(SystemExit, match="no such mesh file"):
-        main(["distill", "--mesh", str(tmp_path / "nope.ply"), "--cache-dir", str(tmp_path)])
+def test_distill_rejects_a_missing_mesh(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert_fails(capsys, ["distill", "--mesh", str(tmp_path / "nope.ply"), "--cache-dir", str(tmp_path)], "no such mesh file")
 
 
 def test_train_from_a_capture_folder(tmp_path: Path) -> None:

@@ -16,6 +16,7 @@ from compositor.replace import pick_replacements
 from compositor.usd_cameras import camera_to_usd, write_cameras_usd
 from regnf.cli import main
 from scene_graph import add_instance, export_stage, read_stage
+from tests.regnf.cli_helpers import assert_fails
 from tests.scene_graph.helpers import make_stage, similarity
 
 VIEWS = ["--orbit", "3", "--orbit-radius", "4.5", "--width", "24", "--height", "18"]
@@ -51,19 +52,17 @@ def test_render_writes_every_view(stage: Path, tmp_path: Path, mode: str) -> Non
         assert data["instance_ids"] == {"c_1": 1, "dc_1": 2, "t_1": 3} and ids <= {-1, 0, 1, 2, 3}
 
 
-def test_render_refuses_a_camera_inside_the_scene(stage: Path, tmp_path: Path) -> None:
+def test_render_refuses_a_camera_inside_the_scene(stage: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "bad"
     # A tight, steep orbit puts the cameras inside the scene blob.
     args = ["render", str(stage), "--mode", "scene", "--out", str(out), "--orbit", "2",
             "--orbit-radius", "0.1", "--orbit-elevation", "85", "--width", "8", "--height", "6"]
-    with pytest.raises(SystemExit, match="camera 0 .*inside matter of the scene"):
-        main(args)
+    assert_fails(capsys, args, "camera 0 .*inside matter of the scene")
     assert not out.exists() or not any(out.rglob("*"))  # no image, no staging folder
 
 
-def test_render_needs_cameras(stage: Path, tmp_path: Path) -> None:
-    with pytest.raises(SystemExit, match=r"--capture DIR, --orbit N or --usd-camera PRIM \[PRIM ...\] \(one of"):
-        main(["render", str(stage), "--mode", "scene", "--out", str(tmp_path / "x")])
+def test_render_needs_cameras(stage: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert_fails(capsys, ["render", str(stage), "--mode", "scene", "--out", str(tmp_path / "x")], r"--capture DIR, --orbit N or --usd-camera PRIM \[PRIM ...\] \(one of")
 
 
 def cameras_of(out: Path) -> list[Camera]:
@@ -109,21 +108,17 @@ def test_render_from_usd_cameras(stage: Path, tmp_path: Path) -> None:
     assert_same_view(out / "rgb_0000.png", orbit / "rgb_0001.png")
 
 
-def test_usd_camera_mistakes(stage: Path, tmp_path: Path) -> None:
+def test_usd_camera_mistakes(stage: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "x"
     args = ["render", str(stage), "--mode", "scene", "--out", str(out)]
-    with pytest.raises(SystemExit, match="one of them"):
-        main([*args, "--usd-camera", "/Cameras/view_0000", *VIEWS])
-    with pytest.raises(SystemExit, match="--camera-stage names the stage of the --usd-camera prims"):
-        main([*args, "--camera-stage", str(stage), *VIEWS])
-    with pytest.raises(SystemExit, match=rf"regnf: cameras: {stage}: prim /Cameras/nope: no such prim"):
-        main([*args, "--usd-camera", "/Cameras/nope"])
+    assert_fails(capsys, [*args, "--usd-camera", "/Cameras/view_0000", *VIEWS], "one of them")
+    assert_fails(capsys, [*args, "--camera-stage", str(stage), *VIEWS], "--camera-stage names the stage of the --usd-camera prims")
+    assert_fails(capsys, [*args, "--usd-camera", "/Cameras/nope"], rf"regnf: cameras: {stage}: prim /Cameras/nope: no such prim")
     y_up = Usd.Stage.CreateNew(str(tmp_path / "y_up.usda"))
     UsdGeom.SetStageUpAxis(y_up, UsdGeom.Tokens.y)
     UsdGeom.Camera.Define(y_up, "/cam")
     y_up.Save()
-    with pytest.raises(SystemExit, match=r"y_up.usda: prim /: upAxis is Y, expected Z"):
-        main([*args, "--usd-camera", "/cam", "--camera-stage", str(tmp_path / "y_up.usda")])
+    assert_fails(capsys, [*args, "--usd-camera", "/cam", "--camera-stage", str(tmp_path / "y_up.usda")], r"y_up.usda: prim /: upAxis is Y, expected Z")
     assert not out.exists()
 
 
@@ -144,13 +139,12 @@ def test_render_and_replace_write_a_sequence(stage: Path, tmp_path: Path) -> Non
 
 
 def test_mp4_without_its_package_is_refused_at_once(stage: Path, tmp_path: Path,
-                                                    monkeypatch: pytest.MonkeyPatch) -> None:
+                                                    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
     from compositor import sequence_io
 
     monkeypatch.setattr(sequence_io.importlib.util, "find_spec", lambda name: None)  # as if not installed
     for command in (["render", str(stage), "--mode", "scene"], ["replace", str(stage)]):
-        with pytest.raises(SystemExit, match="--sequence mp4: writing MP4 needs the package imageio-ffmpeg"):
-            main([*command, "--out", str(tmp_path / "x"), *VIEWS, "--sequence", "mp4"])
+        assert_fails(capsys, [*command, "--out", str(tmp_path / "x"), *VIEWS, "--sequence", "mp4"], "--sequence mp4: writing MP4 needs the package imageio-ffmpeg")
     assert not (tmp_path / "x").exists()
 
 
@@ -190,7 +184,7 @@ def test_pick_replacements_depends_on_the_seed_only(stage: Path) -> None:
             assert scene.library[name].label == scene.library[scene.instances[iid].library_name].label
 
 
-def test_replace_from_a_package_unpacks_it(stage: Path, tmp_path: Path) -> None:
+def test_replace_from_a_package_unpacks_it(stage: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     usdz = export_stage(stage, tmp_path / "pkg" / "room.usdz")
     out = tmp_path / "out"
     views = ["--orbit", "1", "--orbit-radius", "4.5", "--width", "12", "--height", "9"]
@@ -198,5 +192,4 @@ def test_replace_from_a_package_unpacks_it(stage: Path, tmp_path: Path) -> None:
     assert (out / "room.usda").is_file() and (out / "fields" / "c.safetensors").is_file()
     assert {i: s.library_name for i, s in read_stage(out / "replacement.usda").instances.items()} == \
         pick_replacements(read_stage(stage), 5)
-    with pytest.raises(SystemExit, match="already holds replacement.usda"):
-        main(["replace", str(usdz), "--seed", "6", "--out", str(out), *views])
+    assert_fails(capsys, ["replace", str(usdz), "--seed", "6", "--out", str(out), *views], "already holds replacement.usda")

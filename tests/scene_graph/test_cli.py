@@ -5,10 +5,10 @@ from __future__ import annotations
 import json
 
 import numpy as np
-import pytest
 
 from regnf.cli import main
 from scene_graph import read_stage
+from tests.regnf.cli_helpers import assert_fails
 
 from .helpers import checkpoint, registration_json, similarity
 
@@ -31,8 +31,7 @@ def test_stage_commands(tmp_path, capsys):
     res2 = tmp_path / "reg2.json"
     res2.write_text(json.dumps(registration_json("fc", fc, similarity(2.0, (0, 1, 0), 1.0), accepted=False,
                                                  confidence=0.2)))
-    with pytest.raises(SystemExit, match="not accepted"):
-        main(["stage", "add-instance", "--stage", str(stage), "--result", str(res2)])
+    assert_fails(capsys, ["stage", "add-instance", "--stage", str(stage), "--result", str(res2)], "not accepted")
     assert main(["stage", "add-instance", "--stage", str(stage), "--result", str(res2), "--force",
                  "--id", "forced_fc"]) == 0
     capsys.readouterr()
@@ -48,5 +47,4 @@ def test_stage_commands(tmp_path, capsys):
     # Proxies came from marching cubes of the fields: in metres, around the field's blob.
     rec = read_stage(stage).library["c"]
     assert len(rec.proxy.points) > 50 and rec.proxy.colors is not None
-    with pytest.raises(SystemExit, match="not a regnf stage|no such stage"):
-        main(["stage", "show", "--stage", str(tmp_path / "missing.usda")])
+    assert_fails(capsys, ["stage", "show", "--stage", str(tmp_path / "missing.usda")], "not a regnf stage|no such stage")
