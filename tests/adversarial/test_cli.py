@@ -206,3 +206,15 @@ def test_usage_errors_keep_status_2(capsys) -> None:
     with pytest.raises(SystemExit) as done:
         main(["mesh", "--no-such-option"])
     assert done.value.code == 2
+
+
+def test_the_readme_documents_every_exit_status() -> None:
+    import re
+
+    import regnf.cli as cli
+
+    statuses = {v for k, v in vars(cli).items() if k.startswith("EXIT_")}
+    readme = (Path(__file__).parents[2] / "README.md").read_text()
+    table = readme.split("### When something is wrong", 1)[1].split("\n## ", 1)[0]
+    documented = {int(m) for m in re.findall(r"^\| (\d+) \|", table, flags=re.M)}
+    assert documented == statuses
