@@ -4,6 +4,10 @@ Works on everything :func:`scene_graph.read_stage` reads: .usda / .usdc stages, 
 layers (an instance then SHOWS the newly selected object but the ORIGINAL one, the object
 that was registered, is removed) and .usdz packages (checkpoints carried inside). Frames and
 removal regions are those of :mod:`compositor.substitution`.
+
+Every stage, and every base stage a replacement layer names (``replacementOf``), is read
+inside its folder's trust boundary (:mod:`scene_graph.boundary`): a path that leaves the
+folder is refused before the file it names is opened, unless ``allow_outside``.
 """
 
 from __future__ import annotations
@@ -21,7 +25,7 @@ from neural_fields.field import Field
 from scene_graph import ComposedScene, FieldRecord, RegistrationProvenance, StageError, read_stage
 from scene_graph import layout as L
 from scene_graph.embedded_checkpoint import checkpoint_file
-from scene_graph.usd_read import open_stage, regnf_data
+from scene_graph.usd_read import replacement_base as _replacement_base
 
 from .composite_field import CompositeField
 from .oriented_box import OrientedBox
@@ -49,6 +53,7 @@ def composite_from_stage(
     stage_path: str | os.PathLike,
     config: StageCompositeConfig = DEFAULT_STAGE_COMPOSITE,
     device: torch.device | str = "cpu",
+    allow_outside: bool = False,
 ) -> StageComposite:
     """Load a stage's fields and compose them (see the module).
 
@@ -59,6 +64,9 @@ def composite_from_stage(
     config : StageCompositeConfig
     device : torch.device or str
         Where every field is loaded.
+    allow_outside : bool
+        Accept asset paths and base stages outside the stage's folder (see
+        :func:`scene_graph.read_stage`); refused by default.
 
     Returns
     -------
@@ -73,8 +81,8 @@ def composite_from_stage(
         checkpoint, a scene field frame that is not +Z up, an unusable proposal box.
     """
     path = Path(stage_path).absolute()
-    scene = read_stage(path)
-    originals = original_selections(path, scene) if config.mode == "substitute" else {}
+    scene = read_stage(path, allow_outside=allow_outside)
+    originals = original_selections(path, scene, allow_outside=allow_outside) if config.mode == "substitute" else {}
     return composite_from_scene(scene, originals, path, config, device)
 
 
@@ -138,19 +146,32 @@ def composite_from_scene(
     return StageComposite(field, scene, ids)
 
 
-def original_selections(stage_path: str | os.PathLike, scene: ComposedScene, depth: int = 0) -> dict[str, str]:
+def original_selections(stage_path: str | os.PathLike, scene: ComposedScene, depth: int = 0,
+                        allow_outside: bool = False) -> dict[str, str]:
     """Instance id -> the library object that was REGISTERED (the one to remove).
 
     The registration provenance's library name when recorded; otherwise, for a replacement
     layer, the selection of the stage beneath it (recursively); otherwise the selection.
+
+    Parameters
+    ----------
+    stage_path : str or PathLike
+        The stage ``scene`` was read from.
+    scene : ComposedScene
+    depth : int
+        Replacement layers followed so far (at most :data:`MAX_LAYER_DEPTH`).
+    allow_outside : bool
+        Follow a ``replacementOf`` outside the layer's folder (refused by default, before the
+        base is opened).
     """
     path = Path(stage_path).absolute()
-    base = replacement_base(path)
+    base = replacement_base(path, allow_outside)
     below: dict[str, str] = {}
     if base is not None:
         if depth >= MAX_LAYER_DEPTH:
             raise StageError(path, "/", f"more than {MAX_LAYER_DEPTH} nested replacement layers")
-        below = original_selections(base, read_stage(base, check_checkpoints=False), depth + 1)
+        below = original_selections(base, read_stage(base, check_checkpoints=False, allow_outside=allow_outside),
+                                    depth + 1, allow_outside)
     out = {}
     for iid, inst in scene.instances.items():
         reg = inst.registration
@@ -158,15 +179,15 @@ def original_selections(stage_path: str | os.PathLike, scene: ComposedScene, dep
     return out
 
 
-def replacement_base(stage_path: str | os.PathLike) -> Path | None:
-    """The stage a replacement layer sits over, or None for a plain stage or package."""
-    path = Path(stage_path).absolute()
-    if path.suffix == ".usdz":
-        return None
-    stage = open_stage(path)  # held: the layer lives only as long as its stage
-    layer = stage.GetRootLayer()
-    rel = regnf_data(layer, str(path)).get("replacementOf")
-    return Path(layer.ComputeAbsolutePath(rel)) if rel else None
+def replacement_base(stage_path: str | os.PathLike, allow_outside: bool = False) -> Path | None:
+    """The stage a replacement layer sits over, or None for a plain stage or package.
+
+    Raises
+    ------
+    StageError
+        ``replacementOf`` resolves outside the layer's folder (unless ``allow_outside``).
+    """
+    return _replacement_base(stage_path, allow_outside)
 
 
 def _load(stage: Path, prim: str, rec: FieldRecord, device: torch.device | str,

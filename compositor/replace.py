@@ -87,18 +87,23 @@ def pick_replacements(scene: ComposedScene, seed: int) -> dict[str, str]:
     return out
 
 
-def base_in(stage: Path, out: Path) -> Path:
+def base_in(stage: Path, out: Path, allow_outside: bool = False) -> Path:
     """The base stage for a layer in ``out``: ``stage`` itself, or a copy of it exported there.
 
     A .usdz package is always unpacked into ``out`` (a layer beside a package cannot reach the
-    library layers inside it).
+    library layers inside it). With ``allow_outside``, a stage whose asset paths leave its
+    folder is always exported: the copy in ``out`` is self-contained, and the layer over it
+    needs no exception.
     """
     if stage.suffix == ".usdz":
-        return export_stage(stage, out / f"{stage.stem}.usda")
-    if stage.parent == out:
+        return export_stage(stage, out / f"{stage.stem}.usda", allow_outside=allow_outside)
+    if stage.parent == out and not allow_outside:
         return stage
-    name = stage.name if stage.name != LAYER_NAME else f"base_{stage.name}"
-    return export_stage(stage, out / name)
+    # Under another name where the layer's name is taken, or beside the stage itself (with
+    # allow_outside: a self-contained copy of it).
+    clash = stage.name == LAYER_NAME or stage.parent == out
+    name = f"base_{stage.name}" if clash else stage.name
+    return export_stage(stage, out / name, allow_outside=allow_outside)
 
 
 def swapped(scene: ComposedScene, selections: dict[str, str]) -> ComposedScene:
@@ -116,6 +121,7 @@ def replace_and_render(
     out: str | os.PathLike,
     cameras: Sequence[Camera],
     config: ReplaceConfig = ReplaceConfig(),
+    allow_outside: bool = False,
 ) -> ReplacementResult:
     """Swap every instance at random (same class), render the result, write training data.
 
@@ -137,6 +143,9 @@ def replace_and_render(
     cameras : sequence of Camera
         Posed in scene metres.
     config : ReplaceConfig
+    allow_outside : bool
+        Read a stage whose asset paths leave its folder (see :func:`scene_graph.read_stage`);
+        its base is then exported into ``out``, self-contained.
 
     Raises
     ------
@@ -160,14 +169,15 @@ def replace_and_render(
     check_sequence(cameras, config.render)
     composite_cfg = dataclasses.replace(config.composite, mode="substitute")
     device = torch.device(config.device)
-    scene = read_stage(src)
+    scene = read_stage(src, allow_outside=allow_outside)
     selections = pick_replacements(scene, seed)
-    preview = composite_from_scene(swapped(scene, selections), original_selections(src, scene), src,
+    preview = composite_from_scene(swapped(scene, selections),
+                                   original_selections(src, scene, allow_outside=allow_outside), src,
                                    composite_cfg, device)
     check_cameras(preview.field, cameras)
     del preview
     dest.mkdir(parents=True, exist_ok=True)
-    base = base_in(src, dest)
+    base = base_in(src, dest, allow_outside)
     layer = make_replacement_layer(base, selections, dest / LAYER_NAME)
     try:
         comp = composite_from_stage(layer, composite_cfg, device)

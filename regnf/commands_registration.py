@@ -98,6 +98,9 @@ class Register:
     """Also write the result as an instance into this USD stage (made by `regnf stage new`)."""
     force: bool = False
     """Write into --stage even when the registration was not accepted (flagged as such)."""
+    allow_outside: bool = False
+    """Open asset paths of the stage that lie outside its folder (refused by default: a stage is
+    a self-contained folder, and a path out of it may name anybody's file)."""
     top_k: int | None = None
     """Hypotheses refined (default: the config's; 1 is the paper's method)."""
     device: str = "cpu"
@@ -131,7 +134,7 @@ class Register:
         if self.stage is not None:
             from scene_graph import check_writable
 
-            check_writable(self.stage)
+            check_writable(self.stage, allow_outside=self.allow_outside)
         if self.top_k is not None and self.top_k < 1:
             raise SystemExit(f"--top-k must be at least 1, got {self.top_k}")
         corners = self.proposal_corners()
@@ -154,7 +157,8 @@ class Register:
         if self.stage is not None and (result.accepted or self.force):
             from scene_graph import add_instance_from_registration
 
-            written = add_instance_from_registration(self.stage, payload, force=self.force)
+            written = add_instance_from_registration(self.stage, payload, force=self.force,
+                                                    allow_outside=self.allow_outside)
         if result.accepted:
             console.print(f"[green]registered[/] {library.name!r}: {summary}")
             if written:

@@ -72,6 +72,9 @@ class _Views:
     """Frames per second of --sequence."""
     overwrite: bool = False
     """Render into a folder that already holds a render."""
+    allow_outside: bool = False
+    """Open asset paths of the stage that lie outside its folder (refused by default: a stage is
+    a self-contained folder, and a path out of it may name anybody's file)."""
     device: str = "cpu"
     """Torch device."""
 
@@ -159,7 +162,8 @@ class RenderStage(_Views):
         self.check_options()
         t0 = time.perf_counter()
         try:
-            comp = composite_from_stage(self.stage, self.composite_config(self.mode), self.device)
+            comp = composite_from_stage(self.stage, self.composite_config(self.mode), self.device,
+                                        allow_outside=self.allow_outside)
             cams = self.cameras(comp.field)
             meta = {"stage": str(self.stage.absolute()), "mode": self.mode,
                     "instance_ids": comp.instance_ids, "load_seconds": time.perf_counter() - t0}
@@ -185,10 +189,11 @@ class ReplaceInstances(_Views):
         self.check_options()
         try:
             # The cameras need the scene's bounds: the scene field alone is enough for that.
-            scene_only = composite_from_stage(self.stage, self.composite_config("scene"), self.device)
+            scene_only = composite_from_stage(self.stage, self.composite_config("scene"), self.device,
+                                              allow_outside=self.allow_outside)
             cams = self.cameras(scene_only.field)
             cfg = ReplaceConfig(self.composite_config("substitute"), self.render_config(), self.device)
-            result = replace_and_render(self.stage, self.seed, self.out, cams, cfg)
+            result = replace_and_render(self.stage, self.seed, self.out, cams, cfg, allow_outside=self.allow_outside)
         except (StageError, ValueError) as exc:
             raise SystemExit(f"regnf replace: {exc}") from exc
         for iid, name in result.selections.items():

@@ -65,6 +65,9 @@ class StageAddInstance:
     """Instance id (prim name); default <library name>_<k>."""
     force: bool = False
     """Write a registration that was not accepted (confidence below the threshold)."""
+    allow_outside: bool = False
+    """Open asset paths of the stage that lie outside its folder (refused by default: a stage is
+    a self-contained folder, and a path out of it may name anybody's file)."""
 
     def run(self) -> None:
         from scene_graph import StageError, add_instance_from_registration
@@ -76,7 +79,8 @@ class StageAddInstance:
         if not isinstance(data, dict):
             raise SystemExit(f"{self.result}: a registration result is a JSON object (from `regnf register --out`)")
         try:
-            iid = add_instance_from_registration(self.stage, data, force=self.force, instance_id=self.id)
+            iid = add_instance_from_registration(self.stage, data, force=self.force, instance_id=self.id,
+                                                 allow_outside=self.allow_outside)
         except StageError as exc:
             raise SystemExit(f"regnf stage add-instance ({self.result}): {exc}") from exc
         console.print(f"[green]added[/] instance {iid!r} ({data.get('library_name')}) to {self.stage}")
@@ -88,12 +92,15 @@ class StageShow:
 
     stage: Path
     """The stage (.usda, .usdc, a replacement layer or a .usdz package)."""
+    allow_outside: bool = False
+    """Open asset paths of the stage that lie outside its folder (refused by default: a stage is
+    a self-contained folder, and a path out of it may name anybody's file)."""
 
     def run(self) -> None:
         from scene_graph import StageError, read_stage, summarize
 
         try:
-            scene = read_stage(self.stage)
+            scene = read_stage(self.stage, allow_outside=self.allow_outside)
         except StageError as exc:
             raise _fail(exc) from exc
         print(summarize(scene))
@@ -111,6 +118,9 @@ class StageExport:
     """Write the stage with a binary (.usdc) root layer here, assets beside it."""
     usda: Path | None = None
     """Write the stage with a text (.usda) root layer here, assets beside it."""
+    allow_outside: bool = False
+    """Open asset paths of the stage that lie outside its folder and copy them in (refused by default: a stage is
+    a self-contained folder, and a path out of it may name anybody's file)."""
 
     def run(self) -> None:
         from scene_graph import StageError, export_stage
@@ -123,7 +133,7 @@ class StageExport:
                 check_output_file(out, suffix.replace(".", "--"), suffix=suffix)
         try:
             for out in targets:
-                export_stage(self.stage, out)
+                export_stage(self.stage, out, allow_outside=self.allow_outside)
                 console.print(f"[green]exported[/] {self.stage} -> {out}")
         except StageError as exc:
             raise _fail(exc) from exc

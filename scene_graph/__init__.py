@@ -4,6 +4,11 @@ A :class:`ComposedScene` is written to a stage (``write_stage``, ``new_stage``,
 ``add_instance``, ``add_instance_from_registration``), read back (``read_stage``), swapped
 per instance by a layer of variant selections (``make_replacement_layer``), exported
 (``export_stage``: .usda / .usdc / .usdz) and checked (``validate_stage``).
+
+Writers of one stage folder exclude each other (``stage_lock``, waiting up to
+``STAGE_LOCK_TIMEOUT_S``); ``check_writable`` tells early whether an edit could be written.
+Every asset path a stage names must lie inside its folder (or package) unless the caller
+passes ``allow_outside=True`` (:mod:`scene_graph.boundary`).
 """
 
 from .edit import (
@@ -11,10 +16,12 @@ from .edit import (
     add_instance_from_registration,
     add_library_object,
     new_stage,
+    parse_registration,
     provenance_from_registration,
 )
 from .errors import StageError
 from .fields import ProxyConfig, field_record, proxy_from_trimesh
+from .locking import STAGE_LOCK_TIMEOUT_S, check_writable, stage_lock
 from .model import ComposedScene, FieldRecord, InstanceRecord, ProxyMesh, RegistrationProvenance
 from .package import export_stage
 from .replacement import make_replacement_layer
@@ -24,6 +31,7 @@ from .usd_write import write_stage
 from .validation import validate_stage
 
 __all__ = [
+    "STAGE_LOCK_TIMEOUT_S",
     "ComposedScene",
     "FieldRecord",
     "InstanceRecord",
@@ -34,13 +42,16 @@ __all__ = [
     "add_instance",
     "add_instance_from_registration",
     "add_library_object",
+    "check_writable",
     "export_stage",
     "field_record",
     "make_replacement_layer",
     "new_stage",
+    "parse_registration",
     "provenance_from_registration",
     "proxy_from_trimesh",
     "read_stage",
+    "stage_lock",
     "summarize",
     "validate_stage",
     "write_stage",

@@ -14,6 +14,14 @@ VARIANT_SET = "libraryObject"
 LABEL_INSTANCE = "class"
 """Instance name of ``SemanticsLabelsAPI`` carrying the semantic class."""
 
+STAGE_SUFFIXES = (".usda", ".usdc")
+"""Suffixes of a writable stage (export also makes .usdz, a package that is not edited)."""
+
+ROLE_LIBRARY = "libraryObject"
+"""``customLayerData["regnf"]["role"]`` of a library object's asset layer."""
+ROLE_SLOT = "slot"
+"""``customLayerData["regnf"]["role"]`` of a class's slot layer."""
+
 FIELDS_DIR = "fields"
 LIBRARY_DIR = "library"
 SLOTS_DIR = "slots"

@@ -5,6 +5,10 @@ the same relative paths as on disk, so the layers' relative asset paths work unc
 it (and the regnf tables in ``customLayerData`` still point at the files). Checkpoints go in as
 USD layers carrying their bytes (:mod:`scene_graph.embedded_checkpoint`): the usdz
 specification admits no other file types.
+
+Both kinds of export are made from the stage as read (:func:`read_stage`, which keeps every
+asset path inside the stage's folder unless told otherwise), never by copying the files that
+happen to lie beside it: what is exported is exactly what the stage names.
 """
 
 from __future__ import annotations
@@ -18,6 +22,8 @@ from pathlib import Path
 
 from pxr import Sdf, UsdUtils
 
+from synthetic.atomic_io import TEMP_PREFIX
+
 from . import layout as L
 from .embedded_checkpoint import (
     CHECKPOINT_SUFFIX,
@@ -27,49 +33,71 @@ from .embedded_checkpoint import (
     write_embedded_checkpoint,
 )
 from .errors import StageError
+from .locking import stage_lock
 from .model import ComposedScene
 from .transaction import file_transaction
-from .usd_read import open_stage, read_stage
+from .usd_read import read_stage
 from .usd_write import write_stage
 
 
-def export_stage(stage_path: str | os.PathLike, out_path: str | os.PathLike) -> Path:
+def export_stage(stage_path: str | os.PathLike, out_path: str | os.PathLike, allow_outside: bool = False) -> Path:
     """Export ``stage_path`` to ``out_path``; the format follows its suffix.
 
     ``.usda`` / ``.usdc``: the whole stage is written again beside ``out_path`` (root layer in
     that format, assets as usual; from a package, its checkpoints are unpacked). ``.usdz``:
-    one self-contained package. The stage is read and checked first; nothing is written if
-    that fails.
+    one self-contained package. Either way the export is made from the stage as
+    :func:`read_stage` read it (not from whatever files lie beside it), so it holds exactly the
+    fields the stage names: the stage is read and checked first, and nothing is written if
+    that fails. The output folder's lock is held while writing.
+
+    Parameters
+    ----------
+    stage_path : str or PathLike
+        A stage, replacement layer (exported flattened: its selections applied) or package.
+    out_path : str or PathLike
+        ``.usda``, ``.usdc`` or ``.usdz``.
+    allow_outside : bool
+        Read a stage whose asset paths leave its folder (see :func:`read_stage`); the files
+        they name are then copied INTO the export, which is self-contained.
+
+    Raises
+    ------
+    StageError
+        Anything :func:`read_stage` refuses (an asset path outside the stage's folder among
+        them), another suffix.
+    synthetic.file_lock.LockBusy
+        Another process kept the output folder locked for too long.
     """
     src = Path(stage_path).absolute()
     out = Path(out_path).absolute()
-    scene = read_stage(src)
+    if out.suffix not in (".usda", ".usdc", ".usdz"):
+        raise StageError(out, "/", "export to .usda, .usdc or .usdz")
+    scene = read_stage(src, allow_outside=allow_outside)
     if out.suffix in (".usda", ".usdc"):
         with _unpacked(scene) as plain:
             write_stage(plain, out)
         return out
-    if out.suffix != ".usdz":
-        raise StageError(out, "/", "export to .usda, .usdc or .usdz")
-    root = src.parent
-    checkpoints = [L.SCENE_CHECKPOINT] + [L.library_checkpoint(n) for n in sorted(scene.library)]
-    layers = [L.library_layer(n) for n in sorted(scene.library)]
-    slots = [L.slot_layer(c) for c in scene.classes()]
-    missing = [f for f in checkpoints + layers + slots if not (root / f).is_file()]
-    if missing:
-        raise StageError(src, "/", f"assets missing beside the stage: {missing}")
-    with file_transaction() as tx, tempfile.TemporaryDirectory() as tmpdir:
-        tmp = Path(tmpdir)
-        # The root layer as usdc under the stage's name: USD opens the package's first file.
-        root_name = src.with_suffix(".usdc").name
-        stage = open_stage(src)  # held: the layer lives only as long as its stage
-        entries = [(_packaged_layer(stage.GetRootLayer(), tmp / root_name), root_name)]
-        for rel in layers:
-            entries.append((_packaged_layer(Sdf.Layer.FindOrOpen(str(root / rel)), tmp / rel), rel))
-        entries += [(root / rel, rel) for rel in slots]
+    with contextlib.ExitStack() as stack:
+        plain = stack.enter_context(_unpacked(scene))
+        tmp = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix=TEMP_PREFIX)))
+        # A loose copy first, written from the model: the package then holds what was read.
+        loose = tmp / "loose"
+        loose_root = loose / f"{src.stem}.usda"
+        write_stage(plain, loose_root)
+        packed = tmp / "package"
+        root_name = f"{src.stem}.usdc"  # the root layer comes first: USD opens a package's first file
+        checkpoints = [L.SCENE_CHECKPOINT] + [L.library_checkpoint(n) for n in sorted(scene.library)]
+        layers = [L.library_layer(n) for n in sorted(scene.library)]
+        slots = [L.slot_layer(c) for c in scene.classes()]
+        entries = [(_packaged_layer(loose_root, packed / root_name), root_name)]
+        entries += [(_packaged_layer(loose / rel, packed / rel), rel) for rel in layers]
+        entries += [(loose / rel, rel) for rel in slots]
         for rel in checkpoints:
             name = embedded_name(rel)
-            (tmp / name).parent.mkdir(parents=True, exist_ok=True)
-            entries.append((write_embedded_checkpoint(root / rel, tmp / name), name))
+            (packed / name).parent.mkdir(parents=True, exist_ok=True)
+            entries.append((write_embedded_checkpoint(loose / rel, packed / name), name))
+        stack.enter_context(stage_lock(out, create=True))
+        tx = stack.enter_context(file_transaction())
         writer = Sdf.ZipFileWriter.CreateNew(str(tx.temp_path(out)))
         for file, rel in entries:
             writer.AddFile(str(file), rel)
@@ -94,9 +122,12 @@ def _unpacked(scene: ComposedScene) -> Iterator[ComposedScene]:
         )
 
 
-def _packaged_layer(layer: Sdf.Layer, dest: Path) -> Path:
-    """A copy of ``layer`` at ``dest`` whose checkpoint paths name the embedded layers."""
+def _packaged_layer(src: Path, dest: Path) -> Path:
+    """A copy of the layer ``src`` at ``dest`` whose checkpoint paths name the embedded layers."""
     dest.parent.mkdir(parents=True, exist_ok=True)
+    layer = Sdf.Layer.FindOrOpen(str(src))
+    if layer is None:
+        raise StageError(src, "/", "the exported layer cannot be opened")
     layer.Export(str(dest))
     copy = Sdf.Layer.FindOrOpen(str(dest))
     UsdUtils.ModifyAssetPaths(

@@ -17,8 +17,10 @@ from pxr import Sdf
 
 from . import layout as L
 from .errors import StageError
+from .locking import stage_lock
+from .model import ComposedScene
 from .transaction import file_transaction
-from .usd_read import open_stage, read_stage, regnf_data
+from .usd_read import read_stage, regnf_data, root_layer_of
 
 
 def make_replacement_layer(
@@ -26,6 +28,7 @@ def make_replacement_layer(
     selections: Mapping[str, str],
     out_path: str | os.PathLike,
     force: bool = False,
+    allow_outside: bool = False,
 ) -> Path:
     """Write a layer over ``base_stage_path`` that swaps instances' library objects.
 
@@ -41,6 +44,8 @@ def make_replacement_layer(
     force : bool
         Allow a swap to an object of a different class (the instance then references that
         class's slot).
+    allow_outside : bool
+        Read a base stage whose asset paths leave its folder (see :func:`read_stage`).
 
     Returns
     -------
@@ -52,6 +57,14 @@ def make_replacement_layer(
     StageError
         Unknown instance or library object, a swap across classes (unless forced), an output
         outside the base stage's folder; nothing is written then.
+    synthetic.file_lock.LockBusy
+        Another process kept the stage's folder locked for too long.
+
+    Notes
+    -----
+    The layer is written into the base stage's folder, so the folder's lock is held from
+    before the base is read until the layer is in place: an edit of the base meanwhile would
+    otherwise leave a layer made for instances the base no longer has.
     """
     base = Path(base_stage_path).absolute()
     out = Path(out_path).absolute()
@@ -62,13 +75,25 @@ def make_replacement_layer(
         raise StageError(out, "/", "a replacement layer must end in .usda or .usdc")
     if out == base:
         raise StageError(out, "/", "the replacement layer cannot overwrite its base stage")
-    scene = read_stage(base)
-    layer = Sdf.Layer.CreateAnonymous(out.suffix)
+    bad = [k for k, v in selections.items() if not isinstance(k, str) or not isinstance(v, str)]
+    if bad:
+        raise StageError(base, L.INSTANCES, f"selections must map instance ids to library names (strings), got {bad}")
+    with stage_lock(base):  # the folder of both: the layer lies beside its base
+        scene = read_stage(base, allow_outside=allow_outside)
+        layer = _layer(base, scene, selections, out.suffix, force)
+        with file_transaction() as tx:
+            layer.Export(str(tx.temp_path(out)))
+    return out
+
+
+def _layer(base: Path, scene: ComposedScene, selections: Mapping[str, str], suffix: str, force: bool) -> Sdf.Layer:
+    """The anonymous replacement layer over ``base`` (read as ``scene``); see the caller."""
+    layer = Sdf.Layer.CreateAnonymous(suffix)
     layer.pseudoRoot.SetInfo("upAxis", "Z")
     layer.pseudoRoot.SetInfo("metersPerUnit", 1.0)
     layer.defaultPrim = "World"
-    base_stage = open_stage(base)
-    data = dict(regnf_data(base_stage.GetRootLayer(), str(base)))
+    base_layer = root_layer_of(base)
+    data = dict(regnf_data(base_layer, str(base)))
     data["replacementOf"] = "./" + base.name
     data["selections"] = dict(selections)
     layer.customLayerData = {"regnf": data}
@@ -90,6 +115,4 @@ def make_replacement_layer(
             # The other class's slot replaces the reference (an explicit list is the strongest).
             spec.referenceList.explicitItems = [Sdf.Reference("./" + L.slot_layer(new))]
         spec.variantSelections[L.VARIANT_SET] = name
-    with file_transaction() as tx:
-        layer.Export(str(tx.temp_path(out)))
-    return out
+    return layer

@@ -6,6 +6,12 @@ are removed and the disk is as it was. During the commit each file is replaced w
 ``os.replace``; the old versions are kept as hard links until the end so that a failure half
 way restores them. Callers stage the root layer last, so a reader opening it meanwhile finds
 either the old stage or the new one with all its assets.
+
+Temporaries are named ``.regnf-tmp-<name>.*`` (:data:`synthetic.atomic_io.TEMP_PREFIX`, which
+marks what a killed run left as ours to remove) and every file put in place gets the mode a
+plain ``open`` would give under the user's umask: ``mkstemp`` makes files 0600, and USD's
+writers keep the mode of the file they overwrite, which would leave a stage in a shared
+folder unreadable by the rest of a cluster.
 """
 
 from __future__ import annotations
@@ -17,6 +23,8 @@ import shutil
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
+
+from synthetic.atomic_io import TEMP_PREFIX, user_mode
 
 
 class FileTransaction:
@@ -42,8 +50,9 @@ class FileTransaction:
         if any(d == dest for _, d in self._staged):
             raise ValueError(f"{dest} is written twice in one transaction")
         self._mkdirs(dest.parent)
-        fd, tmp = tempfile.mkstemp(prefix=f".{dest.name}.", suffix=dest.suffix, dir=dest.parent)
+        fd, tmp = tempfile.mkstemp(prefix=f"{TEMP_PREFIX}{dest.name}.", suffix=dest.suffix, dir=dest.parent)
         os.close(fd)
+        user_mode(tmp)
         self._staged.append((Path(tmp), dest))
         return Path(tmp)
 
@@ -80,8 +89,10 @@ class FileTransaction:
                     continue
                 backup = None
                 if dest.exists():
-                    backup = Path(tempfile.mktemp(prefix=f".{dest.name}.old.", dir=dest.parent))
+                    backup = Path(tempfile.mktemp(prefix=f"{TEMP_PREFIX}{dest.name}.old.", dir=dest.parent))
                     os.link(dest, backup)
+                # Again here: a writer may have replaced the temporary by a file of its own mode.
+                user_mode(tmp)
                 os.replace(tmp, dest)
                 done.append((dest, backup))
                 written.append(dest)

@@ -3,7 +3,8 @@
 Everything is checked against our layout, so that a stage written by something else, or
 edited by hand into something inconsistent, is reported with the prim and the file at fault:
 the ``regnf`` layer data, Z up and metres, every field attribute, asset paths that stay inside
-the stage's folder, checkpoints that exist and parse, xform ops that agree with the exact 4x4.
+the stage's folder (:mod:`scene_graph.boundary`), checkpoints that exist and parse, xform ops
+that agree with the exact 4x4, registration records that obey :mod:`scene_graph.checks`.
 """
 
 from __future__ import annotations
@@ -18,6 +19,8 @@ from pxr import Ar, Sdf, Tf, Usd, UsdGeom
 from neural_fields.checkpoint import CheckpointError, read_header
 
 from . import layout as L
+from .boundary import Boundary, open_composed
+from .checks import check_registration
 from .embedded_checkpoint import checkpoint_file, is_embedded
 from .errors import StageError
 from .model import (
@@ -34,45 +37,94 @@ OPS_RTOL = 1e-9
 """The xform ops must compose to the stored 4x4 to this (relative) tolerance."""
 
 
-def open_stage(path: str | os.PathLike) -> Usd.Stage:
-    """Open a stage fresh from disk (layers already in memory are reloaded)."""
-    path = Path(path)
+def open_stage(path: str | os.PathLike, allow_outside: bool = False) -> Usd.Stage:
+    """Open a stage fresh from disk (layers already in memory are reloaded), inside its boundary.
+
+    Every sublayer, reference and payload is checked before it is opened
+    (:func:`scene_graph.boundary.open_composed`): one that resolves outside the stage's
+    folder (or package) is refused unless ``allow_outside``. A regnf asset layer opened on
+    its own (``library/<name>.usda`` or ``slots/<class>.usda``, by the role its
+    ``customLayerData`` gives) belongs to the stage one folder up, and has that boundary.
+
+    Raises
+    ------
+    StageError
+        No such file, a file USD cannot open, an arc outside the boundary.
+    """
+    path = Path(path).absolute()
+    folder = None
+    if path.parent.name in (L.LIBRARY_DIR, L.SLOTS_DIR):
+        data = dict(root_layer_of(path).customLayerData).get("regnf")
+        if isinstance(data, dict) and data.get("role") in (L.ROLE_LIBRARY, L.ROLE_SLOT):
+            folder = path.parent.parent
+    elif not path.is_file():
+        raise StageError(path, "/", "no such stage file")
+    return open_composed(str(path), Boundary.of(path, allow_outside, folder))
+
+
+def root_layer_of(path: str | os.PathLike) -> Sdf.Layer:
+    """The root layer of the stage at ``path`` alone (nothing it names is opened), fresh from disk.
+
+    Raises
+    ------
+    StageError
+        No such file, or USD cannot parse it.
+    """
+    path = Path(path).absolute()
     if not path.is_file():
         raise StageError(path, "/", "no such stage file")
-    loaded = {layer.identifier for layer in Sdf.Layer.GetLoadedLayers()}
+    file = str(path)
+    was_loaded = Sdf.Layer.Find(file) is not None
     try:
-        stage = Usd.Stage.Open(str(path))
+        layer = Sdf.Layer.FindOrOpen(file)
     except Tf.ErrorException as exc:
-        raise StageError(path, "/", f"USD cannot open it: {exc}") from exc
-    if stage is None:
+        raise StageError(path, "/", f"USD cannot open it: {' '.join(str(exc).split())}") from exc
+    if layer is None:
         raise StageError(path, "/", "USD cannot open it")
-    for layer in stage.GetUsedLayers():
-        if layer.identifier in loaded and not layer.anonymous:
-            layer.Reload(force=True)
-    return stage
+    if was_loaded:
+        layer.Reload(force=True)  # another process may have changed it since it was loaded
+    return layer
 
 
-def _inside(root: Path, identifier: str) -> bool:
-    """Whether a resolved asset identifier lies inside ``root`` (or inside its package)."""
-    if identifier.endswith("]") and "[" in identifier:  # a file inside a .usdz package
-        inner = identifier[identifier.index("[") + 1 : -1]
-        return not Path(inner).is_absolute() and ".." not in Path(inner).parts
-    try:
-        real = Path(os.path.realpath(identifier))
-        return real.is_relative_to(Path(os.path.realpath(root)))
-    except ValueError:
-        return False
+def replacement_base(stage_path: str | os.PathLike, allow_outside: bool = False) -> Path | None:
+    """The stage a replacement layer sits over, or None for a plain stage or package.
+
+    Raises
+    ------
+    StageError
+        The layer cannot be read, is not a regnf stage, or its ``replacementOf`` leaves the
+        stage's folder (unless ``allow_outside``); the base is not opened then.
+    """
+    path = Path(stage_path).absolute()
+    if path.suffix == ".usdz":
+        return None
+    layer = root_layer_of(path)
+    ident = replacement_of(layer, regnf_data(layer, str(path)), Boundary.of(path, allow_outside))
+    return None if ident is None else Path(ident)
 
 
-def anchored(layer: Sdf.Layer, asset: str, root: Path, owner: str, what: str) -> str:
-    """Resolve ``asset`` relative to ``layer``; refuse paths that escape ``root``."""
-    if not asset:
-        raise StageError(layer.realPath or layer.identifier, owner, f"{what} is empty")
-    ident = layer.ComputeAbsolutePath(asset)
-    if Path(asset).is_absolute() or not _inside(root, ident):
-        raise StageError(layer.realPath or layer.identifier, owner,
-                         f"{what} {asset!r} escapes the stage's folder {root}")
-    return ident
+def replacement_of(layer: Sdf.Layer, data: dict, boundary: Boundary) -> str | None:
+    """The identifier of the stage a replacement layer sits over (checked), or None.
+
+    Parameters
+    ----------
+    layer : Sdf.Layer
+        The root layer holding ``data``.
+    data : dict
+        Its ``customLayerData["regnf"]``.
+    boundary : Boundary
+
+    Raises
+    ------
+    StageError
+        ``replacementOf`` is not a path, or leaves the boundary; the file is not opened then.
+    """
+    rel = data.get("replacementOf")
+    if rel is None:
+        return None
+    if not isinstance(rel, str):
+        raise StageError(layer.realPath or layer.identifier, "/", f"'replacementOf' must be a path, got {rel!r}")
+    return boundary.resolve(layer, rel, "/", "replacementOf (the base stage)")
 
 
 def _get(prim: Usd.Prim, name: str, file: str, required: bool = True) -> object:
@@ -103,14 +155,25 @@ def _proxy(prim: Usd.Prim, file: str) -> ProxyMesh:
     return ProxyMesh(pts, idx.reshape(-1, 3), colors)
 
 
-def read_field(prim: Usd.Prim, layer: Sdf.Layer, root: Path, check_checkpoint: bool = True) -> FieldRecord:
-    """The :class:`FieldRecord` of a field prim whose attributes are authored in ``layer``."""
+def read_field(prim: Usd.Prim, layer: Sdf.Layer, boundary: Boundary, check_checkpoint: bool = True) -> FieldRecord:
+    """The :class:`FieldRecord` of a field prim whose attributes are authored in ``layer``.
+
+    Parameters
+    ----------
+    prim : Usd.Prim
+    layer : Sdf.Layer
+        The layer its checkpoint path is authored in (the path is relative to it).
+    boundary : Boundary
+        Where the checkpoint may lie.
+    check_checkpoint : bool
+        Parse the checkpoint's header (else only check that it exists).
+    """
     file = layer.realPath or layer.identifier
     where = str(prim.GetPath())
     if not prim:
         raise StageError(file, where, "no such prim")
     asset = _get(prim, L.A_CHECKPOINT, file)
-    checkpoint = anchored(layer, asset.path, root, where, "checkpoint path")
+    checkpoint = boundary.resolve(layer, asset.path, where, "checkpoint path")
     if check_checkpoint:
         try:
             with checkpoint_file(checkpoint) as ckpt:  # a package's checkpoints are embedded layers
@@ -176,7 +239,7 @@ def _registration(prim: Usd.Prim, file: str) -> RegistrationProvenance | None:
 
     box = prim.GetAttribute(L.A_BOX_CENTER)
     rot = _get(prim, L.A_BOX_ROTATION, file, required=False)
-    return RegistrationProvenance(
+    reg = RegistrationProvenance(
         method=str(_get(prim, L.A_METHOD, file)),
         confidence=float(_get(prim, L.A_CONFIDENCE, file)),
         accepted=bool(_get(prim, L.A_ACCEPTED, file)),
@@ -190,6 +253,11 @@ def _registration(prim: Usd.Prim, file: str) -> RegistrationProvenance | None:
         proposal_rotation=(np.array([[rot[i][j] for j in range(3)] for i in range(3)]).T if rot is not None else None),
         forced=bool(_get(prim, L.A_FORCED, file, required=False) or False),
     )
+    try:
+        check_registration(reg)  # the writer's rules: a stage edited by hand must still render
+    except ValueError as exc:
+        raise StageError(file, str(prim.GetPath()), str(exc)) from exc
+    return reg
 
 
 def regnf_data(layer: Sdf.Layer, file: str) -> dict:
@@ -207,7 +275,7 @@ def regnf_data(layer: Sdf.Layer, file: str) -> dict:
     return data
 
 
-def read_stage(path: str | os.PathLike, check_checkpoints: bool = True) -> ComposedScene:
+def read_stage(path: str | os.PathLike, check_checkpoints: bool = True, allow_outside: bool = False) -> ComposedScene:
     """Read a regnf stage (.usda, .usdc, a replacement layer, or a .usdz package).
 
     Parameters
@@ -216,45 +284,57 @@ def read_stage(path: str | os.PathLike, check_checkpoints: bool = True) -> Compo
         The root layer.
     check_checkpoints : bool
         Parse every checkpoint's header (inside a package: the embedded one, digest checked).
+    allow_outside : bool
+        Accept asset paths (layers, checkpoints, ``replacementOf``) that resolve outside the
+        stage's folder, or outside the package for a .usdz. By default they are refused
+        (:mod:`scene_graph.boundary`): a stage is its folder.
 
     Raises
     ------
     StageError
-        Naming the file and prim at fault.
+        Naming the file and prim at fault (for an escaping path: the file, the prim and the
+        path as authored).
     """
     path = Path(path).absolute()
-    stage = open_stage(path)
-    root_layer = stage.GetRootLayer()
+    boundary = Boundary.of(path, allow_outside)
+    root_layer = root_layer_of(path)
+    fresh = {root_layer.identifier}
     file = str(path)
+    # The regnf tables first, so that a replacement layer over a stage outside the folder is
+    # refused before anything it names is opened.
     data = regnf_data(root_layer, file)
+    replacement_of(root_layer, data, boundary)
+    stage = open_composed(file, boundary, fresh)
+    root_layer = stage.GetRootLayer()
     if UsdGeom.GetStageUpAxis(stage) != UsdGeom.Tokens.z:
         raise StageError(file, "/", f"upAxis is {UsdGeom.GetStageUpAxis(stage)}, expected Z")
     if UsdGeom.GetStageMetersPerUnit(stage) != 1.0:
         raise StageError(file, "/", f"metersPerUnit is {UsdGeom.GetStageMetersPerUnit(stage)}, expected 1")
-    root = path.parent
     scene_prim = stage.GetPrimAtPath(L.SCENE)
     if not scene_prim:
         raise StageError(file, L.SCENE, "the scene field prim is missing")
     # The scene's attributes are authored in the base stage (the root, or its sublayer).
     scene_layer = _authoring_layer(scene_prim, L.A_CHECKPOINT) or root_layer
-    scene = read_field(scene_prim, scene_layer, root, check_checkpoints)
+    scene = read_field(scene_prim, scene_layer, boundary, check_checkpoints)
 
     library: dict[str, FieldRecord] = {}
     for name, rel in sorted(data["library"].items()):
-        ident = anchored(root_layer, rel, root, "/", f"library layer of {name!r}")
-        lib_stage = Usd.Stage.Open(ident) if Ar.GetResolver().Resolve(ident) else None
-        if lib_stage is None:
+        ident = boundary.resolve(root_layer, _table_path(rel, file, f"library layer of {name!r}"), "/",
+                                 f"library layer of {name!r}")
+        if not Ar.GetResolver().Resolve(ident):
             raise StageError(ident, "/", f"library layer of {name!r} (listed by {file}) cannot be opened")
+        lib_stage = open_composed(ident, boundary, fresh)
         prim = lib_stage.GetDefaultPrim()
         if not prim:
             raise StageError(ident, "/", "library layer has no defaultPrim")
-        rec = read_field(prim, lib_stage.GetRootLayer(), root, check_checkpoints)
+        rec = read_field(prim, lib_stage.GetRootLayer(), boundary, check_checkpoints)
         if rec.name != name:
             raise StageError(ident, str(prim.GetPath()), f"holds {rec.name!r}, listed as {name!r} by {file}")
         library[name] = rec
 
     for label, rel in sorted(data["slots"].items()):
-        ident = anchored(root_layer, rel, root, "/", f"slot layer of class {label!r}")
+        ident = boundary.resolve(root_layer, _table_path(rel, file, f"slot layer of class {label!r}"), "/",
+                                 f"slot layer of class {label!r}")
         if not Ar.GetResolver().Resolve(ident):
             raise StageError(ident, "/", f"slot layer of class {label!r} (listed by {file}) does not exist")
 
@@ -278,6 +358,13 @@ def read_stage(path: str | os.PathLike, check_checkpoints: bool = True) -> Compo
         )
     provenance = _plain(data.get("provenance", {}))
     return ComposedScene(scene=scene, library=library, instances=instances, provenance=provenance)
+
+
+def _table_path(rel: object, file: str, what: str) -> str:
+    """An entry of the regnf library or slot table, which must be a path (a string)."""
+    if not isinstance(rel, str):
+        raise StageError(file, "/", f"{what} must be a path, got {rel!r}")
+    return rel
 
 
 def _authoring_layer(prim: Usd.Prim, attr: str) -> Sdf.Layer | None:

@@ -23,12 +23,14 @@ from pxr import Gf, Sdf, Vt
 from neural_fields.checkpoint import CheckpointError, read_header
 
 from . import layout as L
+from .checks import check_registration, check_similarity
 from .errors import StageError
+from .locking import stage_lock
 from .model import FORMAT_VERSION, ID_RE, NAME_RE, ComposedScene, FieldRecord, InstanceRecord
 from .transaction import FileTransaction
 from .xform import OP_ORDER, ops_from_matrix, to_usd_matrix
 
-STAGE_SUFFIXES = (".usda", ".usdc")
+STAGE_SUFFIXES = L.STAGE_SUFFIXES
 """Suffixes of a writable stage (export makes .usdz)."""
 
 
@@ -89,15 +91,12 @@ def _check_instance(scene: ComposedScene, iid: str, inst: InstanceRecord, stage_
         raise StageError(stage_path, prim, f"library object {inst.library_name!r} is not in the stage's "
                          f"library {sorted(scene.library)}")
     try:
-        ops_from_matrix(inst.object_to_scene)
+        check_similarity(inst.object_to_scene, "object_to_scene")
+        if inst.registration is not None:
+            # The reader applies the same rules: what is written here reads back and renders.
+            check_registration(inst.registration)
     except ValueError as exc:
-        raise StageError(stage_path, prim, f"object_to_scene is not a similarity: {exc}") from exc
-    reg = inst.registration
-    if reg is not None:
-        for group in (reg.losses, reg.timings, reg.thresholds):
-            bad = [k for k in group if not L.KEY_RE.match(k)]
-            if bad:
-                raise StageError(stage_path, prim, f"provenance keys {bad} are not identifiers")
+        raise StageError(stage_path, prim, str(exc)) from exc
 
 
 # -- authoring helpers --------------------------------------------------------------------------
@@ -158,7 +157,7 @@ def library_layer(rec: FieldRecord) -> Sdf.Layer:
     spec = Sdf.PrimSpec(layer, name, Sdf.SpecifierDef, "Xform")
     spec.kind = "component"
     layer.defaultPrim = name
-    layer.customLayerData = {"regnf": {"formatVersion": FORMAT_VERSION, "role": "libraryObject"}}
+    layer.customLayerData = {"regnf": {"formatVersion": FORMAT_VERSION, "role": L.ROLE_LIBRARY}}
     _author_field(spec, rec, "../" + L.library_checkpoint(rec.name))
     return layer
 
@@ -168,7 +167,7 @@ def slot_layer(label: str, names: list[str]) -> Sdf.Layer:
     layer = _new_layer()
     spec = Sdf.PrimSpec(layer, "Slot", Sdf.SpecifierDef, "Xform")
     layer.defaultPrim = "Slot"
-    layer.customLayerData = {"regnf": {"formatVersion": FORMAT_VERSION, "role": "slot", "class": label}}
+    layer.customLayerData = {"regnf": {"formatVersion": FORMAT_VERSION, "role": L.ROLE_SLOT, "class": label}}
     _attr(spec, L.A_SLOT_CLASS, Sdf.ValueTypeNames.String, label)
     vset = Sdf.VariantSetSpec(spec, L.VARIANT_SET)
     for name in names:
@@ -242,7 +241,9 @@ def write_stage(scene: ComposedScene, stage_path: str | os.PathLike) -> list[Pat
     """Write ``scene`` as a stage at ``stage_path`` (.usda or .usdc) with its assets beside it.
 
     Everything is checked first, then every file is written to a temporary and the set is
-    moved into place (the root layer last); on any error nothing on disk changes.
+    moved into place (the root layer last); on any error nothing on disk changes. The stage
+    folder's lock (:func:`scene_graph.locking.stage_lock`) is held meanwhile; an edit that
+    read the stage holds it already, from before its read.
 
     Returns
     -------
@@ -252,22 +253,26 @@ def write_stage(scene: ComposedScene, stage_path: str | os.PathLike) -> list[Pat
     Raises
     ------
     StageError
-        Bad names, a missing or corrupted checkpoint, a transform that is not a similarity...
+        Bad names, a missing or corrupted checkpoint, a transform that is not a similarity, a
+        registration record :func:`scene_graph.checks.check_registration` refuses...
+    synthetic.file_lock.LockBusy
+        Another process kept the stage's folder locked for too long.
     """
     stage_path = Path(stage_path).absolute()
     check_scene(scene, stage_path)
     root = stage_path.parent
-    tx = FileTransaction()
-    try:
-        tx.copy(scene.scene.checkpoint, root / L.SCENE_CHECKPOINT)
-        for name in sorted(scene.library):
-            rec = scene.library[name]
-            tx.copy(rec.checkpoint, root / L.library_checkpoint(name))
-            library_layer(rec).Export(str(tx.temp_path(root / L.library_layer(name))))
-        for label, names in scene.classes().items():
-            slot_layer(label, names).Export(str(tx.temp_path(root / L.slot_layer(label))))
-        stage_layer(scene, stage_path.suffix).Export(str(tx.temp_path(stage_path)))
-    except BaseException:
-        tx.abort()
-        raise
-    return tx.commit()
+    with stage_lock(stage_path, create=True):
+        tx = FileTransaction()
+        try:
+            tx.copy(scene.scene.checkpoint, root / L.SCENE_CHECKPOINT)
+            for name in sorted(scene.library):
+                rec = scene.library[name]
+                tx.copy(rec.checkpoint, root / L.library_checkpoint(name))
+                library_layer(rec).Export(str(tx.temp_path(root / L.library_layer(name))))
+            for label, names in scene.classes().items():
+                slot_layer(label, names).Export(str(tx.temp_path(root / L.slot_layer(label))))
+            stage_layer(scene, stage_path.suffix).Export(str(tx.temp_path(stage_path)))
+        except BaseException:
+            tx.abort()
+            raise
+        return tx.commit()

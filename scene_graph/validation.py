@@ -2,7 +2,8 @@
 
 Every validator registered in this usd-core build runs over the composed stage (which also
 validates the asset layers it references); the result is the list of issues as text, split
-into errors and warnings.
+into errors and warnings. The stage is opened inside its trust boundary
+(:func:`scene_graph.usd_read.open_stage`): a layer outside its folder is refused, not validated.
 """
 
 from __future__ import annotations
@@ -11,7 +12,9 @@ import os
 from pathlib import Path
 from typing import NamedTuple
 
-from pxr import Usd, UsdValidation
+from pxr import UsdValidation
+
+from .usd_read import open_stage
 
 
 class ValidationReport(NamedTuple):
@@ -39,9 +42,17 @@ def _describe(err: UsdValidation.ValidationError) -> str:
     return f"{name}: {err.GetMessage()}" + (f" ({', '.join(sites)})" if sites else "")
 
 
-def validate_stage(path: str | os.PathLike, exclude: tuple[str, ...] = ()) -> ValidationReport:
-    """Run every registered validator (but ``exclude``) on the stage at ``path``."""
-    stage = Usd.Stage.Open(str(Path(path)))
+def validate_stage(path: str | os.PathLike, exclude: tuple[str, ...] = (),
+                   allow_outside: bool = False) -> ValidationReport:
+    """Run every registered validator (but ``exclude``) on the stage at ``path``.
+
+    Raises
+    ------
+    StageError
+        The stage cannot be opened, or one of its layers lies outside its folder (unless
+        ``allow_outside``).
+    """
+    stage = open_stage(Path(path), allow_outside)
     registry = UsdValidation.ValidationRegistry()
     validators = [v for v in registry.GetOrLoadAllValidators() if v.GetMetadata().name not in exclude]
     issues = UsdValidation.ValidationContext(validators).Validate(stage)

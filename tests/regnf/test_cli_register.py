@@ -18,7 +18,9 @@ from neural_fields.analytic import Box, Cylinder, Union
 from registration.register import RegistrationConfig
 from regnf.cli import main
 
+from ..adversarial.disk import changes, snapshot
 from ..registration.fixtures import make_object, make_scene, placement
+from ..scene_graph.helpers import make_stage
 
 
 def _table():
@@ -68,14 +70,14 @@ def test_register_a_matching_object_succeeds(fields, tmp_path, capsys) -> None:
 
 def test_chair_against_a_table_box_is_reported_as_failed(fields, tmp_path, capsys) -> None:
     out = tmp_path / "bad.json"
-    stage = tmp_path / "never_written.usda"
-    with pytest.raises(SystemExit) as done:
-        main(["register", "--scene", str(fields["table_room"]), "--library", str(fields["chair"]),
-              "--box", str(fields["table_box"]), "--out", str(out), "--stage", str(stage)])
-    assert done.value.code == 3
+    stage = make_stage(tmp_path / "stage", ("c", "t"))
+    before = snapshot(stage.parent)
+    assert main(["register", "--scene", str(fields["table_room"]), "--library", str(fields["chair"]),
+                 "--box", str(fields["table_box"]), "--out", str(out), "--stage", str(stage)]) == 3
     text = _printed(capsys)
     assert "registration FAILED" in text and "below the acceptance threshold" in text
-    assert "nothing written" in text and not stage.exists()
+    assert "nothing written" in text
+    assert changes(before, snapshot(stage.parent)) == []
     saved = json.loads(out.read_text())  # the result is still saved, flagged
     assert saved["accepted"] is False
     assert saved["confidence"] < RegistrationConfig().acceptance_threshold
