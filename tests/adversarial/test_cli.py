@@ -218,3 +218,31 @@ def test_the_readme_documents_every_exit_status() -> None:
     table = readme.split("### When something is wrong", 1)[1].split("\n## ", 1)[0]
     documented = {int(m) for m in re.findall(r"^\| (\d+) \|", table, flags=re.M)}
     assert documented == statuses
+
+
+def test_a_stage_another_process_is_writing_gives_status_busy(tmp_path, monkeypatch, capsys) -> None:
+    import sys
+
+    import scene_graph.locking as locking
+    from regnf.cli import EXIT_BUSY
+    from tests.scene_graph.helpers import make_stage, registration_json, similarity
+
+    stage = make_stage(tmp_path / "stage", ("c", "t"))
+    result = tmp_path / "c.json"
+    result.write_text(json.dumps(registration_json("c", stage.parent / "fields" / "c.safetensors",
+                                                   similarity(0.3, (1.0, 0.0, 0.0), 1.0))))
+    before = snapshot(stage.parent)
+    holder = subprocess.Popen(
+        [sys.executable, "-c", "import sys, time\nfrom synthetic.file_lock import folder_lock\n"
+         f"with folder_lock({str(stage.parent)!r}):\n    print('held', flush=True)\n    time.sleep(60)"],
+        stdout=subprocess.PIPE, text=True, cwd=Path(__file__).parents[2])
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        monkeypatch.setattr(locking, "STAGE_LOCK_TIMEOUT_S", 0.2)
+        assert_fails(capsys, ["stage", "add-instance", "--stage", str(stage), "--result", str(result)],
+                     r"is in use by another regnf process \(pid \d+", status=EXIT_BUSY)
+    finally:
+        holder.kill()
+        holder.wait()
+    # The lock file holds the pid of its last holder (the other process); nothing else changed.
+    assert [c for c in changes(before, snapshot(stage.parent)) if not c.endswith(".regnf.lock")] == []
