@@ -16,15 +16,15 @@ untouched: a reader never sees a partial PNG.
 
 from __future__ import annotations
 
-import contextlib
 import os
-import tempfile
 from pathlib import Path
 from typing import BinaryIO
 
 import numpy as np
 import torch
 from PIL import Image
+
+from synthetic.atomic_io import atomic_path
 
 UINT16_MAX = 65535
 """Largest value of a 16-bit PNG sample."""
@@ -41,30 +41,14 @@ def _encode(image: Image.Image, f: BinaryIO) -> None:
     image.save(f, format="PNG")
 
 
-def _umask() -> int:
-    """The process's file-creation mask (read by setting it and putting it back)."""
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
-
-
 def _atomic_save(path: str | os.PathLike, image: Image.Image) -> Path:
     path = Path(path)
     if not path.parent.is_dir():
         raise ValueError(f"cannot write {path}: folder {path.parent} does not exist")
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            # mkstemp makes the file private (0600); give the image the usual permissions.
-            os.chmod(tmp, 0o666 & ~_umask())
-            _encode(image, f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
-        raise
+    with atomic_path(path, suffix=".tmp") as tmp, open(tmp, "wb") as f:
+        _encode(image, f)
+        f.flush()
+        os.fsync(f.fileno())
     return path
 
 

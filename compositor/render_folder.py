@@ -8,10 +8,21 @@ optionally ``sequence.gif`` or ``sequence.mp4`` (the RGB views in order, see
 evaluations per pixel).
 
 Nothing half-done is ever left in the folder: every camera is checked first (a camera
-inside matter is refused before anything is rendered), the views are written to a hidden
-staging folder inside the output folder, and only when all of them are done are they moved
-into place, ``render.json`` last. On any error the staging folder is removed and the output
-folder is as it was.
+inside matter, or a view of more than :data:`MAX_PIXELS`, is refused before anything is
+rendered), the views are written to a staging folder inside the output folder
+(``.regnf-tmp-render-XXXXXXXX``, see :mod:`synthetic.output_dir`), and only when all of
+them are done are they moved into place, ``render.json`` last. On any error the staging
+folder is removed and the output folder is as it was.
+
+The folder may hold other files (a replacement layer, a stage, the user's own): a render
+never writes over or removes a file it did not write. Its files are the ones ``render.json``
+lists; a file of the same name that no ``render.json`` lists (say the user's own
+``rgb_0000.png``) makes the render refuse, and overwriting an earlier render
+(``overwrite``) removes only the view and sequence files that render's ``render.json``
+lists. While it writes, a render holds the folder's lock (``.regnf.lock``, a POSIX record
+lock, see :mod:`synthetic.file_lock`): a second render into the same folder at the same
+time fails at once with :class:`synthetic.file_lock.LockBusy`, and under the lock the
+staging folders a killed render left behind are removed (nothing else is).
 """
 
 from __future__ import annotations
@@ -21,8 +32,6 @@ import json
 import math
 import os
 import re
-import shutil
-import tempfile
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -35,6 +44,8 @@ from tqdm import tqdm
 
 from neural_fields.field import Field
 from synthetic.atomic_io import write_json
+from synthetic.file_lock import folder_lock
+from synthetic.output_dir import remove_leftovers, staging_dir, staging_prefix
 
 from .camera import Camera
 from .contact_sheets import contact_sheet
@@ -58,6 +69,14 @@ SEQUENCE_STEM = "sequence"
 """The RGB views in order: ``sequence.gif`` or ``sequence.mp4``."""
 SEQUENCE_FILE_RE = re.compile(r"^sequence\.(gif|mp4)$")
 """Sequence files this module writes (one of another format is removed when overwriting)."""
+STAGING_LABEL = "render"
+"""Label of the staging folders (``.regnf-tmp-render-*``), so that only a render's own leftovers are removed."""
+MAX_PIXELS = 4096 * 4096
+"""Most pixels one view may have (4096 x 4096, 16.8 megapixels). A view is rendered and kept
+whole in memory (colour, depth, normals, instance ids, per-pixel counters: about 60 bytes a
+pixel, 1 GB at this size, before the renderer's own working memory), so a larger size fails
+only after minutes of work, or takes the machine's memory; it is refused before anything is
+rendered."""
 
 
 @dataclass(frozen=True)
@@ -153,12 +172,21 @@ def jsonable(value: Any) -> Any:
     return value
 
 
+def check_image_size(width: int, height: int, what: str = "a view") -> None:
+    """Refuse (``ValueError``) an image of more than :data:`MAX_PIXELS` pixels."""
+    if width * height > MAX_PIXELS:
+        raise ValueError(f"{what} of {width} x {height} pixels is more than the {MAX_PIXELS:,} pixels "
+                         f"(4096 x 4096) a view may have; render smaller views")
+
+
 def check_cameras(field: Field, cameras: Sequence[Camera]) -> None:
-    """Refuse (``ValueError`` naming the camera) any camera whose centre is inside matter."""
-    world_to_field = np.linalg.inv(field.to_world.detach().cpu().double().numpy())
-    for k, cam in enumerate(cameras):  # one SDF query per camera
+    """Refuse (``ValueError`` naming the camera) a camera whose image is too large or whose centre is inside matter."""
+    for k, cam in enumerate(cameras):  # sizes first: cheap, and before any field query
         if not isinstance(cam, Camera):
             raise TypeError(f"cameras[{k}] must be a Camera, got {type(cam).__name__}")
+        check_image_size(cam.width, cam.height, f"camera {k}: a view")
+    world_to_field = np.linalg.inv(field.to_world.detach().cpu().double().numpy())
+    for k, cam in enumerate(cameras):  # one SDF query per camera
         origin = world_to_field[:3, :3] @ cam.center + world_to_field[:3, 3]
         try:
             check_camera_outside(field, torch.as_tensor(origin))
@@ -217,28 +245,69 @@ def render_views(
     Raises
     ------
     ValueError
-        No camera, a camera inside matter, an output folder that already holds a render
-        (unless ``overwrite``), non-finite field values, a sequence of views of different
-        sizes; nothing is written then.
+        No camera, a camera inside matter, a view of more than :data:`MAX_PIXELS` pixels,
+        an output folder that already holds a render (unless ``overwrite``), a file in the
+        way that no earlier render there wrote, non-finite field values, a sequence of
+        views of different sizes; nothing is written then.
     compositor.sequence_io.SequenceBackendError
         An MP4 sequence without its package (an ``ImportError``); nothing is written then.
+    synthetic.file_lock.LockBusy
+        Another process is rendering into ``out`` now (a ``RuntimeError``); nothing is written.
     """
     if len(cameras) == 0:
         raise ValueError("nothing to render: no camera")
     out = Path(out)
-    if (out / RENDER_JSON).exists() and not config.overwrite:
-        raise ValueError(f"{out} already holds a render ({RENDER_JSON}); overwrite it explicitly")
+    planned = _planned_files(len(cameras), config)
+    _check_folder(out, planned, config)  # before anything is made: a refusal leaves no trace
     check_sequence(cameras, config)
     check_cameras(field, cameras)
     out.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=".render-", dir=out))
-    try:
-        report = _render_into(field, cameras, out, staging, config, dict(metadata or {}))
-        _commit(staging, out, report.views, config)
-    except BaseException:
-        shutil.rmtree(staging, ignore_errors=True)
-        raise
+    with folder_lock(out, "the render folder"):
+        _check_folder(out, planned, config)  # again: another render may have finished meanwhile
+        remove_leftovers(out, staging_prefix(STAGING_LABEL))
+        with staging_dir(out, STAGING_LABEL) as staging:  # removed on any error
+            report = _render_into(field, cameras, out, staging, config, dict(metadata or {}))
+            _commit(staging, out, report.views, config)
     return report
+
+
+def _planned_files(n_views: int, config: RenderConfig) -> list[str]:
+    """The files a render of ``n_views`` views writes, ``render.json`` last."""
+    names = [name for k in range(n_views) for name in view_files(k)]
+    return names + [CONTACT_SHEET] + ([config.sequence_name] if config.sequence_name else []) + [RENDER_JSON]
+
+
+def recorded_files(out: str | os.PathLike) -> set[str]:
+    """The files the ``render.json`` of ``out`` says its render wrote (empty without a readable one).
+
+    Only names this module writes count (a view, the contact sheet, a sequence, ``render.json``),
+    so an edited ``render.json`` cannot make a render remove anything else.
+    """
+    try:
+        data = read_render_json(out)
+    except ValueError:
+        return set()
+    listed = [RENDER_JSON]
+    views = data.get("views") if isinstance(data, dict) else None
+    for view in views if isinstance(views, list) else []:
+        if isinstance(view, dict):
+            listed += [view.get(key) for key in ViewFiles._fields]
+    files = data.get("files") if isinstance(data, dict) else None
+    if isinstance(files, dict):
+        listed += [files.get("contact_sheet"), files.get("sequence")]
+    return {name for name in listed if isinstance(name, str) and (
+        name in (RENDER_JSON, CONTACT_SHEET) or VIEW_FILE_RE.match(name) or SEQUENCE_FILE_RE.match(name))}
+
+
+def _check_folder(out: Path, planned: Sequence[str], config: RenderConfig) -> None:
+    """Refuse a folder that holds a render (unless overwriting) or a file in the way that is not a render's."""
+    if (out / RENDER_JSON).exists() and not config.overwrite:
+        raise ValueError(f"{out} already holds a render ({RENDER_JSON}); overwrite it explicitly")
+    ours = recorded_files(out) if config.overwrite else set()
+    clash = [name for name in planned if os.path.lexists(out / name) and name not in ours]
+    if clash:
+        raise ValueError(f"{out / clash[0]}: exists and was not written by a render into this folder (no "
+                         f"{RENDER_JSON} there lists it); move it away, or render into another folder")
 
 
 def _render_into(
@@ -316,17 +385,20 @@ def _render_into(
 
 
 def _commit(staging: Path, out: Path, views: list[ViewFiles], config: RenderConfig) -> None:
-    """Move the staged files into ``out`` (``render.json`` last); drop stale view and sequence files."""
+    """Move the staged files into ``out`` (``render.json`` last); drop the earlier render's stale files.
+
+    Stale files are the views and the sequence that the earlier ``render.json`` lists and
+    this render does not write (it had more views, or another sequence format); nothing
+    that no ``render.json`` lists is removed.
+    """
     new = {name for v in views for name in v}
     extra = [CONTACT_SHEET] + ([config.sequence_name] if config.sequence_name else [])
+    earlier = recorded_files(out) if config.overwrite else set()
     for name in sorted(new) + extra + [RENDER_JSON]:
         os.replace(staging / name, out / name)
     staging.rmdir()
-    if config.overwrite:
-        for p in out.iterdir():  # files of an earlier render with more views or another sequence
-            stale_view = VIEW_FILE_RE.match(p.name) and p.name not in new
-            if stale_view or (SEQUENCE_FILE_RE.match(p.name) and p.name != config.sequence_name):
-                p.unlink()
+    for name in sorted(earlier - new - set(extra) - {RENDER_JSON, CONTACT_SHEET}):
+        (out / name).unlink(missing_ok=True)
 
 
 def read_render_json(out: str | os.PathLike) -> dict:

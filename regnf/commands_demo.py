@@ -18,7 +18,8 @@ class Demo:
     """Run the end-to-end demo: capture, fields, registration, stage, composites, usdz, report.html."""
 
     out: Path = Path("out/demo")
-    """Output folder (its stage, renders and report are replaced on every run)."""
+    """Output folder: its stage, renders and report (what an earlier demo made there) are remade on every run;
+    a folder holding anything else is refused unless --reuse is given."""
     demo: Annotated[DemoConfig, OmitArgPrefixes] = dataclasses.field(default_factory=DemoConfig)
     """What the demo makes."""
     cache_dir: Path = dataclasses.field(default_factory=default_cache_dir)

@@ -20,9 +20,15 @@ class Generate:
     """The stage with registered instances (.usda, .usdc or .usdz)."""
     out: Path
     """Output folder: manifest.jsonl, generation.json, stage/ (base + one layer per variant),
-    variants/NNNNNN/ (views, depth, instance masks, transforms.json). Rerunning resumes."""
+    variants/NNNNNN/ (views, depth, instance masks, transforms.json). It must be new, empty or
+    an earlier generate's (see --reuse); rerunning resumes. One run at a time: a second run into
+    the same folder stops at once (exit status 5)."""
+    reuse: bool = False
+    """Write into an --out folder that holds other files (they are kept: nothing is removed, and
+    only the data set's own names are written)."""
     variants: int = 10
-    """Number of variants (one seed each)."""
+    """Number of variants (one seed each), at most 1,000,000 (a larger data set: several folders,
+    --first-seed)."""
     views: int = 8
     """Views per variant, on an orbit inside the scene's bounds."""
     first_seed: int = 0
@@ -36,7 +42,7 @@ class Generate:
     threads_per_task: int = 1
     """Torch threads per variant (pinned: the same on every machine, so outputs agree)."""
     width: int = 256
-    """Image width."""
+    """Image width (width * height at most 4096 * 4096)."""
     height: int = 192
     """Image height."""
     fov: float = 60.0
@@ -75,6 +81,7 @@ class Generate:
                                         threads_per_task=self.threads_per_task, address=self.address),
                 retry_failed=self.retry_failed,
                 device=self.device,
+                reuse=self.reuse,
             )
         except ValueError as exc:
             raise SystemExit(f"regnf generate: {exc}") from exc
@@ -85,7 +92,7 @@ class Generate:
         cfg = self.config()
         try:
             report = generate(self.stage, self.out, cfg)
-        except ValueError as exc:  # StageError and settings mismatches name the file
+        except ValueError as exc:  # StageError, a refused folder, settings mismatches: each names the file
             raise SystemExit(f"regnf generate: {exc}") from exc
         except ImportError as exc:  # the ray executor without Ray
             raise SystemExit(f"regnf generate: {exc}") from exc

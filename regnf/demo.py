@@ -24,6 +24,13 @@ Layout of ``out``::
     renders/scene/, renders/substitute/   orbit views (contact_sheet.png, sequence.gif, ...)
     renders/completion.png         per object: ground truth | scene field | substituted
     replacements/seed_1/, seed_2/  random replacements (replacement.usda, views, transforms.json)
+    .regnf-output.json, .regnf.lock   the marker of a demo folder and its lock (synthetic.output_dir)
+
+The folder is the demo's own: a new or empty one, or one an earlier demo made (the marker
+lists what it made). Anything else is refused before any work, unless ``reuse`` is set; even
+then, an entry of the names above that the demo did not make is refused rather than written
+over. Each run replaces only what the marker says the demo made, and holds the folder's lock
+while it runs, so two demos into one folder do not mix.
 """
 
 from __future__ import annotations
@@ -31,9 +38,9 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import datetime
+import json
 import os
 import platform
-import shutil
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -49,6 +56,7 @@ from .cache import Cache, default_cache_dir
 if TYPE_CHECKING:
     from compositor.camera import Camera
     from scene_graph.validation import ValidationReport
+    from synthetic.output_dir import OutputFolder
     from synthetic.rooms import Room
     from synthetic.sdfstudio_format import Capture
 
@@ -81,6 +89,60 @@ class DemoConfig:
     docs/benchmarks.md measures 0.05 -> +5.0 dB, 0.25 -> +5.8 dB)."""
     device: str = "cpu"
     """Torch device."""
+    reuse: bool = False
+    """Write into an --out folder that holds files the demo did not make (they are kept; an entry
+    of the demo's own names that it did not make, such as stage/, is still refused)."""
+
+
+DEMO_KIND = "demo"
+"""Kind of command recorded in the demo folder's marker."""
+REMADE = ("stage", "renders", "replacements", "report")
+"""Folders of ``out`` made again from scratch on every run (an earlier demo's are removed)."""
+
+
+def demo_entries(config: DemoConfig) -> list[str]:
+    """The top-level entries a demo run writes in its output folder."""
+    return [*REMADE, "report.html", "summary.json", f"{config.room}.usdz"]
+
+
+def _legacy_demo(out: Path) -> list[str]:
+    """What a demo of an earlier regnf version (before output markers) made in ``out``, if it was one.
+
+    Such a folder holds the ``summary.json`` that demo wrote (its ``command`` is ``regnf demo``).
+    """
+    try:
+        summary = json.loads((out / "summary.json").read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        return []
+    if not isinstance(summary, dict) or not str(summary.get("command", "")).startswith("regnf demo"):
+        return []
+    names = [*REMADE, "report.html", "summary.json"]
+    names += [p.name for p in out.glob("*.usdz")]
+    return [n for n in names if os.path.lexists(out / n)]
+
+
+@contextlib.contextmanager
+def demo_folder(out: str | Path, config: DemoConfig) -> Iterator[OutputFolder]:
+    """Claim ``out`` for the demo and hold its lock for the block; yield it with the demo's entries reserved.
+
+    The run then removes an earlier demo's :data:`REMADE` folders with ``folder.remove``
+    (only those the marker records as the demo's).
+
+    Raises
+    ------
+    synthetic.output_dir.OutputFolderError
+        ``out`` holds files the demo did not make (and ``config.reuse`` is off), or an entry
+        of the demo's names that it did not make; nothing is written then.
+    synthetic.file_lock.LockBusy
+        Another demo is running into ``out``.
+    """
+    from synthetic.output_dir import inspect_output_dir, owned_output_dir
+
+    path = Path(out).absolute()
+    # Everything is checked before anything is written: a refused folder gets no marker and no lock file.
+    inspect_output_dir(path, DEMO_KIND, config.reuse, _legacy_demo).require_free(demo_entries(config))
+    with owned_output_dir(path, DEMO_KIND, config.reuse, "the demo folder", _legacy_demo) as folder:
+        yield folder.reserve(demo_entries(config))
 
 
 class StepLog:
@@ -217,7 +279,17 @@ def _render_mode(stage: Path, mode: str, cameras: list[Camera], out: Path,
 
 def run_demo(out: str | Path = Path("out/demo"), config: DemoConfig = DemoConfig(),
              cache: Cache | None = None) -> Path:
-    """Run the demo into ``out`` (replacing an earlier demo there); return ``report.html``."""
+    """Run the demo into ``out`` (replacing an earlier demo there); return ``report.html``.
+
+    ``out`` must be new, empty or an earlier demo's folder (or ``config.reuse`` set); see
+    :func:`demo_folder`, which raises before any work if it is not.
+    """
+    with demo_folder(out, config) as folder:  # refused or locked before any work
+        return _run_demo(folder, config, cache)
+
+
+def _run_demo(folder: OutputFolder, config: DemoConfig, cache: Cache | None) -> Path:
+    """The demo's steps, into the claimed and locked ``folder``."""
     from compositor.replace import ReplaceConfig, replace_and_render
     from compositor.stage_config import StageCompositeConfig
     from scene_graph import export_stage, new_stage, validate_stage
@@ -228,7 +300,7 @@ def run_demo(out: str | Path = Path("out/demo"), config: DemoConfig = DemoConfig
     from .report import write_report
 
     t_start = time.perf_counter()
-    out = Path(out).absolute()
+    out = folder.path
     cache = cache or Cache(default_cache_dir())
     log = StepLog(cache.root)
     names = ROOM_CONTENTS[config.room]
@@ -243,10 +315,9 @@ def run_demo(out: str | Path = Path("out/demo"), config: DemoConfig = DemoConfig
                   cacheable=True):
         library_paths = {n: cache.object_field(n, config.library_source, config.device) for n in names}
 
-    # A fresh output folder: the stage, the renders and the report are remade every run.
-    for sub in ("stage", "renders", "replacements", "report"):
-        shutil.rmtree(out / sub, ignore_errors=True)
-    out.mkdir(parents=True, exist_ok=True)
+    # A fresh run: the stage, the renders and the report are remade (only the demo's own are removed).
+    for sub in REMADE:
+        folder.remove(sub)
     stage = out / "stage" / f"{config.room}.usda"
     with log.step("write the USD stage", "scene field and library, proxy meshes"):
         new_stage(stage, scene_path, [library_paths[n] for n in names],

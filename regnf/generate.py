@@ -6,6 +6,8 @@ orbit cameras (RGB, depth, instance masks, a contact sheet, ``render.json``) and
 by a nerfstudio ``transforms.json``; its replacement layer goes beside the base stage, and
 a row of ``manifest.jsonl`` records it (:mod:`regnf.manifest`). Layout of ``out``::
 
+    .regnf-output.json               marker: a folder made by regnf generate (synthetic.output_dir)
+    .regnf.lock                      the lock a run holds (synthetic.file_lock)
     generation.json                  settings, source stage, config_key
     manifest.jsonl                   one row per variant, sorted by seed
     stage/<name>.usda + assets       the base stage, exported once
@@ -13,16 +15,33 @@ a row of ``manifest.jsonl`` records it (:mod:`regnf.manifest`). Layout of ``out`
     variants/000007/                 seed 7's views, contact_sheet.png, render.json, transforms.json
     errors/000007.txt                the traceback of a variant that failed
 
+The output folder is the run's own (:func:`synthetic.output_dir.claim_output_dir`): a new
+or empty folder, or one an earlier ``generate`` made. A folder that holds anything else
+(the user's files, a source stage, another command's output) is refused before anything is
+written, unless ``reuse`` says to write into it anyway; even then nothing there is removed
+or written over but the names above. The source stage may not lie in ``out/stage/``
+(exports and layers are written there).
+
+A run holds the folder's lock from start to end: a second run into the same folder (from
+this machine or another one sharing the folder) fails at once with
+:class:`synthetic.file_lock.LockBusy`. The lock is a POSIX record lock: it works on local
+disks and on NFS with locking (NFSv4, or NFSv3 with ``lockd``); where the file system has no
+locks, the run fails with :class:`synthetic.file_lock.LockUnavailable` instead of going on
+unprotected.
+
 Variants run as independent tasks on an executor (:mod:`regnf.executors`): a local process
 pool or a Ray cluster, each task with the same pinned thread count, so both give the same
-files. A worker renders into a private temporary folder and returns the files' bytes; only
-this process writes into ``out``: the files go to a hidden staging folder that is renamed into
-place, the layer is written atomically, and the manifest is rewritten after each variant.
+files. A worker renders into a private folder under the run's scratch folder
+(``out/.regnf-tmp-work-*``) and returns the files' bytes; only this process writes the data
+set: the files go to a staging folder (``variants/.regnf-tmp-<seed>-*``) that is renamed
+into place, the layer is written atomically, and the variant's row is appended to the
+manifest. Tasks are built :data:`TASKS_PER_BATCH` at a time, not for every seed at once.
 
 A rerun with the same settings skips every variant whose row checks out (files present with
-their digests) and makes the others again: those never started, those a kill interrupted
-(staging folders are removed), those whose row or files were damaged, and by default those
-that failed.
+their digests) and makes the others again: those never started, those a kill interrupted,
+those whose row or files were damaged, and by default those that failed. What a killed run
+left behind (entries named ``.regnf-tmp-*`` in ``out``, ``variants/``, ``errors/`` and
+``stage/``) is removed first, under the lock; nothing else is.
 """
 
 from __future__ import annotations
@@ -32,7 +51,6 @@ import hashlib
 import json
 import math
 import os
-import shutil
 import tempfile
 import time
 from collections.abc import Callable, Sequence
@@ -44,12 +62,20 @@ import numpy as np
 
 from compositor.camera import Camera
 from compositor.cameras_io import OrbitConfig, orbit_around_bounds
-from compositor.render_folder import RENDER_JSON, RenderConfig
+from compositor.render_folder import RENDER_JSON, RenderConfig, check_image_size
 from compositor.stage_config import StageCompositeConfig
 from synthetic.atomic_io import write_json, write_text
+from synthetic.file_lock import folder_lock
+from synthetic.output_dir import (
+    claim_output_dir,
+    owned_output_dir,
+    remove_leftovers,
+    replace_entry,
+    staging_dir,
+)
 
 from .executors import ExecutorConfig, run_tasks
-from .manifest import MANIFEST_NAME, read_manifest, sealed, sha256_file, write_manifest
+from .manifest import MANIFEST_NAME, append_row, read_manifest, sealed, sha256_file, write_manifest
 
 GENERATION_JSON = "generation.json"
 """Settings of the data set in the output folder."""
@@ -61,6 +87,33 @@ ERRORS_DIR = "errors"
 """Tracebacks of failed variants."""
 UNHASHED = frozenset({RENDER_JSON})
 """Files of a variant left out of its row's digests: render.json holds timings."""
+CONTACT_SHEET = "contact_sheet.png"
+"""The first view of the first finished variants, tiled (:func:`tile_sheet`)."""
+LAYOUT = (GENERATION_JSON, MANIFEST_NAME, STAGE_DIR, VARIANTS_DIR, ERRORS_DIR, CONTACT_SHEET)
+"""The top-level entries a run writes in its output folder (besides the marker and the lock)."""
+KIND = "generate"
+"""Kind of command recorded in the output folder's marker."""
+WORK_LABEL = "work"
+"""Label of the run's scratch folder, ``out/.regnf-tmp-work-*``, where workers render."""
+MAX_VARIANTS = 1_000_000
+"""Most variants one run may ask for. Every run reads and checks the whole manifest (about
+1 KB a row, and every listed file hashed) and keeps its rows in memory, and ``variants/``
+holds one folder per variant: at a million that is a GB-sized manifest and a folder of a
+million entries. Split a larger data set over several output folders (``first_seed``)."""
+MAX_VIEWS = 10_000
+"""Most views per variant: a variant's views travel from its worker to the driver in one
+message, held in memory on both sides."""
+STAGE_LOCK_WAIT_S = 60.0
+"""Seconds a run waits for the lock of ``out/stage/`` (held by stage writers, see
+:mod:`scene_graph`) before it cleans leftovers there."""
+MAX_SHEET_TILES = 256
+"""Variants shown on the data set's contact sheet (the first ones in seed order): one tile each,
+so a sheet of every variant of a large data set would be an image of gigabytes."""
+TASKS_PER_BATCH = 1024
+"""Variants handed to the executor at a time. Their tasks (each with its cameras) are built
+per batch rather than for every seed up front, and the executor holds only these; a batch is
+large enough that the pause between batches (the pool drains and starts again) costs about
+a variant per worker per batch."""
 
 
 @dataclass(frozen=True)
@@ -68,11 +121,15 @@ class GenerateConfig:
     """What :func:`generate` makes and how it runs."""
 
     variants: int = 10
-    """Number of variants (seeds first_seed, first_seed + 1, ...)."""
+    """Number of variants (seeds first_seed, first_seed + 1, ...): 1 to :data:`MAX_VARIANTS`
+    (1,000,000; each run reads the whole manifest, so a larger data set is better split over
+    several output folders)."""
     first_seed: int = 0
     """Seed of the first variant."""
     cameras: OrbitConfig = field(default_factory=lambda: OrbitConfig(n=8, width=256, height=192))
-    """Orbit of cameras inside the scene's bounds; n is the number of views per variant."""
+    """Orbit of cameras inside the scene's bounds; n is the number of views per variant (at most
+    :data:`MAX_VIEWS`), and a view has at most width * height = 4096 * 4096 pixels
+    (:data:`compositor.render_folder.MAX_PIXELS`: a view is rendered whole in memory)."""
     jitter_cameras: bool = True
     """Turn each variant's orbit by a random azimuth (from its seed) so the variants see the room from
     different places."""
@@ -86,17 +143,26 @@ class GenerateConfig:
     """Make variants that failed in an earlier run again (finished ones are always kept)."""
     device: str = "cpu"
     """Torch device of the workers."""
+    reuse: bool = False
+    """Write into an output folder that holds files regnf generate did not make (they are kept:
+    nothing but the data set's own names is written there, and nothing is removed). Without it
+    such a folder is refused; a new, empty or earlier generate folder needs nothing."""
 
     def __post_init__(self) -> None:
-        if self.variants < 1:
-            raise ValueError(f"variants must be >= 1, got {self.variants}")
+        # Checked here, before any work: a huge request fails at once, not minutes in.
+        if isinstance(self.variants, bool) or not 1 <= self.variants <= MAX_VARIANTS:
+            raise ValueError(f"variants must be between 1 and {MAX_VARIANTS:,}, got {self.variants} "
+                             "(split a larger data set over several output folders with first_seed)")
         if self.first_seed < 0:
             raise ValueError(f"first_seed must be >= 0, got {self.first_seed}")
+        if self.cameras.n > MAX_VIEWS:
+            raise ValueError(f"views per variant must be at most {MAX_VIEWS:,}, got {self.cameras.n}")
+        check_image_size(self.cameras.width, self.cameras.height, "cameras: a view")
 
     @property
-    def seeds(self) -> list[int]:
-        """The seeds of the variants."""
-        return list(range(self.first_seed, self.first_seed + self.variants))
+    def seeds(self) -> range:
+        """The seeds of the variants (a range: nothing is built per seed)."""
+        return range(self.first_seed, self.first_seed + self.variants)
 
     def output_settings(self) -> dict[str, Any]:
         """Every setting that changes what a variant's files hold (not how or where it runs)."""
@@ -128,6 +194,10 @@ class VariantTask(NamedTuple):
     """Renderer settings."""
     device: str
     """Torch device."""
+    scratch: str | None = None
+    """Folder in which the worker makes its private folder: the run's scratch folder in the
+    output folder (removed by the driver, or by the next run if this one is killed); None:
+    the system's temporary folder."""
 
 
 class VariantOutput(NamedTuple):
@@ -216,14 +286,16 @@ def render_variant(task: VariantTask) -> VariantOutput:
     rel_layer = f"../../{STAGE_DIR}/{task.layer_name}"
     metadata = {"stage": rel_layer, "mode": "substitute", "seed": task.seed, "selections": selections,
                 "instance_ids": comp.instance_ids}
-    with tempfile.TemporaryDirectory(prefix="regnf-variant-") as tmp:
+    with tempfile.TemporaryDirectory(prefix=f"{variant_name(task.seed)}-", dir=task.scratch) as tmp:
         report = render_views(comp.field, task.cameras, tmp, task.render, metadata)
         extra = {"seed": task.seed, "stage": rel_layer, "selections": selections,
                  "instance_ids": comp.instance_ids,
                  "mask": "instance PNG, uint16 id + 1 (0 background)", "depth_unit_scale_factor": 1e-3}
         tj = transforms_json(task.cameras, report.views, extra)
         (Path(tmp) / "transforms.json").write_text(json.dumps(tj, indent=2) + "\n")
-        files = {p.name: p.read_bytes() for p in sorted(Path(tmp).iterdir()) if p.is_file()}
+        # Hidden entries are bookkeeping (the render folder's lock), not the variant's files.
+        files = {p.name: p.read_bytes() for p in sorted(Path(tmp).iterdir())
+                 if p.is_file() and not p.name.startswith(".")}
     return VariantOutput(task.seed, selections, comp.instance_ids, files, time.perf_counter() - t0)
 
 
@@ -231,7 +303,7 @@ def _settings_key(settings: dict[str, Any]) -> str:
     return hashlib.sha256(json.dumps(settings, sort_keys=True).encode()).hexdigest()[:16]
 
 
-def _source_summary(stage: Path) -> dict[str, Any]:
+def source_summary(stage: Path) -> dict[str, Any]:
     """What of the source stage the variants depend on: its instances, library and scene field."""
     from scene_graph import read_stage
 
@@ -245,22 +317,78 @@ def _source_summary(stage: Path) -> dict[str, Any]:
     }
 
 
-def prepare_output(stage: str | os.PathLike, out: Path, config: GenerateConfig) -> tuple[Path, str]:
-    """Check or write ``generation.json``, export the base stage once; return (base, config_key).
+def _legacy_entries(out: Path) -> list[str]:
+    """The data set an earlier regnf version wrote in ``out`` (before output markers), if any.
+
+    Such a folder has a ``generation.json`` with a ``config_key``; its entries of
+    :data:`LAYOUT` are then this command's own (that version wrote them).
+    """
+    try:
+        meta = json.loads((out / GENERATION_JSON).read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        return []
+    if not isinstance(meta, dict) or not isinstance(meta.get("config_key"), str):
+        return []
+    return [name for name in LAYOUT if os.path.lexists(out / name)]
+
+
+def check_source(stage: str | os.PathLike, out: str | os.PathLike) -> None:
+    """Refuse a source stage inside ``out/stage/``, where the base stage and the layers are written.
 
     Raises
     ------
     ValueError
-        ``out`` holds a data set of another stage or other settings (naming the file).
+        The stage (or the file it links to) is inside ``out/stage/``, or is that folder.
+    """
+    src = Path(stage).absolute()
+    stage_dir = Path(out).absolute() / STAGE_DIR
+    for s, d in ((src, stage_dir), (Path(os.path.realpath(src)), Path(os.path.realpath(stage_dir)))):
+        if s == d or s.is_relative_to(d):
+            raise ValueError(f"{src}: the source stage is inside {stage_dir}, where generate writes its base "
+                             "stage and layers; copy the stage elsewhere, or choose another output folder")
+
+
+def prepare_output(stage: str | os.PathLike, out: str | os.PathLike, config: GenerateConfig,
+                   source: dict[str, Any] | None = None) -> tuple[Path, str]:
+    """Claim ``out``, check or write ``generation.json``, export the base stage; return (base, config_key).
+
+    The export is done once: a rerun whose ``generation.json`` records the same settings and
+    source keeps the base stage it finds. Without that record, or without the base stage's
+    root layer, the stage is exported again over what is there: the export writes every file
+    of the stage (each through a temporary file) and nothing else, so a half-done export is
+    completed and no other file in ``out/stage/`` is touched. :func:`generate` calls this
+    while holding the folder's lock.
+
+    Parameters
+    ----------
+    stage : str or PathLike
+        The source stage.
+    out : str or PathLike
+        The output folder.
+    config : GenerateConfig
+    source : dict, optional
+        What of the source stage the variants depend on (:func:`source_summary`), if the
+        caller has read it already.
+
+    Raises
+    ------
+    ValueError
+        The source stage is inside ``out/stage/``; ``out`` is refused
+        (:class:`synthetic.output_dir.OutputFolderError`); ``out`` holds a data set of another
+        stage or other settings (naming the file); the stage cannot be read.
     """
     from scene_graph import export_stage
 
     src = Path(stage).absolute()
+    out = Path(out).absolute()
+    check_source(src, out)
+    source = source_summary(src) if source is None else source  # a stage that cannot be read: nothing written
+    claim_output_dir(out, KIND, config.reuse, _legacy_entries)
     settings = config.output_settings()
-    source = _source_summary(src)
     key = _settings_key({"settings": settings, "source": source})
     meta_path = out / GENERATION_JSON
     base = out / STAGE_DIR / (src.stem + ".usda")
+    recorded = False
     if meta_path.exists():
         try:
             meta = json.loads(meta_path.read_text())
@@ -269,53 +397,58 @@ def prepare_output(stage: str | os.PathLike, out: Path, config: GenerateConfig) 
         if meta.get("config_key") != key:
             raise ValueError(f"{meta_path}: {out} holds variants of another stage or other settings "
                              f"(config_key {meta.get('config_key')}, now {key}); choose another output folder")
-        base = out / meta.get("base_stage", str(base.relative_to(out)))
-    out.mkdir(parents=True, exist_ok=True)
-    if not base.is_file():
-        # export_stage writes the root layer last: its presence means a complete base stage.
-        # Without it, whatever is in the stage folder is from an interrupted export.
-        shutil.rmtree(base.parent, ignore_errors=True)
+        rel = Path(str(meta.get("base_stage", base.relative_to(out))))
+        if rel.is_absolute() or ".." in rel.parts or rel.parts[:1] != (STAGE_DIR,):
+            raise ValueError(f"{meta_path}: base_stage {str(rel)!r} is not inside {STAGE_DIR}/; "
+                             "remove the file or choose another output folder")
+        base, recorded = out / rel, True
+    if not (recorded and base.is_file()):
+        # export_stage writes the root layer last: with it and the record, the base stage is
+        # complete; otherwise what is there is (part of) an export that the new one completes.
         export_stage(src, base)
     write_json(meta_path, {"config_key": key, "source_stage": str(src), "base_stage": str(base.relative_to(out)),
                            "settings": settings, "source": source})
     return base, key
 
 
-def _clean_partials(out: Path) -> None:
-    """Remove what an interrupted run left behind: staging folders and temporary files.
+def _remove_leftovers(out: Path) -> None:
+    """Remove what killed runs left in the data set's folders: entries named ``.regnf-tmp-*``.
 
-    Every write here goes through a hidden temporary (``.<name>.*``) that is renamed into
-    place; one that is still there was never finished.
+    The caller holds the output folder's lock (its top level is cleaned when it is taken);
+    ``stage/`` is cleaned under the stage folder's lock too, the one stage writers take.
     """
+    for sub in (VARIANTS_DIR, ERRORS_DIR):
+        remove_leftovers(out / sub)
     stage_dir = out / STAGE_DIR
-    leftovers = [*out.glob(".*"), *(out / VARIANTS_DIR).glob(".*"), *(out / ERRORS_DIR).glob(".*"),
-                 *stage_dir.rglob(".*")]
-    for p in leftovers:
-        if p.is_dir():
-            shutil.rmtree(p, ignore_errors=True)
-        else:
-            p.unlink(missing_ok=True)
+    if stage_dir.is_dir():
+        # Stage writers hold this lock for about a second per edit: wait for one, as they do.
+        with folder_lock(stage_dir, "the data set's base stage", STAGE_LOCK_WAIT_S):
+            remove_leftovers(stage_dir, recursive=True)
+
+
+def _plain_name(name: str) -> str:
+    """``name`` if it is a plain, visible file name (a worker's file list is checked before use)."""
+    if not name or name != Path(name).name or name.startswith("."):
+        raise ValueError(f"a worker returned a file named {name!r}, not a plain file name")
+    return name
 
 
 def commit_variant(out: Path, base: Path, output: VariantOutput, key: str) -> dict[str, Any]:
-    """Write a worker's files into place (staging folder, then rename) and its layer; return its row."""
+    """Write a worker's files into place (staging folder, then rename) and its layer; return its row.
+
+    An earlier ``variants/<seed>`` is replaced: it is this data set's (the seed is made again).
+    """
     from scene_graph import make_replacement_layer
 
     name = variant_name(output.seed)
     folder = out / VARIANTS_DIR
     folder.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f".{name}-", dir=folder))
-    try:
+    final = folder / name
+    with staging_dir(folder, name) as staging:  # removed on any error
         for fname, data in output.files.items():
-            (staging / fname).write_bytes(data)
+            (staging / _plain_name(fname)).write_bytes(data)
         layer = make_replacement_layer(base, output.selections, base.parent / layer_name(output.seed))
-        final = folder / name
-        if final.exists():
-            shutil.rmtree(final)
-        os.replace(staging, final)
-    except BaseException:
-        shutil.rmtree(staging, ignore_errors=True)
-        raise
+        replace_entry(staging, final)
     files = {f: sha256_file(final / f) for f in sorted(output.files) if f not in UNHASHED}
     views = sum(1 for f in output.files if f.startswith("rgb_"))
     return sealed({
@@ -360,59 +493,82 @@ def generate(
     Raises
     ------
     ValueError
-        ``out`` holds a data set of other settings, or the stage cannot be read (a
-        ``scene_graph.StageError`` naming the file).
+        The source stage is inside ``out/stage/``; ``out`` holds files regnf generate did
+        not make and ``config.reuse`` is off (:class:`synthetic.output_dir.OutputFolderError`);
+        ``out`` holds a data set of other settings; the stage cannot be read (a
+        ``scene_graph.StageError`` naming the file). Nothing is written then.
+    synthetic.file_lock.LockBusy
+        Another run is writing into ``out`` (a ``RuntimeError``); nothing is written.
+    synthetic.file_lock.LockUnavailable
+        ``out``'s file system cannot take locks (an ``OSError``).
     """
+    t0 = time.perf_counter()
+    out = Path(out).absolute()
+    # The source is checked and read before the folder is claimed: a refusal writes nothing.
+    check_source(stage, out)
+    source = source_summary(Path(stage).absolute())
+    with owned_output_dir(out, KIND, config.reuse, "the data set folder", _legacy_entries):
+        _remove_leftovers(out)
+        base, key = prepare_output(stage, out, config, source)
+        state = read_manifest(out, key)
+        rows = dict(state.rows)
+        done = [s for s in config.seeds if s in rows and (rows[s]["status"] == "ok" or not config.retry_failed)]
+        kept = set(done)
+        todo = [s for s in config.seeds if s not in kept]
+        for s in todo:
+            rows.pop(s, None)
+        write_manifest(out, rows.values())  # drops the rejected rows at once
+        made: list[int] = []
+        failed: dict[int, str] = {}
+        if todo:
+            _make_variants(out, base, key, config, todo, rows, made, failed, progress, on_variant)
+            write_manifest(out, rows.values())  # sorted by seed again
+    return GenerationReport(out, out / MANIFEST_NAME, sorted(made), done, failed, state.problems,
+                            time.perf_counter() - t0)
+
+
+def _make_variants(out: Path, base: Path, key: str, config: GenerateConfig, todo: list[int],
+                   rows: dict[int, dict[str, Any]], made: list[int], failed: dict[int, str], progress: bool,
+                   on_variant: Callable[[dict[str, Any]], None] | None) -> None:
+    """Run the variants of ``todo`` and commit each as it finishes (``rows``, ``made``, ``failed`` are updated)."""
     from tqdm import tqdm
 
     from compositor.cameras_io import field_bounds_metres
     from compositor.from_stage import composite_from_stage
 
-    t0 = time.perf_counter()
-    out = Path(out).absolute()
-    base, key = prepare_output(stage, out, config)
-    state = read_manifest(out, key)
-    rows = dict(state.rows)
-    done = [s for s in config.seeds if s in rows and (rows[s]["status"] == "ok" or not config.retry_failed)]
-    todo = [s for s in config.seeds if s not in done]
-    _clean_partials(out)
-    for s in todo:
-        rows.pop(s, None)
-    write_manifest(out, rows.values())  # drops the rejected rows at once
-    if not todo:
-        return GenerationReport(out, out / MANIFEST_NAME, [], done, {}, state.problems, time.perf_counter() - t0)
     scene_only = composite_from_stage(base, dataclasses.replace(config.composite, mode="scene"), "cpu")
     bounds = field_bounds_metres(scene_only.field.scene)
     del scene_only
     render = dataclasses.replace(config.render, progress=False, overwrite=False)
-    tasks = [VariantTask(str(base), s, variant_cameras(bounds, config, s), layer_name(s), config.composite,
-                         render, config.device) for s in todo]
-    failed: dict[int, str] = {}
-    made: list[int] = []
-    bar = tqdm(total=len(tasks), desc=f"generate ({config.executor.kind})", unit="variant", disable=not progress)
-    for outcome in run_tasks(render_variant, tasks, config.executor):
-        seed = tasks[outcome.index].seed
-        if outcome.error is None:
-            try:
-                row = commit_variant(out, base, outcome.value, key)
-            except Exception as exc:  # noqa: BLE001 (e.g. the layer cannot be written: record, go on)
-                row = failed_row(out, seed, f"{type(exc).__name__}: {exc}", key)
-        else:
-            row = failed_row(out, seed, outcome.error, key)
-        if row["status"] == "failed":
-            failed[seed] = row["error"]
-        else:
-            made.append(seed)
-            (out / ERRORS_DIR / f"{variant_name(seed)}.txt").unlink(missing_ok=True)
-        rows[seed] = row
-        write_manifest(out, rows.values())
-        if on_variant is not None:
-            on_variant(row)
-        bar.update(1)
-        bar.set_postfix(failed=len(failed))
+    bar = tqdm(total=len(todo), desc=f"generate ({config.executor.kind})", unit="variant", disable=not progress)
+    # Workers render under out (every node of a cluster sees it); the folder goes at the end,
+    # or, if this run is killed, when the next one takes the lock.
+    with staging_dir(out, WORK_LABEL) as scratch:
+        for first in range(0, len(todo), TASKS_PER_BATCH):
+            tasks = [VariantTask(str(base), s, variant_cameras(bounds, config, s), layer_name(s), config.composite,
+                                 render, config.device, str(scratch)) for s in todo[first:first + TASKS_PER_BATCH]]
+            for outcome in run_tasks(render_variant, tasks, config.executor):
+                seed = tasks[outcome.index].seed
+                if outcome.error is None:
+                    try:
+                        row = commit_variant(out, base, outcome.value, key)
+                    except Exception as exc:  # noqa: BLE001 (e.g. the layer cannot be written: record, go on)
+                        row = failed_row(out, seed, f"{type(exc).__name__}: {exc}", key)
+                else:
+                    row = failed_row(out, seed, outcome.error, key)
+                if row["status"] == "failed":
+                    failed[seed] = row["error"]
+                else:
+                    made.append(seed)
+                    # An earlier run's traceback of this seed (this data set's own file).
+                    (out / ERRORS_DIR / f"{variant_name(seed)}.txt").unlink(missing_ok=True)
+                rows[seed] = row
+                append_row(out, row)
+                if on_variant is not None:
+                    on_variant(row)
+                bar.update(1)
+                bar.set_postfix(failed=len(failed))
     bar.close()
-    return GenerationReport(out, out / MANIFEST_NAME, sorted(made), done, failed, state.problems,
-                            time.perf_counter() - t0)
 
 
 def variants_per_minute(report: GenerationReport) -> float:
@@ -422,21 +578,39 @@ def variants_per_minute(report: GenerationReport) -> float:
 
 
 def load_rows(out: str | os.PathLike) -> list[dict[str, Any]]:
-    """The rows of ``out/manifest.jsonl`` as written (unchecked), in seed order."""
+    """The rows of ``out/manifest.jsonl`` as written (unchecked), in seed order.
+
+    During a run (or after a killed one) the file holds rows in the order variants finished;
+    they are sorted here.
+    """
     path = Path(out) / MANIFEST_NAME
-    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+    rows = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+    return sorted(rows, key=lambda r: r["seed"])
 
 
-def tile_sheet(out: str | os.PathLike, seeds: Sequence[int] | None = None, columns: int = 0) -> Path:
-    """``out/contact_sheet.png``: the first view of each finished variant, tiled in seed order."""
+def tile_sheet(out: str | os.PathLike, seeds: Sequence[int] | None = None, columns: int = 0,
+               limit: int = MAX_SHEET_TILES) -> Path:
+    """``out/contact_sheet.png``: the first view of the first ``limit`` finished variants, tiled in seed order.
+
+    Written under the data set folder's lock (it is one of the data set's files).
+
+    Raises
+    ------
+    ValueError
+        No finished variant (among ``seeds``, if given).
+    synthetic.file_lock.LockBusy
+        A run is writing into ``out`` now.
+    """
     from compositor.contact_sheets import contact_sheet
     from compositor.image_io import read_rgb_png, write_rgb_png
 
     out = Path(out)
-    rows = [r for r in load_rows(out) if r["status"] == "ok" and (seeds is None or r["seed"] in seeds)]
-    if not rows:
-        raise ValueError(f"{out / MANIFEST_NAME}: no finished variant to show")
-    thumbs = [read_rgb_png(out / r["variant"] / "rgb_0000.png") for r in rows]
-    path = out / "contact_sheet.png"
-    write_rgb_png(path, contact_sheet(thumbs, columns, 160))
+    wanted = None if seeds is None else set(seeds)
+    with folder_lock(out, "the data set folder"):
+        rows = [r for r in load_rows(out) if r["status"] == "ok" and (wanted is None or r["seed"] in wanted)]
+        if not rows:
+            raise ValueError(f"{out / MANIFEST_NAME}: no finished variant to show")
+        thumbs = [read_rgb_png(out / r["variant"] / "rgb_0000.png") for r in rows[:limit]]
+        path = out / CONTACT_SHEET
+        write_rgb_png(path, contact_sheet(thumbs, columns, 160))
     return path

@@ -1,16 +1,21 @@
 """The manifest of a generated data set: one JSON row per variant, checked before it is trusted.
 
-``manifest.jsonl`` holds one line per variant, sorted by seed. A row records what the
-variant is (seed, status, the library object each instance shows, the files and their
-SHA-256) and ends with ``row_sha256``, the digest of everything else in it. It carries no
-timing and no absolute path, so two runs of the same settings (on a laptop or on a cluster)
-write equal manifests.
+``manifest.jsonl`` holds one line per variant, sorted by seed once a run has ended. A row
+records what the variant is (seed, status, the library object each instance shows, the
+files and their SHA-256) and ends with ``row_sha256``, the digest of everything else in it.
+It carries no timing and no absolute path, so two runs of the same settings (on a laptop or
+on a cluster) write equal manifests.
 
 On a rerun, a row counts as done only if it parses, its own digest matches, it was made with
 the same settings (``config_key``), and for a finished variant every file it lists is on
 disk with the listed digest. Anything else (a truncated line, an edited row, a missing or
-changed file) is reported and the variant made again. The manifest is rewritten whole and
-atomically after each variant, so an interrupted run leaves the previous complete version.
+changed file) is reported and the variant made again.
+
+A run rewrites the manifest whole and atomically when it starts (dropping the rows it will
+make again) and when it ends (sorted by seed); in between, each finished variant's row is
+appended (:func:`append_row`), so the cost per variant does not grow with the data set. A
+run killed in between leaves the rows of its finished variants, in the order they
+finished, and at most one torn last line, which the next run reports and makes again.
 """
 
 from __future__ import annotations
@@ -134,4 +139,24 @@ def write_manifest(root: str | os.PathLike, rows: Iterable[Mapping[str, Any]]) -
     path = Path(root) / MANIFEST_NAME
     ordered = sorted(rows, key=lambda r: r["seed"])
     write_text(path, "".join(json.dumps(r, sort_keys=True) + "\n" for r in ordered))
+    return path
+
+
+def append_row(root: str | os.PathLike, row: Mapping[str, Any]) -> Path:
+    """Append one row to ``root/manifest.jsonl`` and flush it to disk (see the module).
+
+    One ``write`` of a whole line to a file opened for appending: a kill leaves the line
+    whole or torn, never the lines before it changed. The writer must hold the output
+    folder's lock, as :func:`regnf.generate.generate` does.
+    """
+    path = Path(root) / MANIFEST_NAME
+    line = (json.dumps(row, sort_keys=True) + "\n").encode("utf-8")
+    fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o666)
+    try:
+        view = memoryview(line)
+        while view:  # os.write may write less than asked (a signal, a full pipe)
+            view = view[os.write(fd, view):]
+        os.fsync(fd)
+    finally:
+        os.close(fd)
     return path

@@ -19,12 +19,11 @@ import numpy as np
 import pytest
 import torch
 
-import regnf.commands_fields as commands_fields
-import regnf.commands_registration as commands_registration
 import registration.register as register_module
 from compositor.composite_field import MAX_COMPONENTS, CompositeField
 from compositor.placement import PlacedObject
 from neural_fields.analytic import Sphere
+from regnf import commands_fields, commands_registration
 from regnf.cli import EXIT_BAD_INPUT, EXIT_INTERNAL, main
 from regnf.preflight import MAX_IMAGE_PIXELS
 from tests.adversarial.disk import changes, snapshot
@@ -66,7 +65,8 @@ def read_only_dir(tmp_path: Path) -> Iterator[Path]:
         yield folder
         folder.chmod(0o755)
         return
-    made = subprocess.run(["mount", "-t", "tmpfs", "-o", "ro,size=64k", "tmpfs", str(folder)], capture_output=True)
+    made = subprocess.run(["mount", "-t", "tmpfs", "-o", "ro,size=64k", "tmpfs", str(folder)],
+                          capture_output=True, check=False)
     if made.returncode != 0:
         pytest.skip(f"cannot make a read-only folder as root here ({made.stderr.decode().strip()})")
     try:
@@ -211,20 +211,20 @@ def test_usage_errors_keep_status_2(capsys) -> None:
 def test_the_readme_documents_every_exit_status() -> None:
     import re
 
-    import regnf.cli as cli
+    from regnf import cli
 
     statuses = {v for k, v in vars(cli).items() if k.startswith("EXIT_")}
     readme = (Path(__file__).parents[2] / "README.md").read_text()
     table = readme.split("### When something is wrong", 1)[1].split("\n## ", 1)[0]
-    documented = {int(m) for m in re.findall(r"^\| (\d+) \|", table, flags=re.M)}
+    documented = {int(m) for m in re.findall(r"^\| (\d+) \|", table, flags=re.MULTILINE)}
     assert documented == statuses
 
 
 def test_a_stage_another_process_is_writing_gives_status_busy(tmp_path, monkeypatch, capsys) -> None:
     import sys
 
-    import scene_graph.locking as locking
     from regnf.cli import EXIT_BUSY
+    from scene_graph import locking
     from tests.scene_graph.helpers import make_stage, registration_json, similarity
 
     stage = make_stage(tmp_path / "stage", ("c", "t"))
@@ -233,8 +233,9 @@ def test_a_stage_another_process_is_writing_gives_status_busy(tmp_path, monkeypa
                                                    similarity(0.3, (1.0, 0.0, 0.0), 1.0))))
     before = snapshot(stage.parent)
     holder = subprocess.Popen(
-        [sys.executable, "-c", "import sys, time\nfrom synthetic.file_lock import folder_lock\n"
-         f"with folder_lock({str(stage.parent)!r}):\n    print('held', flush=True)\n    time.sleep(60)"],
+        [sys.executable, "-c", ("import sys, time\nfrom synthetic.file_lock import folder_lock\n"
+                                f"with folder_lock({str(stage.parent)!r}):\n"
+                                "    print('held', flush=True)\n    time.sleep(60)")],
         stdout=subprocess.PIPE, text=True, cwd=Path(__file__).parents[2])
     try:
         assert holder.stdout.readline().strip() == "held"

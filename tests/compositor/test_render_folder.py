@@ -16,6 +16,7 @@ from compositor.contact_sheets import contact_sheet
 from compositor.nerfstudio import opencv_to_opengl, transforms_json
 from compositor.render_folder import RenderConfig, ViewFiles, render_views
 from compositor.stage_config import StageCompositeConfig
+from synthetic.file_lock import LOCK_NAME
 
 from . import golden_scenes as G
 
@@ -34,7 +35,7 @@ def test_views_report_and_sheet(tmp_path: Path) -> None:
     out = tmp_path / "out"
     names = sorted(p.name for p in out.iterdir())
     assert names == sorted([f"{k}_{i:04d}.png" for k in ("rgb", "depth", "instance") for i in range(3)]
-                           + ["contact_sheet.png", "render.json"])  # and no staging folder left
+                           + ["contact_sheet.png", "render.json", LOCK_NAME])  # and no staging folder left
     data = json.loads((out / "render.json").read_text())
     assert data["stage"] == "golden" and data["renderer"] == "sphere"
     assert len(data["cameras"]) == 3 and data["cameras"][1]["width"] == 24
@@ -126,3 +127,27 @@ def test_transforms_json_uses_opengl_poses() -> None:
     other = Camera(cam.K * np.array([[2.0], [2.0], [1.0]]), 80, 60, cam.camera_to_world)
     mixed = transforms_json([cam, other], files)
     assert "fl_x" not in mixed and mixed["frames"][1]["w"] == 80 and mixed["frames"][1]["fl_x"] == pytest.approx(2 * cam.K[0, 0])
+
+
+def test_files_no_render_wrote_are_never_written_over_or_removed(tmp_path: Path) -> None:
+    field = G.composite("own", StageCompositeConfig(mode="scene"))
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "rgb_0001.png").write_bytes(b"the user's own frame")
+    with pytest.raises(ValueError, match=r"rgb_0001.png: exists and was not written by a render into this folder"):
+        render_views(field, cameras(2), out, RenderConfig(progress=False, overwrite=True))
+    assert sorted(p.name for p in out.iterdir()) == ["rgb_0001.png"]  # refused before anything was made
+    (out / "rgb_0001.png").unlink()
+    render_views(field, cameras(3), out, QUIET)
+    (out / "rgb_0007.png").write_bytes(b"added by the user")  # no render.json lists it
+    render_views(field, cameras(2), out, RenderConfig(progress=False, overwrite=True))
+    assert not (out / "rgb_0002.png").exists()  # the earlier render's, listed in its render.json
+    assert (out / "rgb_0007.png").read_bytes() == b"added by the user"
+
+
+def test_a_view_larger_than_the_limit_is_refused_before_rendering(tmp_path: Path) -> None:
+    field = G.composite("own", StageCompositeConfig(mode="scene"))
+    huge = Camera.from_fov(4097, 4096, 60.0, cameras(1)[0].camera_to_world)
+    with pytest.raises(ValueError, match=r"camera 1: a view of 4097 x 4096 pixels is more than the 16,777,216"):
+        render_views(field, [*cameras(1), huge], tmp_path / "out", QUIET)
+    assert not (tmp_path / "out").exists()

@@ -16,6 +16,7 @@ from compositor.cameras_io import OrbitConfig, orbit_around_bounds
 from compositor.render_folder import RenderConfig, render_views
 from compositor.sequence_io import SequenceBackendError, write_gif, write_mp4
 from compositor.stage_config import StageCompositeConfig
+from synthetic.file_lock import LOCK_NAME
 
 from . import golden_scenes as G
 
@@ -113,7 +114,7 @@ def test_render_views_writes_the_sequence_in_its_commit(tmp_path: Path) -> None:
     assert report.sequence == out / "sequence.gif"
     assert sorted(p.name for p in out.iterdir()) == sorted(
         [f"{k}_{i:04d}.png" for k in ("rgb", "depth", "instance") for i in range(3)]
-        + ["contact_sheet.png", "render.json", "sequence.gif"])  # no staging folder left
+        + ["contact_sheet.png", "render.json", "sequence.gif", LOCK_NAME])  # no staging folder left
     files = json.loads((out / "render.json").read_text())["files"]
     assert files["sequence"] == "sequence.gif" and files["sequence_fps"] == 4
     back, durations, _ = read_gif(out / "sequence.gif")

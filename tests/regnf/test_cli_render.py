@@ -16,6 +16,7 @@ from compositor.replace import pick_replacements
 from compositor.usd_cameras import camera_to_usd, write_cameras_usd
 from regnf.cli import main
 from scene_graph import add_instance, export_stage, read_stage
+from synthetic.file_lock import LOCK_NAME
 from tests.regnf.cli_helpers import assert_fails
 from tests.scene_graph.helpers import make_stage, similarity
 
@@ -33,8 +34,9 @@ def stage(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def files(folder: Path) -> dict[str, str]:
-    """Name -> sha256 of every file directly in ``folder``."""
-    return {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(folder.iterdir()) if p.is_file()}
+    """Name -> sha256 of every file directly in ``folder`` but the lock file (it holds a pid)."""
+    return {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(folder.iterdir())
+            if p.is_file() and p.name != LOCK_NAME}
 
 
 @pytest.mark.parametrize("mode", ["scene", "substitute"])

@@ -27,3 +27,24 @@ def test_a_failing_step_is_not_logged(tmp_path: Path) -> None:
     with pytest.raises(RuntimeError), log.step("register"):
         raise RuntimeError("no registration was accepted")
     assert log.steps == []
+
+
+def test_a_demo_folder_of_an_earlier_version_is_adopted(tmp_path: Path) -> None:
+    import json
+
+    from regnf.demo import DemoConfig, demo_folder
+
+    out = tmp_path / "demo"
+    (out / "stage").mkdir(parents=True)
+    (out / "summary.json").write_text(json.dumps({"command": f"regnf demo --out {out}"}))
+    (out / "ac-room.usdz").write_bytes(b"PK")
+    with demo_folder(out, DemoConfig()) as folder:  # made by the demo before markers: its own
+        assert {"stage", "summary.json", "ac-room.usdz"} <= folder.entries
+        folder.remove("stage")
+    assert not (out / "stage").exists()
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "summary.json").write_text(json.dumps({"command": "my own tool"}))
+    with pytest.raises(ValueError, match=r"other: is not empty and was not made by regnf demo"), \
+            demo_folder(other, DemoConfig()):
+        pass
