@@ -14,9 +14,6 @@ from pathlib import Path
 
 MEMORY_FRACTION = 0.8
 """A job may plan to use at most this fraction of the memory available when it starts."""
-MAX_IMAGE_PIXELS = 8192 * 8192
-"""Largest image a render command makes (67 Mpx, about 4 GiB of per-pixel buffers and rays);
-larger ones are refused before anything is loaded."""
 RENDER_BYTES_PER_PIXEL = 64
 """Memory a rendered pixel holds until its view is written: ray origin and direction, RGB,
 depth, normal, mask, instance id and the tracer's per-ray state (float32 / int64)."""
@@ -50,12 +47,16 @@ def check_memory(needed_bytes: float, what: str) -> None:
 
 
 def check_image_size(width: int, height: int, option: str = "--width/--height") -> None:
-    """Refuse an image with more than :data:`MAX_IMAGE_PIXELS` pixels or one that cannot fit in memory."""
+    """Refuse, before anything is loaded, an image larger than a render may make
+    (:data:`compositor.render_folder.MAX_PIXELS`) or one that cannot fit in memory."""
+    from compositor.render_folder import check_image_size as check_view_size
+
     if width < 1 or height < 1:
         raise PreflightError(f"{option}: the image size must be at least 1 x 1, got {width} x {height}")
-    if width * height > MAX_IMAGE_PIXELS:
-        raise PreflightError(f"{option}: {width} x {height} is {width * height / 1e6:.0f} Mpx, more than the "
-                             f"{MAX_IMAGE_PIXELS / 1e6:.0f} Mpx limit")
+    try:
+        check_view_size(width, height, f"{option}: a view")
+    except ValueError as exc:
+        raise PreflightError(str(exc)) from exc
     check_memory(width * height * RENDER_BYTES_PER_PIXEL, f"{option}: a {width} x {height} image")
 
 
