@@ -17,7 +17,7 @@ import torch
 
 from neural_fields.field import Field
 from neural_fields.raycast import pinhole_rays
-from neural_fields.similarity import decompose_similarity
+from synthetic.sdfstudio_format import check_intrinsics, check_rigid_pose
 
 from .oriented_box import ArrayLike
 
@@ -27,28 +27,33 @@ class Camera:
     """A pinhole camera in metres."""
 
     K: np.ndarray
-    """(3, 3) float64 intrinsics (pixels)."""
+    """(3, 3) float64 pinhole intrinsics (pixels), ``fx, fy > 0``
+    (:func:`synthetic.sdfstudio_format.check_intrinsics`)."""
     width: int
     """Image width in pixels."""
     height: int
     """Image height in pixels."""
     camera_to_world: np.ndarray
-    """(4, 4) float64 rigid pose camera -> world metres, OpenCV axes."""
+    """(4, 4) float64 rigid pose camera -> world metres, OpenCV axes
+    (:func:`synthetic.sdfstudio_format.check_rigid_pose`)."""
 
     def __post_init__(self) -> None:
         K = np.asarray(self.K, dtype=np.float64)
         C = np.asarray(self.camera_to_world, dtype=np.float64)
-        if K.shape != (3, 3) or not np.isfinite(K).all() or abs(np.linalg.det(K)) < 1e-12:
-            raise ValueError(f"K must be a finite invertible 3x3 matrix, got {K.tolist()}")
+        # The capture loader's rules (one rule for training and rendering): a pose a capture
+        # trains with renders, and one the renderer refuses never trained.
+        try:
+            check_intrinsics(K)
+        except ValueError as exc:
+            raise ValueError(f"K: {exc}") from exc
         if int(self.width) != self.width or int(self.height) != self.height:
             raise ValueError(f"width and height must be integers, got {self.width} x {self.height}")
         if self.width < 1 or self.height < 1:
             raise ValueError(f"width and height must be >= 1, got {self.width} x {self.height}")
-        if C.shape != (4, 4):
-            raise ValueError(f"camera_to_world must be 4x4, got shape {C.shape}")
-        _, _, s = decompose_similarity(C)  # validates: a similarity, no reflection
-        if abs(float(s) - 1.0) > 1e-5:
-            raise ValueError(f"camera_to_world must be rigid (scale 1), got scale {float(s):.6g}")
+        try:
+            check_rigid_pose(C)
+        except ValueError as exc:
+            raise ValueError(f"camera_to_world: {exc}") from exc
         object.__setattr__(self, "K", K)
         object.__setattr__(self, "camera_to_world", C)
         object.__setattr__(self, "width", int(self.width))

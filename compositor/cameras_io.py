@@ -64,7 +64,9 @@ def cameras_from_capture(
     Raises
     ------
     synthetic.sdfstudio_format.CaptureError
-        A missing or malformed capture (the message names the file).
+        A missing or malformed capture (the message names the file and the frame): poses and
+        intrinsics are checked by :func:`~synthetic.sdfstudio_format.load_capture` with the
+        rules :class:`~compositor.camera.Camera` applies, so a capture that trains renders.
     ValueError
         An index out of range.
     """

@@ -3,38 +3,182 @@
 The JSON header lives in the safetensors metadata under the key ``regnf`` and records the
 architecture, bounds, ``to_world``, class, symmetry and provenance, so one file is the
 whole field and a reader can check every tensor before building anything.
+
+Nothing in a checkpoint is trusted:
+
+- the header is checked before anything is built or allocated (:func:`read_header`): its
+  format version, the architecture's types and sizes against :class:`ArchitectureLimits`,
+  ``bounds`` (min < max) and ``to_world`` (a similarity with a positive uniform scale and a
+  proper rotation);
+- the header records ``sha256``, the SHA-256 of the rest of the header and of every tensor
+  (name, dtype, shape, bytes), written by :func:`save_field` and compared on load, so a
+  flipped bit anywhere is refused even where it leaves a finite number;
+  :func:`verify_checkpoint` checks it without building the field (for stage readers);
+- quantities stored twice, in the header and as a buffer in the weights (:data:`STORED_TWICE`),
+  must agree exactly.
+
+Format versions: 2 (this one) added the digest. Version-1 files carry none, so nothing proves
+their weights are the ones that were saved: :func:`read_header`, :func:`load_field` and
+:func:`verify_checkpoint` refuse them with a message saying to retrain the field (the cache,
+:data:`regnf.cache.CACHE_VERSION` 3, remakes its own) or to re-save it:
+``save_field(load_field(path, allow_legacy=True), path)`` loads it with every other check and
+writes it as version 2.
+
+Every failure is a :class:`CheckpointError` whose one-line message names the file and the
+problem (and the tensor or header key).
 """
 
 from __future__ import annotations
 
+import hashlib
+import io
 import json
 import math
 import os
+import re
+from collections.abc import Mapping
+from dataclasses import dataclass
 from pathlib import Path
+from typing import BinaryIO, NamedTuple
 
 import torch
 from safetensors import SafetensorError, safe_open
-from safetensors.torch import save_file
+from safetensors.torch import save as save_to_bytes
 
 from neural_fields.field import FieldInfo, Symmetry
-from neural_fields.neural_sdf import ARCHITECTURE, NeuralSDF, NeuralSDFConfig
-from synthetic.atomic_io import atomic_path
+from neural_fields.neural_sdf import ARCHITECTURE, NeuralSDF, NeuralSDFConfig, parameter_count
+from neural_fields.similarity import decompose_similarity
+from synthetic.atomic_io import write_bytes
 
 HEADER_KEY = "regnf"
-FORMAT_VERSION = 1
+"""Key of the JSON header in the safetensors metadata."""
+
+FORMAT_VERSION = 2
+"""Written by :func:`save_field`. 2: the header records :data:`DIGEST_KEY`."""
+
+LEGACY_FORMAT_VERSIONS = (1,)
+"""Older versions: refused unless ``allow_legacy=True`` (see the module docstring)."""
+
+DIGEST_KEY = "sha256"
+"""Header key of the content digest (64 lowercase hex digits)."""
+
+STORED_TWICE = {"bounds": "bounds", "to_world": "to_world"}
+"""Header keys that the weights also hold as a buffer (header key -> tensor name). A reader of
+the header alone (a stage) and the loaded field must see the same numbers, so the two copies
+must be equal (compared in float64, which holds both exactly)."""
+
+# -- limits on the architecture a header may ask for --------------------------------------
+# A header is checked against these before any model (not even a weightless meta-device
+# skeleton, which builds one module per level and per layer) is constructed: a forged
+# ``levels = 10**8`` otherwise loops for minutes, and a forged size allocates gigabytes.
+# Each is far above anything regnf trains; pass ``ArchitectureLimits(...)`` to go beyond.
+
+MAX_LEVELS = 32
+"""Grid levels (presets: 6-7; instant-NGP: 16). Levels are a geometric series from the base
+to the finest resolution: beyond 32 they are a few percent apart and only cost memory."""
+
+MAX_HIDDEN_LAYERS = 64
+"""Hidden layers of the SDF MLP (presets: 2). One module each."""
+
+MAX_WIDTH = 4096
+"""``hidden_dim``, ``geo_feature_dim`` and ``color_hidden_dim`` (presets: 64, 15, 64)."""
+
+MAX_FEATURES_PER_LEVEL = 64
+"""Feature channels per grid level (presets: 4; instant-NGP: 2)."""
+
+MAX_RESOLUTION = 2**16
+"""``base_resolution`` and ``finest_resolution``, cells along the longest axis (presets: up
+to 256). Also keeps the hash encoding's integer corner products far from int64 overflow."""
+
+MAX_HASH_TABLE_SIZE_LOG2 = 26
+"""Hash encoding: at most 2**26 rows per level (instant-NGP: 2**19 to 2**24)."""
+
+MAX_PARAMETERS = 2**28
+"""Trainable values in all (268 M, 1 GiB of float32; presets: 4 M for an object, about 30 M
+for a room). Bounds what building the field allocates, whatever the other values combine to."""
+
+
+@dataclass(frozen=True)
+class ArchitectureLimits:
+    """The largest architecture a checkpoint header may ask for (defaults: the MAX_* constants)."""
+
+    max_levels: int = MAX_LEVELS
+    """See :data:`MAX_LEVELS`."""
+    max_hidden_layers: int = MAX_HIDDEN_LAYERS
+    """See :data:`MAX_HIDDEN_LAYERS`."""
+    max_width: int = MAX_WIDTH
+    """See :data:`MAX_WIDTH`."""
+    max_features_per_level: int = MAX_FEATURES_PER_LEVEL
+    """See :data:`MAX_FEATURES_PER_LEVEL`."""
+    max_resolution: int = MAX_RESOLUTION
+    """See :data:`MAX_RESOLUTION`."""
+    max_hash_table_size_log2: int = MAX_HASH_TABLE_SIZE_LOG2
+    """See :data:`MAX_HASH_TABLE_SIZE_LOG2`."""
+    max_parameters: int = MAX_PARAMETERS
+    """See :data:`MAX_PARAMETERS`."""
 
 
 class CheckpointError(ValueError):
-    """A checkpoint that cannot be used; the message names the file and the problem."""
+    """A checkpoint that cannot be used; the one-line message names the file and the problem."""
 
     def __init__(self, path: str | os.PathLike, problem: str) -> None:
         self.path = Path(path)
-        self.problem = problem
-        super().__init__(f"{self.path}: {problem}")
+        # One line, even when the problem quotes a library's multi-line message.
+        self.problem = re.sub(r"\s*[\r\n]+\s*", " ", problem)
+        super().__init__(f"{self.path}: {self.problem}")
+
+
+def check_architecture(
+    config: NeuralSDFConfig, extent: torch.Tensor, limits: ArchitectureLimits | None = None
+) -> int:
+    """Refuse an architecture beyond ``limits``, cheaply (nothing is built or allocated).
+
+    Parameters
+    ----------
+    config : NeuralSDFConfig
+        A parsed (type-checked) config.
+    extent : (3,) float
+        Size of the field's bounds box (its aspect ratio sets the dense grids' shapes).
+    limits : ArchitectureLimits, optional
+        Defaults to the module's MAX_* constants.
+
+    Returns
+    -------
+    int
+        The field's number of trainable values.
+
+    Raises
+    ------
+    ValueError
+        Naming the first value over its limit, or the parameter count.
+    """
+    lim = limits or ArchitectureLimits()
+    bounded = [
+        ("levels", config.levels, lim.max_levels, "max_levels"),
+        ("hidden_layers", config.hidden_layers, lim.max_hidden_layers, "max_hidden_layers"),
+        ("hidden_dim", config.hidden_dim, lim.max_width, "max_width"),
+        ("geo_feature_dim", config.geo_feature_dim, lim.max_width, "max_width"),
+        ("color_hidden_dim", config.color_hidden_dim, lim.max_width, "max_width"),
+        ("features_per_level", config.features_per_level, lim.max_features_per_level,
+         "max_features_per_level"),
+        ("base_resolution", config.base_resolution, lim.max_resolution, "max_resolution"),
+        ("finest_resolution", config.finest_resolution, lim.max_resolution, "max_resolution"),
+        ("hash_table_size_log2", config.hash_table_size_log2, lim.max_hash_table_size_log2,
+         "max_hash_table_size_log2"),
+    ]
+    for name, value, limit, knob in bounded:
+        if value > limit:
+            raise ValueError(f"{name} = {value} exceeds the limit {limit} (ArchitectureLimits.{knob})")
+    count = parameter_count(config, extent)  # one step per level: levels is bounded above
+    if count > lim.max_parameters:
+        raise ValueError(
+            f"{count} parameters exceed the limit {lim.max_parameters} (ArchitectureLimits.max_parameters)"
+        )
+    return count
 
 
 def field_header(field: NeuralSDF) -> dict:
-    """The JSON header describing ``field`` (everything but the weights)."""
+    """The JSON header describing ``field`` (everything but the weights and the digest)."""
     return {
         "format_version": FORMAT_VERSION,
         "architecture": ARCHITECTURE,
@@ -48,21 +192,151 @@ def field_header(field: NeuralSDF) -> dict:
     }
 
 
-def save_field(field: NeuralSDF, path: str | os.PathLike) -> Path:
-    """Write ``field`` to ``path`` (``.safetensors``) atomically; returns the path."""
-    path = Path(path)
-    if path.suffix != ".safetensors":
-        raise CheckpointError(path, "checkpoints are .safetensors files")
-    header = json.dumps(field_header(field))
-    tensors = {k: v.detach().to("cpu").contiguous() for k, v in field.state_dict().items()}
-    with atomic_path(path) as tmp:
-        save_file(tensors, str(tmp), metadata={HEADER_KEY: header})
-    return path
+# -- the content digest ---------------------------------------------------------------------
+
+_DIGEST_DOMAIN = b"regnf.checkpoint.sha256/2\n"
+"""Prefix of every digest, so that it never equals a hash of anything else."""
+
+_CHUNK = 1 << 20
+"""Bytes hashed at a time: a checkpoint of any size is verified in constant memory."""
 
 
-def read_header(path: str | os.PathLike) -> dict:
-    """Read and validate the JSON header of a checkpoint without loading weights."""
+def content_digest(header: Mapping, tensors: Mapping[str, torch.Tensor]) -> str:
+    """The :data:`DIGEST_KEY` of a checkpoint made of ``header`` and ``tensors``.
+
+    Parameters
+    ----------
+    header : Mapping
+        The JSON header (its own :data:`DIGEST_KEY`, if any, is left out of the digest).
+    tensors : Mapping[str, torch.Tensor]
+        Contiguous CPU tensors, as they will be saved.
+
+    Returns
+    -------
+    str
+        64 hex digits: SHA-256 of the canonical JSON of the header and of every tensor's name,
+        dtype, shape and bytes, in name order. Equal to :func:`checkpoint_digest` of the file
+        that :func:`save_field` writes; the tensors are serialised by safetensors here so that
+        both hash the very same bytes with one implementation.
+    """
+    blob = save_to_bytes(dict(tensors), metadata={HEADER_KEY: json.dumps(dict(header))})
+    return _serialised_digest(io.BytesIO(blob), len(blob), Path("<checkpoint in memory>"))
+
+
+def checkpoint_digest(path: str | os.PathLike) -> str:
+    """The digest of the checkpoint file at ``path`` as stored (see :func:`content_digest`).
+
+    Reads the file once, :data:`_CHUNK` bytes at a time; builds nothing.
+
+    Raises
+    ------
+    CheckpointError
+        Unreadable, truncated, or not a safetensors file with a ``regnf`` header.
+    """
     path = Path(path)
+    try:
+        with open(path, "rb") as f:
+            return _serialised_digest(f, os.fstat(f.fileno()).st_size, path)
+    except OSError as exc:
+        raise CheckpointError(path, f"cannot read the file ({exc})") from exc
+
+
+def _serialised_digest(f: BinaryIO, size: int, where: Path) -> str:
+    """SHA-256 of a serialised checkpoint read from ``f`` (``size`` bytes); see content_digest."""
+    def corrupt(what: str) -> CheckpointError:
+        return CheckpointError(where, f"not a readable safetensors file ({what})")
+
+    raw = f.read(8)
+    if len(raw) < 8:
+        raise corrupt("shorter than its header length")
+    n = int.from_bytes(raw, "little")
+    if n > size - 8:
+        raise corrupt(f"header length {n} beyond the end of the file")
+    try:
+        index = json.loads(f.read(n))
+        header = json.loads(index.pop("__metadata__")[HEADER_KEY])
+    except (ValueError, KeyError, TypeError, AttributeError, UnicodeDecodeError) as exc:
+        raise corrupt(f"no readable '{HEADER_KEY}' header: {exc}") from exc
+    if not isinstance(header, dict):
+        raise CheckpointError(where, "the JSON header is not an object")
+    h = hashlib.sha256(_DIGEST_DOMAIN)
+    canonical = json.dumps(
+        {k: v for k, v in header.items() if k != DIGEST_KEY}, sort_keys=True, separators=(",", ":")
+    ).encode()
+    # Length prefixes make the concatenation unambiguous (no two inputs share a byte stream).
+    h.update(len(canonical).to_bytes(8, "little") + canonical)
+    base = 8 + n
+    for name in sorted(index):
+        entry = index[name]
+        try:
+            start, end = (int(v) for v in entry["data_offsets"])
+            record = json.dumps([name, str(entry["dtype"]), [int(d) for d in entry["shape"]], end - start])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise corrupt(f"bad index entry for tensor '{name}'") from exc
+        if not 0 <= start <= end or base + end > size:
+            raise CheckpointError(where, f"truncated or corrupted tensor data (tensor '{name}' ends beyond the file)")
+        h.update(len(record).to_bytes(8, "little") + record.encode())
+        f.seek(base + start)
+        remaining = end - start
+        while remaining:
+            chunk = f.read(min(remaining, _CHUNK))
+            if not chunk:
+                raise CheckpointError(where, f"truncated or corrupted tensor data (tensor '{name}')")
+            h.update(chunk)
+            remaining -= len(chunk)
+    return h.hexdigest()
+
+
+def _check_digest(path: Path, header: dict) -> None:
+    """Compare the digest the header records with the file's (no-op for a legacy header)."""
+    want = header.get(DIGEST_KEY)
+    if want is None:
+        return  # a legacy file read with allow_legacy=True
+    got = checkpoint_digest(path)
+    if got != want:
+        raise CheckpointError(
+            path,
+            f"content digest mismatch (header sha256 {want[:16]}..., file {got[:16]}...): the file "
+            "was corrupted or edited after it was saved; retrain or copy it again",
+        )
+
+
+def _check_stored_twice(path: Path, header: dict, tensors: Mapping[str, torch.Tensor]) -> None:
+    """Refuse a buffer that disagrees with its header copy (see :data:`STORED_TWICE`)."""
+    for key, name in STORED_TWICE.items():
+        stored = tensors[name].to(torch.float64)
+        declared = torch.tensor(header[key], dtype=torch.float64)
+        if stored.shape != declared.shape:
+            raise CheckpointError(
+                path, f"tensor '{name}' has shape {tuple(stored.shape)}, the header's '{key}' {tuple(declared.shape)}"
+            )
+        if not torch.equal(stored, declared):
+            diff = float((stored - declared).abs().nan_to_num(math.inf).max())
+            raise CheckpointError(
+                path,
+                f"tensor '{name}' disagrees with the header's '{key}' (largest difference {diff:.6g}); "
+                "the file was edited or corrupted",
+            )
+
+
+# -- the header -------------------------------------------------------------------------------
+
+
+class _Parsed(NamedTuple):
+    """What a validated header describes."""
+
+    config: NeuralSDFConfig
+    bounds: torch.Tensor
+    """(2, 3) float32."""
+    to_world: torch.Tensor
+    """(4, 4) float64."""
+    info: FieldInfo
+
+
+def _read(
+    path: Path, limits: ArchitectureLimits | None, allow_legacy: bool
+) -> tuple[dict, _Parsed]:
+    """Read the header of ``path`` and validate everything it says; see :func:`read_header`."""
     if not path.exists():
         raise CheckpointError(path, "file does not exist")
     if not path.is_file():
@@ -80,47 +354,209 @@ def read_header(path: str | os.PathLike) -> dict:
         raise CheckpointError(path, f"the JSON header is corrupted ({exc})") from exc
     if not isinstance(header, dict):
         raise CheckpointError(path, "the JSON header is not an object")
+    _check_version(path, header.get("format_version"), allow_legacy)
     arch = header.get("architecture")
     if arch != ARCHITECTURE:
         raise CheckpointError(path, f"unknown architecture {arch!r} (expected {ARCHITECTURE!r})")
     for key in ("config", "bounds", "to_world"):
         if key not in header:
             raise CheckpointError(path, f"the header lacks '{key}'")
-    _check_matrix(path, "bounds", header["bounds"], (2, 3))
-    _check_matrix(path, "to_world", header["to_world"], (4, 4))
-    return header
+    header_contents = _parse(path, header, limits)
+    if header["format_version"] == FORMAT_VERSION:
+        digest = header.get(DIGEST_KEY)
+        if not (isinstance(digest, str) and len(digest) == 64 and all(c in "0123456789abcdef" for c in digest)):
+            raise CheckpointError(path, f"the header's '{DIGEST_KEY}' must be 64 hex digits, got {digest!r}")
+    return header, header_contents
 
 
-def load_field(path: str | os.PathLike, device: torch.device | str = "cpu") -> NeuralSDF:
-    """Load a checkpoint written by :func:`save_field`, validating every tensor.
+def _parse(path: Path, header: dict, limits: ArchitectureLimits | None) -> _Parsed:
+    """Validate what a header says about the field (not the file around it) and parse it.
+
+    Shared by the readers and by :func:`save_field`, so that a file is written only if it
+    will be read back.
+    """
+    bounds = _matrix(path, "bounds", header["bounds"], (2, 3))
+    if not bool((bounds[1] > bounds[0]).all()):
+        raise CheckpointError(path, f"'bounds' must have min < max on every axis, got {bounds.tolist()}")
+    to_world = _matrix(path, "to_world", header["to_world"], (4, 4))
+    try:
+        decompose_similarity(to_world)
+    except ValueError as exc:
+        raise CheckpointError(
+            path, f"'to_world' is not a similarity (positive uniform scale, rotation): {exc}"
+        ) from exc
+    try:
+        config = NeuralSDFConfig.from_json(header["config"])
+    except (TypeError, ValueError) as exc:
+        raise CheckpointError(path, f"bad architecture config: {exc}") from exc
+    try:
+        check_architecture(config, bounds[1] - bounds[0], limits)
+    except ValueError as exc:
+        raise CheckpointError(path, f"architecture refused: {exc}") from exc
+    return _Parsed(config, bounds.float(), to_world, _field_info(path, header))
+
+
+def _check_version(path: Path, version: object, allow_legacy: bool) -> None:
+    if version == FORMAT_VERSION or (allow_legacy and version in LEGACY_FORMAT_VERSIONS):
+        return
+    if version in LEGACY_FORMAT_VERSIONS:
+        raise CheckpointError(
+            path,
+            f"format version {version} has no content digest and is no longer trusted; retrain the "
+            "field (cached fields are remade) or re-save it: "
+            "save_field(load_field(path, allow_legacy=True), path)",
+        )
+    raise CheckpointError(
+        path, f"unsupported format version {version!r} (this regnf reads version {FORMAT_VERSION})"
+    )
+
+
+def _field_info(path: Path, header: dict) -> FieldInfo:
+    """The label, name, symmetry and provenance of a header, type-checked."""
+    expected = {"label": (str, "a string"), "name": (str, "a string"), "provenance": (dict, "an object"),
+                "symmetry": ((dict, type(None)), "an object")}
+    for key, (kind, words) in expected.items():
+        if key in header and not isinstance(header[key], kind):
+            raise CheckpointError(path, f"bad header: '{key}' must be {words}, got {header[key]!r:.80}")
+    try:
+        return FieldInfo(
+            label=header.get("label", "object"),
+            name=header.get("name", ""),
+            symmetry=Symmetry.from_json(header.get("symmetry")),
+            provenance=dict(header.get("provenance", {})),
+        )
+    except (TypeError, ValueError, AttributeError) as exc:
+        raise CheckpointError(path, f"bad header: {exc}") from exc
+
+
+def read_header(
+    path: str | os.PathLike, limits: ArchitectureLimits | None = None, allow_legacy: bool = False
+) -> dict:
+    """Read and validate the JSON header of a checkpoint without loading weights.
+
+    Cheap (reads the safetensors header only) and safe on hostile files: the architecture is
+    bounded by ``limits`` before anything could build it.
+
+    Parameters
+    ----------
+    path : str or PathLike
+    limits : ArchitectureLimits, optional
+        The largest architecture accepted (default: the MAX_* constants).
+    allow_legacy : bool
+        Accept a version-1 header (no digest); see the module docstring.
+
+    Returns
+    -------
+    dict
+        The header as stored, :data:`DIGEST_KEY` included.
 
     Raises
     ------
     CheckpointError
-        Missing or truncated file, bad header, unknown architecture, missing / unexpected
-        tensors, wrong shapes or dtypes, non-finite weights.
+        Missing or unreadable file, no or corrupted header, an unsupported (or, without
+        ``allow_legacy``, legacy) format version, unknown architecture, a config of the
+        wrong types or beyond ``limits``, bounds with min >= max, a ``to_world`` that is not
+        a similarity, badly typed label / name / symmetry / provenance, a malformed digest.
+        The digest itself is compared by :func:`verify_checkpoint` and :func:`load_field`.
+    """
+    return _read(Path(path), limits, allow_legacy)[0]
+
+
+def verify_checkpoint(path: str | os.PathLike, limits: ArchitectureLimits | None = None) -> dict:
+    """Check a checkpoint's integrity without building the field; returns its header.
+
+    :func:`read_header`'s checks, the content digest (the whole file is hashed, in constant
+    memory), and the tensors :data:`STORED_TWICE` against the header. What it does not do is
+    :func:`load_field`'s tensor-by-tensor validation against the architecture, which needs
+    the model: a file that passes here was written by :func:`save_field` and not altered.
+
+    Raises
+    ------
+    CheckpointError
+        Any of :func:`read_header`'s, a digest mismatch (corrupted or edited file), or a
+        buffer that disagrees with its header copy. Legacy (version-1) files are refused.
     """
     path = Path(path)
-    header = read_header(path)
+    header = read_header(path, limits)
+    _check_digest(path, header)
     try:
-        config = NeuralSDFConfig.from_json(header["config"])
-    except (TypeError, ValueError, AttributeError) as exc:
-        raise CheckpointError(path, f"bad architecture config: {exc}") from exc
+        with safe_open(str(path), framework="pt") as f:
+            missing = sorted(set(STORED_TWICE.values()) - set(f.keys()))
+            if missing:
+                raise CheckpointError(path, f"missing tensors {missing}")
+            tensors = {name: f.get_tensor(name) for name in STORED_TWICE.values()}
+    except CheckpointError:
+        raise
+    except (SafetensorError, OSError, ValueError, RuntimeError) as exc:
+        raise CheckpointError(path, f"truncated or corrupted tensor data ({exc})") from exc
+    _check_stored_twice(path, header, tensors)
+    return header
+
+
+# -- saving and loading ------------------------------------------------------------------------
+
+
+def save_field(
+    field: NeuralSDF, path: str | os.PathLike, limits: ArchitectureLimits | None = None
+) -> Path:
+    """Write ``field`` to ``path`` (``.safetensors``) atomically, with its digest; returns the path.
+
+    The header is validated as a reader will validate it (``limits`` as for loading), so a
+    file this writes loads. The file gets the user's umask (``0o666 & ~umask``).
+
+    Raises
+    ------
+    CheckpointError
+        A wrong suffix, or a field whose header a reader would refuse (e.g. a ``to_world``
+        that is not a similarity); nothing is written then.
+    """
+    path = Path(path)
+    if path.suffix != ".safetensors":
+        raise CheckpointError(path, "checkpoints are .safetensors files")
+    # JSON-normalised (tuples -> lists, ...): exactly what a reader will parse and hash.
+    header = json.loads(json.dumps(field_header(field)))
+    _parse(path, header, limits)
+    tensors = {k: v.detach().to("cpu").contiguous() for k, v in field.state_dict().items()}
+    header[DIGEST_KEY] = content_digest(header, tensors)
+    # Serialised in memory and written by atomic_io: safetensors' own save_file renames a
+    # private (0600) temporary of its own over the destination, which a kill leaves behind
+    # under a name that is not ours to clean up.
+    write_bytes(path, save_to_bytes(tensors, metadata={HEADER_KEY: json.dumps(header)}))
+    return path
+
+
+def load_field(
+    path: str | os.PathLike,
+    device: torch.device | str = "cpu",
+    limits: ArchitectureLimits | None = None,
+    allow_legacy: bool = False,
+) -> NeuralSDF:
+    """Load a checkpoint written by :func:`save_field`, validating every tensor.
+
+    Parameters
+    ----------
+    path : str or PathLike
+    device : torch.device or str
+        Where the field is moved after loading.
+    limits : ArchitectureLimits, optional
+        The largest architecture accepted (default: the MAX_* constants).
+    allow_legacy : bool
+        Load a version-1 file (no digest: every other check still applies), e.g. to re-save
+        it with :func:`save_field`.
+
+    Raises
+    ------
+    CheckpointError
+        Any of :func:`read_header`'s; missing / unexpected tensors, wrong shapes or dtypes, a
+        content digest mismatch, non-finite weights, a buffer that disagrees with its header
+        copy (``to_world``, ``bounds``).
+    """
+    path = Path(path)
+    header, (config, bounds, to_world, info) = _read(path, limits, allow_legacy)
     try:
-        info = FieldInfo(
-            label=str(header.get("label", "object")),
-            name=str(header.get("name", "")),
-            symmetry=Symmetry.from_json(header.get("symmetry")),
-            provenance=dict(header.get("provenance", {})),
-        )
-        bounds = torch.tensor(header["bounds"], dtype=torch.float32)
-        to_world = torch.tensor(header["to_world"], dtype=torch.float64)
-    except (TypeError, ValueError, AttributeError) as exc:
-        raise CheckpointError(path, f"bad header: {exc}") from exc
-    try:
-        # Build a weightless skeleton first (meta device: nothing is allocated), so that a
-        # forged header asking for a huge grid is caught by the shape check below instead
-        # of exhausting memory.
+        # Build a weightless skeleton first (meta device: nothing is allocated), so that the
+        # stored shapes are compared before the real field allocates anything. The header's
+        # sizes are already bounded, so building it is quick too.
         with torch.device("meta"):
             skeleton = NeuralSDF(config, bounds=bounds, to_world=to_world, info=info)
     except (TypeError, ValueError, AttributeError, RuntimeError) as exc:
@@ -139,6 +575,8 @@ def load_field(path: str | os.PathLike, device: torch.device | str = "cpu") -> N
                 stored = tuple(f.get_slice(name).get_shape())
                 if stored != shape:
                     raise CheckpointError(path, f"tensor '{name}' has shape {stored}, expected {shape}")
+            # Sizes are right: hash the whole file before trusting any value in it.
+            _check_digest(path, header)
             state = {}
             for name, (_, dtype) in expected.items():
                 t = f.get_tensor(name)
@@ -151,17 +589,20 @@ def load_field(path: str | os.PathLike, device: torch.device | str = "cpu") -> N
         raise
     except (SafetensorError, OSError, ValueError, RuntimeError) as exc:
         raise CheckpointError(path, f"truncated or corrupted tensor data ({exc})") from exc
+    _check_stored_twice(path, header, state)
     field = NeuralSDF(config, bounds=bounds, to_world=to_world, info=info)
     field.load_state_dict(state)
     return field.to(device)
 
 
-def _check_matrix(path: Path, key: str, value: object, shape: tuple[int, int]) -> None:
+def _matrix(path: Path, key: str, value: object, shape: tuple[int, int]) -> torch.Tensor:
+    """``value`` as a finite float64 tensor of ``shape``, or a CheckpointError naming ``key``."""
     try:
         t = torch.tensor(value, dtype=torch.float64)
-    except (TypeError, ValueError) as exc:
+    except (TypeError, ValueError, RuntimeError) as exc:
         raise CheckpointError(path, f"'{key}' is not a numeric matrix") from exc
     if tuple(t.shape) != shape:
         raise CheckpointError(path, f"'{key}' has shape {tuple(t.shape)}, expected {shape}")
-    if not all(math.isfinite(v) for v in t.flatten().tolist()):
+    if not bool(torch.isfinite(t).all()):
         raise CheckpointError(path, f"'{key}' has non-finite values")
+    return t

@@ -9,7 +9,7 @@ from dataclasses import asdict, dataclass, fields
 import torch
 import torch.nn.functional as F
 
-from neural_fields.dense_grid import DenseGridEncoding
+from neural_fields.dense_grid import DenseGridEncoding, grid_shape, level_resolutions
 from neural_fields.field import Field, FieldInfo
 from neural_fields.hash_grid import HashGridEncoding
 
@@ -53,14 +53,97 @@ class NeuralSDFConfig:
 
     @staticmethod
     def from_json(data: dict) -> NeuralSDFConfig:
-        known = {f.name for f in fields(NeuralSDFConfig)}
-        unknown = sorted(set(data) - known)
+        """Parse a checkpoint's ``config`` block, strictly: every value of its field's type.
+
+        Raises
+        ------
+        TypeError
+            ``data`` is not an object.
+        ValueError
+            Unknown keys, a value of the wrong type (``"3"`` or ``16.5`` for an
+            integer, ``1`` for a flag), a non-finite float, or a value out of its range (see
+            :meth:`validate`). Size LIMITS are the checkpoint reader's business
+            (:class:`neural_fields.checkpoint.ArchitectureLimits`).
+        """
+        if not isinstance(data, dict):
+            raise TypeError(f"the architecture config must be an object, got {type(data).__name__}")
+        defaults = {f.name: f.default for f in fields(NeuralSDFConfig)}
+        unknown = sorted(set(data) - set(defaults))
         if unknown:
             raise ValueError(f"unknown architecture keys {unknown}")
-        cfg = NeuralSDFConfig(**data)
-        if cfg.encoding not in ("dense", "hash"):
-            raise ValueError(f"unknown encoding {cfg.encoding!r} (expected 'dense' or 'hash')")
+        for name, value in data.items():
+            kind = type(defaults[name])
+            if not _is_a(value, kind):
+                raise ValueError(f"'{name}' must be {_TYPE_WORDS[kind]}, got {value!r}")
+        cfg = NeuralSDFConfig(**{k: float(v) if type(defaults[k]) is float else v for k, v in data.items()})
+        cfg.validate()
         return cfg
+
+    def validate(self) -> None:
+        """Refuse values no network can have (ValueError naming the key).
+
+        The grid pyramid itself (``levels >= 1``, ``2 <= base <= finest``) is checked where
+        it is built, by :func:`neural_fields.dense_grid.level_resolutions`.
+        """
+        if self.encoding not in ("dense", "hash"):
+            raise ValueError(f"unknown encoding {self.encoding!r} (expected 'dense' or 'hash')")
+        for name in ("features_per_level", "hash_table_size_log2", "hidden_dim", "color_hidden_dim"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"'{name}' must be >= 1, got {getattr(self, name)}")
+        for name in ("hidden_layers", "geo_feature_dim"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"'{name}' must be >= 0, got {getattr(self, name)}")
+        if not self.init_radius > 0:
+            raise ValueError(f"'init_radius' must be > 0, got {self.init_radius}")
+
+
+_TYPE_WORDS = {bool: "true or false", int: "an integer", float: "a finite number", str: "a string"}
+"""How a config type reads in an error message."""
+
+
+def _is_a(value: object, kind: type) -> bool:
+    """``value`` is a JSON value of config type ``kind`` (bool, int, float or str)."""
+    # bool is an int subclass: True is not a number of levels, 3 is not a flag.
+    if kind is bool or isinstance(value, bool):
+        return kind is bool and isinstance(value, bool)
+    if kind is float:
+        return isinstance(value, (int, float)) and math.isfinite(value)
+    return isinstance(value, kind)
+
+
+def parameter_count(config: NeuralSDFConfig, extent: torch.Tensor) -> int:
+    """Number of trainable values of a :class:`NeuralSDF`, without building it.
+
+    Parameters
+    ----------
+    config : NeuralSDFConfig
+    extent : (3,) float
+        Size of the bounds box (only its aspect ratio matters).
+
+    Returns
+    -------
+    int
+        Exactly ``sum(p.numel() for p in NeuralSDF(config, bounds).parameters())``.
+        Costs one step per level: bound ``config.levels`` first.
+    """
+    cfg = config
+    extent = torch.as_tensor(extent, dtype=torch.float32, device="cpu")
+    cells = 0
+    for res in level_resolutions(cfg.levels, cfg.base_resolution, cfg.finest_resolution):
+        nx, ny, nz = grid_shape(res, extent)
+        # A dense level holds nx * ny * nz samples; a hash level one row per cell corner,
+        # at most 2**k of them (see HashGridEncoding).
+        cells += nx * ny * nz if cfg.encoding == "dense" else min(
+            (nx + 1) * (ny + 1) * (nz + 1), 2**cfg.hash_table_size_log2
+        )
+    total = cells * cfg.features_per_level
+    dims = [3 + cfg.levels * cfg.features_per_level] + [cfg.hidden_dim] * cfg.hidden_layers
+    dims.append(1 + cfg.geo_feature_dim)
+    total += sum(a * b + b for a, b in itertools.pairwise(dims))
+    color_in = cfg.geo_feature_dim + 3 + (3 if cfg.view_dependent else 0)
+    ch = cfg.color_hidden_dim
+    total += (color_in * ch + ch) + (ch * ch + ch) + (ch * 3 + 3)
+    return total
 
 
 class NeuralSDF(Field):

@@ -9,10 +9,13 @@ nothing lies along them, which carves the silhouette.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from pathlib import Path
 from typing import NamedTuple, Protocol
 
 import numpy as np
 import torch
+
+from synthetic.sdfstudio_format import META_NAME, CaptureError
 
 
 class CaptureLike(Protocol):
@@ -115,14 +118,29 @@ def depth_normals(
     return normals, ok
 
 
+def capture_where(capture: CaptureLike) -> str:
+    """The capture's ``meta_data.json`` for messages (``capture`` for one without a root)."""
+    root = getattr(capture, "root", None)
+    return str(Path(root) / META_NAME) if root is not None else "capture"
+
+
 def build_samples(capture: CaptureLike, indices: Sequence[int]) -> RGBDSamples:
-    """Gather the samples of frames ``indices`` of ``capture`` (one pass per frame)."""
+    """Gather the samples of frames ``indices`` of ``capture`` (one pass per frame).
+
+    Raises
+    ------
+    CaptureError
+        A frame without depth, or the capture's own error for an invalid image or depth
+        (:meth:`synthetic.sdfstudio_format.Capture.depth` names the file and the frame).
+    """
     pts, cols, nrm, nok, org, tt, forg, fdir = [], [], [], [], [], [], [], []
     for i in indices:
         frame = capture.frames[i]
         depth = capture.depth(i)
         if depth is None:
-            raise ValueError(f"frame {i} of the capture has no depth; RGB-D training needs depth")
+            raise CaptureError(
+                f"{capture_where(capture)}: frame {i} of the capture has no depth; RGB-D training needs depth"
+            )
         rgb = capture.rgb(i)
         K = np.asarray(frame.intrinsics, dtype=np.float64)
         c2w = np.asarray(frame.camtoworld, dtype=np.float64)

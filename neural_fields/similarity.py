@@ -13,10 +13,13 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from synthetic.sdfstudio_format import POSE_RTOL, similarity_scale
+
 Array = np.ndarray | torch.Tensor
 
-DEFAULT_RTOL = 1e-5
-"""Relative tolerance on ``A^T A = s^2 I`` and on the last row; loose enough for float32 input."""
+DEFAULT_RTOL = POSE_RTOL
+"""Relative tolerance on ``A^T A = s^2 I`` and on the last row; loose enough for float32 input
+(the capture loader's :data:`synthetic.sdfstudio_format.POSE_RTOL`)."""
 
 
 def _is_torch(*xs: object) -> bool:
@@ -108,27 +111,11 @@ def decompose_similarity(M: Array, rtol: float = DEFAULT_RTOL) -> tuple[Array, A
     Mt = torch.as_tensor(M, dtype=torch.float64) if not as_torch else M.to(torch.float64)
     if Mt.shape != (4, 4):
         raise ValueError(f"a similarity must be 4x4, got shape {tuple(Mt.shape)}")
-    if not bool(torch.isfinite(Mt).all()):
-        raise ValueError("similarity matrix has non-finite entries")
-    last = Mt[3]
-    expect = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=torch.float64, device=Mt.device)
-    if float((last - expect).abs().max()) > rtol:
-        raise ValueError(f"the last row of a similarity must be [0, 0, 0, 1], got {last.tolist()}")
+    # One rule for every similarity in regnf (captures, cameras, fields): the checks live at
+    # the bottom of the package graph, in synthetic, and run on a float64 copy.
+    similarity_scale(Mt.detach().cpu().numpy(), rtol)
     A = Mt[:3, :3]
-    det = torch.linalg.det(A)
-    if float(det) <= 0:
-        raise ValueError(
-            f"linear part has determinant {float(det):.6g} <= 0: a reflection, a negative scale "
-            "or a degenerate matrix is not a similarity"
-        )
-    s = det ** (1.0 / 3.0)
-    gram = A.T @ A / (s * s)
-    err = float((gram - torch.eye(3, dtype=torch.float64, device=Mt.device)).abs().max())
-    if err > rtol:
-        raise ValueError(
-            f"not a uniformly scaled rotation (|A^T A / s^2 - I| = {err:.3g} > {rtol:g}): "
-            "non-uniform scale or shear"
-        )
+    s = torch.linalg.det(A) ** (1.0 / 3.0)
     R, t = A / s, Mt[:3, 3]
     if as_torch:
         return R, t.clone(), s

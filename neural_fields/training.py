@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import time
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
@@ -41,8 +42,15 @@ from neural_fields.neural_sdf import (
     tetrahedral_points,
 )
 from neural_fields.optim import finest_voxel, lr_factor, make_optimizer
-from neural_fields.rgbd_samples import CaptureLike, RGBDSamples, build_samples, ray_box_interval
+from neural_fields.rgbd_samples import (
+    CaptureLike,
+    RGBDSamples,
+    build_samples,
+    capture_where,
+    ray_box_interval,
+)
 from neural_fields.volume_render import render_rays_neus
+from synthetic.sdfstudio_format import META_NAME, CaptureError, capture_file
 
 
 @dataclass
@@ -148,14 +156,49 @@ class _ViewStack:
         return free.float()
 
 
-def capture_fingerprint(root: Path, relative_paths: Sequence[str]) -> str:
-    """SHA-256 over meta_data.json and every file it references (the training data hash)."""
-    h = hashlib.sha256()
-    for rel in ["meta_data.json", *relative_paths]:
-        p = root / rel
-        if p.exists():
-            h.update(rel.encode())
-            h.update(p.read_bytes())
+FINGERPRINT_VERSION = b"regnf.capture-fingerprint/2\n"
+"""Prefix of every capture fingerprint; changing how it is computed changes this."""
+
+_CHUNK = 1 << 20
+"""Bytes hashed at a time (captures hold hundreds of megabytes)."""
+
+
+def capture_fingerprint(root: str | os.PathLike, files: Sequence[str | os.PathLike]) -> str:
+    """SHA-256 of a capture's training data: ``meta_data.json`` and every file in ``files``.
+
+    The key of a trained field: it depends on the bytes of the inputs and on their names
+    inside the capture folder only, not on how the folder was named (relative, absolute,
+    ``./x``, through a symlink) nor where it lies.
+
+    Parameters
+    ----------
+    root : str or PathLike
+        The capture folder.
+    files : sequence of str or PathLike
+        Files the training reads (images, depths); absolute, or relative to ``root``.
+
+    Returns
+    -------
+    str
+        64 hex digits.
+
+    Raises
+    ------
+    CaptureError
+        A file that does not exist or lies outside ``root`` (symlinks resolved): a key that
+        silently skipped it would let another capture's field be reused.
+    """
+    root = Path(root)
+    base = os.path.realpath(root)
+    h = hashlib.sha256(FINGERPRINT_VERSION)
+    for name in [META_NAME, *files]:
+        # The loader's rule: an existing file inside the folder (an absolute name stays as is).
+        real = os.path.realpath(capture_file(root, os.fspath(name), f"{root / META_NAME}: training input"))
+        # Name and length first: the concatenation of (name, bytes) records is unambiguous.
+        h.update(f"{Path(os.path.relpath(real, base)).as_posix()}\0{os.path.getsize(real)}\0".encode())
+        with open(real, "rb") as f:
+            while chunk := f.read(_CHUNK):
+                h.update(chunk)
     return h.hexdigest()
 
 
@@ -181,6 +224,14 @@ def train_rgbd(
 
     The field lives in the capture's normalised frame; its ``to_world`` is the capture's
     ``worldtogt``. Deterministic on CPU for a given seed.
+
+    Every training frame is read (and its image and depth checked) before the first step.
+
+    Raises
+    ------
+    CaptureError
+        No training frame, a frame without depth, an unreadable or invalid image or depth
+        (naming the file and the frame), or too few valid depth pixels.
     """
     cfg = config or RGBDTrainConfig()
     t_start = time.perf_counter()
@@ -190,10 +241,13 @@ def train_rgbd(
     if indices is None:
         indices = capture.train_indices()
     if len(indices) == 0:
-        raise ValueError("the capture has no training frames")
+        raise CaptureError(f"{capture_where(capture)}: the capture has no training frames")
     samples = build_samples(capture, indices)
     if samples.points.shape[0] < 100:
-        raise ValueError(f"only {samples.points.shape[0]} valid depth pixels: nothing to train on")
+        raise CaptureError(
+            f"{capture_where(capture)}: only {samples.points.shape[0]} valid depth pixels in "
+            f"{len(indices)} training frames: nothing to train on"
+        )
     aabb = getattr(capture, "scene_box", {}).get("aabb") if hasattr(capture, "scene_box") else None
     limit = torch.as_tensor(np.asarray(aabb), dtype=torch.float32) if aabb is not None else None
     bounds = fit_bounds(samples, cfg.bounds_margin, limit)

@@ -7,9 +7,14 @@ Layout (default root ``~/.cache/regnf``, or ``$REGNF_CACHE``)::
     fields/<name>-<source>-<key>.safetensors
 
 ``key`` hashes everything the result depends on (generator version, configs, and for a
-field the SHA-256 of its training data), so a changed input never reuses a stale result.
-Every entry is written atomically: a half-made capture has no meta_data.json, a half-written
-checkpoint never replaces a good one.
+field the SHA-256 of the bytes of its training data, whatever the spelling of the capture's
+path), so a changed input never reuses a stale result. Every entry is written atomically: a
+half-made capture has no meta_data.json, a half-written checkpoint never replaces a good one.
+
+A cached field is verified before it is reused (:func:`neural_fields.checkpoint.verify_checkpoint`:
+its content digest, and the provenance naming the data it was made from); one that fails
+(truncated, flipped bits, an older checkpoint format, another field under its name) is ours,
+so it is remade and replaced atomically.
 """
 
 from __future__ import annotations
@@ -17,12 +22,14 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import logging
 import os
+import re
 from pathlib import Path
 
 import trimesh
 
-from neural_fields.checkpoint import save_field
+from neural_fields.checkpoint import CheckpointError, save_field, verify_checkpoint
 from neural_fields.distill import DistillConfig, distill_mesh
 from neural_fields.field import FieldInfo, Symmetry
 from neural_fields.presets import object_mesh_preset, object_rgbd_preset, scene_rgbd_preset
@@ -32,8 +39,11 @@ from synthetic.library import make_library_object
 from synthetic.sdfstudio_format import Capture, load_capture
 from synthetic.shading import shaded_copy
 
-CACHE_VERSION = 2
-"""Bump when the meaning of cached data changes (including a changed default setting)."""
+CACHE_VERSION = 3
+"""Bump when the meaning of cached data changes (including a changed default setting).
+3: checkpoint format 2 (content digest) and path-independent capture fingerprints."""
+
+log = logging.getLogger(__name__)
 
 
 def default_cache_dir() -> Path:
@@ -85,19 +95,57 @@ def capture_info(capture: Capture) -> FieldInfo:
     kind = meta.get("kind", "scene")
     return FieldInfo(
         label="scene" if kind == "scene" else str(meta.get("label", "object")),
-        name=str(meta.get("name", capture.root.name)),
+        # The folder's real name: a symlink or "." must not change the field's name (or its
+        # cache file).
+        name=str(meta.get("name", Path(os.path.realpath(capture.root)).name)),
         symmetry=Symmetry.from_json(meta.get("symmetry")),
     )
 
 
-def capture_files(capture: Capture) -> list[str]:
-    """Paths (relative to the capture root) of every image and depth file it references."""
-    rel = []
-    for f in capture.frames:
-        for p in (f.rgb_path, f.depth_path):
-            if p is not None:
-                rel.append(str(Path(p).relative_to(capture.root)) if Path(p).is_absolute() else str(p))
-    return rel
+def capture_files(capture: Capture) -> list[Path]:
+    """Every image and depth file the capture's frames name (absolute paths, frame order)."""
+    return [
+        Path(p) for f in capture.frames for p in (f.rgb_path, f.depth_path) if p is not None
+    ]
+
+
+def entry_stem(name: str, fallback: str) -> str:
+    """``name`` made safe as the start of a cache file name (it comes from a capture's metadata).
+
+    Anything but letters, digits, ``.``, ``_`` and ``-`` becomes ``_`` and leading dots go, so
+    that a name such as ``../../x`` cannot place the entry outside the cache.
+    """
+    stem = re.sub(r"[^A-Za-z0-9._-]", "_", name).lstrip(".")
+    return stem[:64] or fallback
+
+
+def reusable(path: Path, provenance: dict) -> bool:
+    """Whether the cached checkpoint ``path`` exists, is intact and was made from ``provenance``.
+
+    Parameters
+    ----------
+    path : Path
+        A cache entry.
+    provenance : dict
+        Items its header's provenance must hold (the data hash it was made from).
+
+    Returns
+    -------
+    bool
+        False when there is nothing to reuse; a damaged entry is logged (it will be remade).
+    """
+    if not path.is_file():
+        return False
+    try:
+        header = verify_checkpoint(path)
+    except CheckpointError as exc:
+        log.warning("remaking a damaged cache entry: %s", exc)
+        return False
+    made_from = header.get("provenance", {})
+    if any(made_from.get(k) != v for k, v in provenance.items()):
+        log.warning("remaking cache entry %s: it was made from other data", path)
+        return False
+    return True
 
 
 @dataclasses.dataclass
@@ -126,13 +174,23 @@ class Cache:
             return load_capture(folder)
         return capture_room(name, folder, dataclasses.replace(cfg, progress=self.progress))
 
-    def rgbd_field(self, capture: Capture, config: RGBDTrainConfig) -> Path:
-        """Checkpoint of a field trained on ``capture`` with ``config`` (trained if missing)."""
-        info = capture_info(capture)
+    def rgbd_entry(self, capture: Capture, config: RGBDTrainConfig) -> tuple[Path, str]:
+        """The cache file of the field trained on ``capture`` with ``config``, and the data hash.
+
+        The key hashes the bytes of ``meta_data.json`` and of every image and depth (see
+        :func:`neural_fields.training.capture_fingerprint`), so it is the same for any
+        spelling of the capture's path and differs as soon as one input file does.
+        """
         fingerprint = capture_fingerprint(capture.root, capture_files(capture))
-        path = self.root / "fields" / f"{info.name}-rgbd-{config_key(config, fingerprint)}.safetensors"
-        if path.is_file():
+        stem = entry_stem(capture_info(capture).name, "capture")
+        return self.root / "fields" / f"{stem}-rgbd-{config_key(config, fingerprint)}.safetensors", fingerprint
+
+    def rgbd_field(self, capture: Capture, config: RGBDTrainConfig) -> Path:
+        """Checkpoint of a field trained on ``capture`` with ``config`` (trained if missing or damaged)."""
+        path, fingerprint = self.rgbd_entry(capture, config)
+        if reusable(path, {"data_sha256": fingerprint}):
             return path
+        info = capture_info(capture)
         info.provenance = {"source": "rgbd", "capture": str(capture.root), "data_sha256": fingerprint}
         field, _ = train_rgbd(capture, config, info=info, progress=self.progress)
         return save_field(field, path)
@@ -158,8 +216,8 @@ class Cache:
         colors = mesh.visual.face_colors.tobytes() if mesh.visual.kind == "face" else b""
         mesh_sha = hashlib.sha256(mesh.vertices.tobytes() + mesh.faces.tobytes() + colors).hexdigest()
         key = config_key(config, mesh_sha, info.label, info.name, info.symmetry.order)
-        path = self.root / "fields" / f"{info.name or 'mesh'}-mesh-{key}.safetensors"
-        if path.is_file():
+        path = self.root / "fields" / f"{entry_stem(info.name, 'mesh')}-mesh-{key}.safetensors"
+        if reusable(path, {"mesh_sha256": mesh_sha}):
             return path
         info.provenance = {**info.provenance, "source": "mesh", "mesh_sha256": mesh_sha}
         field, _ = distill_mesh(mesh, config, info=info, progress=self.progress)

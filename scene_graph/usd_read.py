@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 from pxr import Ar, Sdf, Tf, Usd, UsdGeom
 
-from neural_fields.checkpoint import CheckpointError, read_header
+from neural_fields.checkpoint import CheckpointError, verify_checkpoint
 
 from . import layout as L
 from .boundary import Boundary, open_composed
@@ -177,7 +177,7 @@ def read_field(prim: Usd.Prim, layer: Sdf.Layer, boundary: Boundary, check_check
     if check_checkpoint:
         try:
             with checkpoint_file(checkpoint) as ckpt:  # a package's checkpoints are embedded layers
-                read_header(ckpt)
+                verify_checkpoint(ckpt)  # header, limits and digest: a stage that reads renders
         except CheckpointError as exc:
             at = checkpoint if is_embedded(checkpoint) else exc.path
             raise StageError(at, where, f"checkpoint referenced by {file}: {exc.problem}") from exc

@@ -11,12 +11,28 @@ Layout (one folder per capture)::
 maps normalised -> metres: ``metres = s * normalised + c``. The loader also accepts the plain
 sdfstudio variants (no depth, ``mono_depth_path``, 3x3 or 4x4 intrinsics, no ``worldtogt``,
 no ``instances``) so that real sdfstudio / ONR downloads load.
+
+Nothing in ``meta_data.json`` is trusted. :func:`load_capture` checks, before any image is
+read: every path it names resolves (symlinks followed) inside the capture folder, every
+``camtoworld`` is a rigid pose (:func:`check_rigid_pose`), every ``K`` a pinhole matrix with
+positive focal lengths (:func:`check_intrinsics`), ``worldtogt`` a similarity with a positive
+uniform scale (:func:`similarity_scale`). :meth:`Capture.rgb` and :meth:`Capture.depth` check
+each image's dtype, shape and values when it is read. Every failure is a :class:`CaptureError`
+whose one-line message names the file and the frame.
+
+The pose rules live here, at the bottom of the package graph (``synthetic`` ->
+``neural_fields`` -> ... -> ``compositor``), so that training and rendering share them: the
+compositor's :class:`~compositor.camera.Camera` and
+:func:`neural_fields.similarity.decompose_similarity` call the same functions.
 """
 
 from __future__ import annotations
 
 import json
-from collections.abc import Sequence
+import math
+import os
+import re
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -35,8 +51,119 @@ SPLITS = ("train", "test", "val")
 """Accepted frame splits; frames without one are training frames."""
 
 
+POSE_RTOL = 1e-5
+"""Tolerance of the pose rules, on ``|A^T A / s^2 - I|``, on the last row and on ``|s - 1|``.
+
+Poses stored in float32 are off by about 1e-7; a real scale, shear or skewed rotation is off
+by far more than 1e-5, so this refuses every non-rigid pose and no rounding error."""
+
+
 class CaptureError(ValueError):
-    """A capture folder is missing, incomplete or malformed; the message names the file."""
+    """A capture folder is missing, incomplete or malformed; the message names the file.
+
+    The message is one line: a library's multi-line explanation (imageio's) is joined.
+    """
+
+    def __init__(self, message: str) -> None:
+        super().__init__(re.sub(r"\s*[\r\n]+\s*", " ", str(message)))
+
+
+# ----------------------------------------------------------------------------- pose rules
+
+
+def similarity_scale(M: np.ndarray, rtol: float = POSE_RTOL) -> float:
+    """The uniform scale ``s`` of a similarity ``M = [[s R, t], [0, 1]]`` (R a rotation).
+
+    Parameters
+    ----------
+    M : (4, 4) float
+        The matrix (array-like).
+    rtol : float
+        Tolerance on the last row and on ``|A^T A / s^2 - I|``.
+
+    Returns
+    -------
+    float
+        ``s = det(A) ** (1 / 3) > 0``, ``A = M[:3, :3]``.
+
+    Raises
+    ------
+    ValueError
+        Not 4x4 and finite, a last row other than ``[0, 0, 0, 1]``, a linear part with
+        determinant <= 0 (singular, a reflection, a negative scale), or a non-uniform scale
+        or shear. The message says which, without naming a file: callers add where.
+    """
+    try:
+        M = np.asarray(M, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"a similarity must be a real 4x4 matrix ({exc})") from exc
+    if M.shape != (4, 4):
+        raise ValueError(f"a similarity must be 4x4, got shape {tuple(M.shape)}")
+    if not np.isfinite(M).all():
+        raise ValueError("similarity matrix has non-finite entries")
+    if float(np.abs(M[3] - [0.0, 0.0, 0.0, 1.0]).max()) > rtol:
+        raise ValueError(f"the last row of a similarity must be [0, 0, 0, 1], got {M[3].tolist()}")
+    A = M[:3, :3]
+    det = float(np.linalg.det(A))
+    if not 0 < det < math.inf:
+        raise ValueError(
+            f"linear part has determinant {det:.6g}, not finite and > 0: a reflection, a negative "
+            "scale or a degenerate matrix is not a similarity"
+        )
+    s = det ** (1.0 / 3.0)
+    err = float(np.abs(A.T @ A / (s * s) - np.eye(3)).max())
+    if not err <= rtol:  # also refuses NaN (entries so large that A^T A overflows)
+        raise ValueError(
+            f"not a uniformly scaled rotation (|A^T A / s^2 - I| = {err:.3g} > {rtol:g}): "
+            "non-uniform scale or shear"
+        )
+    return s
+
+
+def check_rigid_pose(M: np.ndarray, rtol: float = POSE_RTOL) -> None:
+    """Refuse a camera-to-world ``M`` (4, 4) that is not a rotation plus a translation.
+
+    The one rule for camera poses: training (:func:`load_capture`) and rendering
+    (:class:`compositor.camera.Camera`) both call it, so a pose one accepts the other does.
+
+    Raises
+    ------
+    ValueError
+        See :func:`similarity_scale`; or a scale other than 1 (a rotation block scaled by
+        7 is a similarity, not a pose).
+    """
+    s = similarity_scale(M, rtol)
+    if abs(s - 1.0) > rtol:
+        raise ValueError(f"must be rigid (scale 1), got scale {s:.6g}")
+
+
+def check_intrinsics(K: np.ndarray) -> None:
+    """Refuse a (3, 3) ``K`` that is not a pinhole matrix with positive focal lengths.
+
+    ``K = [[fx, skew, cx], [0, fy, cy], [0, 0, 1]]`` with finite entries and ``fx, fy > 0``
+    (which also makes it invertible). Shared by :func:`load_capture` and
+    :class:`compositor.camera.Camera`.
+
+    Raises
+    ------
+    ValueError
+        Wrong shape, non-finite entries, ``fx`` or ``fy`` <= 0, or a lower triangle other
+        than ``[0, 0, 1]``.
+    """
+    try:
+        K = np.asarray(K, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"K must be a real 3x3 matrix ({exc})") from exc
+    if K.shape != (3, 3):
+        raise ValueError(f"K must be 3x3, got shape {tuple(K.shape)}")
+    if not np.isfinite(K).all():
+        raise ValueError("K has non-finite values")
+    fx, fy = float(K[0, 0]), float(K[1, 1])
+    if not (fx > 0 and fy > 0):
+        raise ValueError(f"focal lengths must be > 0, got fx = {fx:g}, fy = {fy:g}")
+    lower = [float(K[1, 0]), float(K[2, 0]), float(K[2, 1]), float(K[2, 2])]
+    if lower != [0.0, 0.0, 0.0, 1.0]:
+        raise ValueError(f"not a pinhole K: K[1, 0], K[2, :] must be 0, [0, 0, 1], got {lower}")
 
 
 @dataclass
@@ -84,45 +211,90 @@ class Capture:
         return float(np.cbrt(abs(np.linalg.det(self.worldtogt[:3, :3]))))
 
     def rgb(self, i: int) -> np.ndarray:
-        """Colour of frame ``i`` as (H, W, 3) float32 in [0, 1]."""
+        """Colour of frame ``i`` as (H, W, 3) float32 in [0, 1].
+
+        Raises
+        ------
+        CaptureError
+            Unreadable file, a dtype other than uint8 / uint16, or a shape other than
+            (H, W), (H, W, 3) or (H, W, 4); the message names the file and the frame.
+        """
         path = self.frames[i].rgb_path
+        where = f"{path}: frame {i}"
         try:
             # The extension hint stops imageio from probing every plugin on a corrupt file.
             img = iio.imread(path, extension=path.suffix or None)
         except Exception as exc:  # imageio raises many types for unreadable files
-            raise CaptureError(f"{path}: cannot read image ({exc})") from exc
+            raise CaptureError(f"{where}: cannot read image ({exc})") from exc
+        if img.dtype not in (np.uint8, np.uint16):
+            raise CaptureError(f"{where}: image has dtype {img.dtype}, expected uint8 or uint16")
         if img.ndim == 2:
             img = np.repeat(img[..., None], 3, axis=2)
-        if img.ndim != 3 or img.shape[:2] != (self.height, self.width):
+        if img.ndim != 3 or img.shape[:2] != (self.height, self.width) or img.shape[2] not in (3, 4):
             raise CaptureError(
-                f"{path}: image shape {img.shape} does not match {self.height}x{self.width}"
+                f"{where}: image shape {img.shape} does not match {self.height}x{self.width} RGB(A)"
             )
         scale = 65535.0 if img.dtype == np.uint16 else 255.0
         return (img[..., :3].astype(np.float32) / np.float32(scale)).astype(np.float32)
 
     def depth(self, i: int) -> np.ndarray | None:
-        """Sensor z-depth of frame ``i``, (H, W) float32 in normalised units; None if absent."""
+        """Sensor z-depth of frame ``i``, (H, W) float32 in normalised units; None if absent.
+
+        Raises
+        ------
+        CaptureError
+            Unreadable or pickled file, a dtype that is not real floating point (complex,
+            integer, bool), a shape other than (H, W), or values that are NaN, infinite or
+            negative (0 means no hit); the message names the file and the frame.
+        """
         path = self.frames[i].depth_path
         if path is None:
             return None
+        where = f"{path}: frame {i}"
         try:
-            depth = np.load(path, allow_pickle=False)
-        except Exception as exc:  # corrupt or non-npy file
-            raise CaptureError(f"{path}: cannot read depth ({exc})") from exc
-        depth = np.squeeze(depth)
-        if depth.shape != (self.height, self.width):
+            # Memory-mapped: the dtype and shape are checked before anything is read, so a
+            # forged header asking for terabytes costs nothing.
+            stored = np.load(path, allow_pickle=False, mmap_mode="r")
+        except Exception as exc:  # corrupt, truncated or non-npy file
+            raise CaptureError(f"{where}: cannot read depth ({exc})") from exc
+        if not isinstance(stored, np.ndarray):
+            raise CaptureError(f"{where}: depth must be one .npy array, got {type(stored).__name__}")
+        if stored.dtype.kind != "f":
             raise CaptureError(
-                f"{path}: depth shape {depth.shape} does not match {self.height}x{self.width}"
+                f"{where}: depth has dtype {stored.dtype}, expected real floating point "
+                "(float16, float32 or float64)"
             )
-        if not np.all(np.isfinite(depth)):
-            raise CaptureError(f"{path}: depth has non-finite values")
-        return depth.astype(np.float32)
+        if np.squeeze(stored).shape != (self.height, self.width):
+            raise CaptureError(
+                f"{where}: depth shape {stored.shape} does not match {self.height}x{self.width}"
+            )
+        # Cast first: a float64 value beyond float32's range becomes inf and is refused below.
+        with np.errstate(over="ignore"):
+            depth = np.squeeze(np.asarray(stored, dtype=np.float32))
+        del stored
+        bad = int(np.count_nonzero(~np.isfinite(depth)))
+        if bad:
+            raise CaptureError(f"{where}: depth has {bad} non-finite values (NaN or inf)")
+        negative = int(np.count_nonzero(depth < 0))
+        if negative:
+            raise CaptureError(
+                f"{where}: depth has {negative} negative values (min {float(depth.min()):g}); "
+                "z-depth must be >= 0, 0 meaning no hit"
+            )
+        return depth
 
     def camtoworld_metres(self, i: int) -> np.ndarray:
-        """(4, 4) float64 OpenCV cam-to-world of frame ``i`` in metres (rotation orthonormal)."""
-        pose = self.frames[i].camtoworld.copy()
-        pose[:3, 3] = self.worldtogt[:3, :3] @ pose[:3, 3] + self.worldtogt[:3, 3]
-        return pose
+        """(4, 4) float64 OpenCV cam-to-world of frame ``i`` in metres (rotation orthonormal).
+
+        ``worldtogt = [[s R_w, c], [0, 1]]`` moves the camera centre to ``s R_w t + c`` and
+        turns its axes by ``R_w``; the scale does not apply to the axes (the pose stays rigid).
+        """
+        pose = self.frames[i].camtoworld
+        A = self.worldtogt[:3, :3]
+        out = np.eye(4)
+        out[:3, :3] = (A / similarity_scale(self.worldtogt)) @ pose[:3, :3]
+        out[:3, 3] = A @ pose[:3, 3] + self.worldtogt[:3, 3]
+        return out
 
     def train_indices(self) -> list[int]:
         """Indices of training frames."""
@@ -135,9 +307,13 @@ class Capture:
     def gt_mesh(self) -> trimesh.Trimesh | None:
         """The ground-truth mesh in metres, or None if the capture has none."""
         rel = self.meta.get("gt_mesh_path")
-        if not rel or not (self.root / rel).is_file():
+        if not rel:
             return None
-        return trimesh.load(self.root / rel, force="mesh", process=False)
+        # Checked inside the folder by load_capture; checked again in case meta was edited.
+        path = capture_file(self.root, rel, f"{self.root / META_NAME}: regnf.gt_mesh_path", must_exist=False)
+        if not path.is_file():
+            return None
+        return trimesh.load(path, force="mesh", process=False)
 
 
 # ----------------------------------------------------------------------------- loading helpers
@@ -157,14 +333,51 @@ def _matrix(value: Any, shapes: Sequence[tuple[int, ...]], where: str) -> np.nda
     return arr
 
 
-def _existing(root: Path, rel: Any, where: str) -> Path:
-    """Resolve a file named in the metadata and check it exists."""
-    if not isinstance(rel, str) or not rel:
+def capture_file(root: Path, rel: Any, where: str, must_exist: bool = True) -> Path:
+    """The file ``rel`` named in a capture's metadata, checked to lie inside ``root``.
+
+    Parameters
+    ----------
+    root : Path
+        The capture folder (absolute).
+    rel : Any
+        The path as stored in ``meta_data.json``; relative to ``root`` (absolute paths are
+        accepted only if they too resolve inside it).
+    where : str
+        ``"<meta_data.json>: frames[i].rgb_path"``, for the message.
+    must_exist : bool
+        Also require a regular file there.
+
+    Returns
+    -------
+    Path
+        ``root / rel``.
+
+    Raises
+    ------
+    CaptureError
+        Not a non-empty string, resolving (symlinks followed, ``..`` applied) outside
+        ``root``, or, with ``must_exist``, not an existing file.
+    """
+    if not isinstance(rel, str) or not rel or "\x00" in rel:
         raise CaptureError(f"{where} must be a non-empty path string, got {rel!r}")
     path = root / rel
-    if not path.is_file():
+    # realpath on both sides: a symlinked capture folder is fine, a symlink (or "..", or an
+    # absolute path) leading out of it is not: training must read only the capture.
+    real, base = Path(os.path.realpath(path)), Path(os.path.realpath(root))
+    if not real.is_relative_to(base) or real == base:
+        raise CaptureError(f"{where}: {rel!r} resolves to {real}, outside the capture folder {base}")
+    if must_exist and not real.is_file():
         raise CaptureError(f"{where}: file {path} not found")
     return path
+
+
+def _obey(rule: Callable[[np.ndarray], object], value: np.ndarray, where: str) -> None:
+    """Apply a pose rule (a function raising ValueError) and name ``where`` if it fails."""
+    try:
+        rule(value)
+    except ValueError as exc:
+        raise CaptureError(f"{where}: {exc}") from exc
 
 
 def _to_4x4(mat: np.ndarray) -> np.ndarray:
@@ -185,19 +398,21 @@ def _load_frame(root: Path, data: Any, where: str) -> CaptureFrame:
         raise CaptureError(f"{where}.split must be one of {SPLITS}, got {split!r}")
     depth_rel = data.get("sensor_depth_path")
     mono_rel = data.get("mono_depth_path")
+    camtoworld = _to_4x4(_matrix(data["camtoworld"], [(4, 4), (3, 4)], f"{where}.camtoworld"))
+    _obey(check_rigid_pose, camtoworld, f"{where}.camtoworld")
+    intrinsics = _matrix(data["intrinsics"], [(4, 4), (3, 3)], f"{where}.intrinsics")[:3, :3].copy()
+    _obey(check_intrinsics, intrinsics, f"{where}.intrinsics")
     return CaptureFrame(
-        rgb_path=_existing(root, data["rgb_path"], f"{where}.rgb_path"),
+        rgb_path=capture_file(root, data["rgb_path"], f"{where}.rgb_path"),
         depth_path=None
         if depth_rel is None
-        else _existing(root, depth_rel, f"{where}.sensor_depth_path"),
-        camtoworld=_to_4x4(_matrix(data["camtoworld"], [(4, 4), (3, 4)], f"{where}.camtoworld")),
-        intrinsics=_matrix(data["intrinsics"], [(4, 4), (3, 3)], f"{where}.intrinsics")[
-            :3, :3
-        ].copy(),
+        else capture_file(root, depth_rel, f"{where}.sensor_depth_path"),
+        camtoworld=camtoworld,
+        intrinsics=intrinsics,
         split=split,
         mono_depth_path=None
         if mono_rel is None
-        else _existing(root, mono_rel, f"{where}.mono_depth_path"),
+        else capture_file(root, mono_rel, f"{where}.mono_depth_path"),
     )
 
 
@@ -225,21 +440,29 @@ def _load_instance(root: Path, data: Any, where: str) -> Instance:
         scale=scale,
         yaw=yaw,
         box_corners=None if corners is None else _matrix(corners, [(8, 3)], f"{where}.box_corners"),
-        mesh_path=None if not mesh_rel else _existing(root, mesh_rel, f"{where}.mesh_path"),
+        mesh_path=None if not mesh_rel else capture_file(root, mesh_rel, f"{where}.mesh_path"),
     )
 
 
 def load_capture(path: str | Path) -> Capture:
     """Load and validate a capture folder (or its ``meta_data.json``).
 
+    Everything the metadata says is checked here, before any image is read (see the module
+    docstring); images and depths are checked as they are read.
+
     Raises
     ------
     CaptureError
         On a missing folder or file, bad JSON, missing keys, wrong matrix shapes or non-finite
-        values; the message names the offending file and entry.
+        values, a path leading outside the folder, a non-rigid or singular pose, a ``K``
+        with focal lengths <= 0, a ``worldtogt`` that is not a similarity; the message names
+        the offending file and entry (``frames[i]``).
     """
     path = Path(path)
     meta_path = path / META_NAME if path.is_dir() or path.suffix != ".json" else path
+    # Absolute (not resolved: the user's spelling stays readable in messages), so that frame
+    # paths, provenance and cache keys do not depend on the working directory.
+    meta_path = Path(os.path.abspath(meta_path))
     root = meta_path.parent
     if not meta_path.is_file():
         raise CaptureError(f"{meta_path}: file not found (is this a capture folder?)")
@@ -269,6 +492,7 @@ def load_capture(path: str | Path) -> Capture:
     worldtogt = np.eye(4)
     if data.get("worldtogt") is not None:
         worldtogt = _matrix(data["worldtogt"], [(4, 4)], f"{meta_path}: worldtogt")
+        _obey(similarity_scale, worldtogt, f"{meta_path}: worldtogt")
     box = data.get("scene_box") or {}
     if not isinstance(box, dict):
         raise CaptureError(f"{meta_path}: scene_box must be an object")
@@ -290,6 +514,8 @@ def load_capture(path: str | Path) -> Capture:
     meta = data.get("regnf") or {}
     if not isinstance(meta, dict):
         raise CaptureError(f"{meta_path}: 'regnf' must be an object")
+    if meta.get("gt_mesh_path"):
+        capture_file(root, meta["gt_mesh_path"], f"{meta_path}: regnf.gt_mesh_path", must_exist=False)
     return Capture(root, width, height, frames, worldtogt, scene_box, instances, meta)
 
 
@@ -345,7 +571,8 @@ def write_capture(
     worldtogt : (4, 4) float
         Normalised -> metres similarity (uniform scale, no rotation).
     instances : sequence of Instance
-        Placed objects (metres); their ``mesh_path`` is stored relative to ``out_dir``.
+        Placed objects (metres); their ``mesh_path`` must lie inside ``out_dir`` and is stored
+        relative to it.
     meta : dict, optional
         The ``regnf`` block.
     splits : sequence of str, optional
@@ -355,6 +582,13 @@ def write_capture(
     -------
     Path
         The written ``meta_data.json``.
+
+    Raises
+    ------
+    ValueError
+        Before anything is written: inconsistent counts or shapes, a pose that is not rigid,
+        a ``K`` that :func:`check_intrinsics` refuses, a ``worldtogt`` that is not a
+        similarity, an instance mesh outside ``out_dir``.
     """
     out = Path(out_dir)
     poses = np.asarray(camtoworld_metres, dtype=np.float64)
@@ -370,6 +604,28 @@ def write_capture(
     splits = ["train"] * n if splits is None else list(splits)
     if len(splits) != n or any(s not in SPLITS for s in splits):
         raise ValueError(f"write_capture({out}): need {n} splits from {SPLITS}")
+    # The loader's rules, applied before any file is written: a capture this writes loads.
+    for i in range(n):
+        for rule, value, what in ((check_rigid_pose, poses[i], "pose"), (check_intrinsics, Ks[i], "K")):
+            try:
+                rule(value)
+            except ValueError as exc:
+                raise ValueError(f"write_capture({out}): frame {i} {what}: {exc}") from exc
+    try:
+        scale = similarity_scale(worldtogt)
+    except ValueError as exc:
+        raise ValueError(f"write_capture({out}): worldtogt: {exc}") from exc
+    # Poses are normalised by moving their centres only (below), which is right only when
+    # worldtogt does not rotate.
+    turn = float(np.abs(np.asarray(worldtogt, np.float64)[:3, :3] / scale - np.eye(3)).max())
+    if turn > POSE_RTOL:
+        raise ValueError(f"write_capture({out}): worldtogt must not rotate (|A / s - I| = {turn:.3g})")
+    for inst in instances:
+        if inst.mesh_path is not None and not Path(inst.mesh_path).resolve().is_relative_to(out.resolve()):
+            raise ValueError(
+                f"write_capture({out}): instance {inst.id!r} mesh {inst.mesh_path} is outside the "
+                "capture folder (a capture may name only files inside it)"
+            )
     height, width = np.asarray(frames_rgb[0]).shape[:2]
     s = float(np.cbrt(np.linalg.det(worldtogt[:3, :3])))
     c = np.asarray(worldtogt, dtype=np.float64)[:3, 3]
@@ -403,12 +659,7 @@ def write_capture(
     for inst in instances:
         rel = None
         if inst.mesh_path is not None:
-            p = Path(inst.mesh_path).resolve()
-            rel = (
-                p.relative_to(out.resolve()).as_posix()
-                if p.is_relative_to(out.resolve())
-                else str(p)
-            )
+            rel = Path(inst.mesh_path).resolve().relative_to(out.resolve()).as_posix()
         inst_json.append(inst.to_json(mesh_path=rel))
     data = {
         "camera_model": "OPENCV",

@@ -13,17 +13,19 @@ import pytest
 import torch
 from safetensors.torch import save_file
 
-from neural_fields import checkpoint
 from neural_fields.checkpoint import (
+    DIGEST_KEY,
     HEADER_KEY,
     CheckpointError,
+    content_digest,
     field_header,
     load_field,
     read_header,
     save_field,
 )
 from neural_fields.field import FieldInfo, Symmetry
-from neural_fields.neural_sdf import ARCHITECTURE, NeuralSDF, NeuralSDFConfig
+from neural_fields.neural_sdf import ARCHITECTURE, NeuralSDF, NeuralSDFConfig, parameter_count
+from synthetic import atomic_io
 
 TINY = NeuralSDFConfig(
     levels=3,
@@ -74,6 +76,10 @@ def tensors_of(field: NeuralSDF) -> dict[str, torch.Tensor]:
 
 
 def forge(path: Path, tensors: dict[str, torch.Tensor], header: dict | str | None) -> Path:
+    """Write a checkpoint by hand. A dict header gets a correct content digest (as a forger
+    can compute one), so that the check each test aims at is reached, not the digest's."""
+    if isinstance(header, dict):
+        header = {**header, DIGEST_KEY: content_digest(header, tensors)}
     meta = (
         None
         if header is None
@@ -121,7 +127,8 @@ def test_round_trip_is_bit_identical(tmp_path: Path, encoding: str) -> None:
         "nested": {"a": [1, 2.5, None]},
     }
     header = read_header(path)
-    assert header == json.loads(json.dumps(field_header(field)))
+    # Format 2: the stored header is field_header plus the content digest.
+    assert header == {**json.loads(json.dumps(field_header(field))), DIGEST_KEY: header[DIGEST_KEY]}
     assert header["architecture"] == ARCHITECTURE
     assert header["config"]["encoding"] == encoding
 
@@ -213,7 +220,7 @@ def test_corrupted_json_header(tmp_path: Path) -> None:
         ),
         ({"config": {**TINY.to_json(), "encoding": "fourier"}}, "bad architecture config.*fourier"),
         ({"bounds": [[0.0, 0.0, 0.0]]}, "'bounds' has shape"),
-        ({"bounds": [[1.0, 1.0, 1.0], [0.0, 0.0, 0.0]]}, "cannot build the field"),
+        ({"bounds": [[1.0, 1.0, 1.0], [0.0, 0.0, 0.0]]}, "'bounds' must have min < max"),
         ({"to_world": [[1.0, 0.0], [0.0, 1.0]]}, "'to_world' has shape"),
         ({"to_world": [[float("nan")] * 4] * 4}, "'to_world' has non-finite"),
         ({"bounds": "everywhere"}, "'bounds' is not a numeric matrix"),
@@ -292,11 +299,10 @@ def test_failed_save_leaves_the_old_checkpoint_intact(
     path = save_field(make_field(seed=0), tmp_path / "f.safetensors")
     before = path.read_bytes()
 
-    def half_written(tensors, filename, metadata=None):
-        Path(filename).write_bytes(b"\x00" * 1000)  # some bytes reach the disk, then it fails
+    def disk_full(fd: int) -> None:  # the bytes were written to the temporary, then the flush fails
         raise OSError("disk full")
 
-    monkeypatch.setattr(checkpoint, "save_file", half_written)
+    monkeypatch.setattr(atomic_io.os, "fsync", disk_full)
     with pytest.raises(OSError, match="disk full"):
         save_field(make_field(seed=1), path)
     assert path.read_bytes() == before
@@ -308,10 +314,10 @@ def test_failed_save_leaves_the_old_checkpoint_intact(
 
 
 def test_failed_first_save_leaves_nothing(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    def fail(tensors, filename, metadata=None):
+    def fail(fd: int) -> None:
         raise KeyboardInterrupt  # even an interrupt must not leave a partial file
 
-    monkeypatch.setattr(checkpoint, "save_file", fail)
+    monkeypatch.setattr(atomic_io.os, "fsync", fail)
     with pytest.raises(KeyboardInterrupt):
         save_field(make_field(), tmp_path / "new.safetensors")
     assert os.listdir(tmp_path) == []
@@ -336,11 +342,25 @@ def test_wrongly_typed_header_values(tmp_path: Path, change: dict) -> None:
 
 
 def test_forged_huge_grid_is_refused_before_allocating(tmp_path: Path) -> None:
-    # A header asking for a 4096^3 grid would need terabytes; the skeleton is built on the
-    # meta device and the stored shapes are compared first, so this fails fast and cleanly.
+    # A header asking for a 4096^3 grid would need terabytes; its parameter count is over the
+    # limit, so it is refused from the header alone (format 2), before any skeleton is built.
     field = make_field()
     huge = {**TINY.to_json(), "levels": 2, "base_resolution": 2048, "finest_resolution": 4096}
     path = forge(tmp_path / "huge.safetensors", tensors_of(field), {**field_header(field), "config": huge})
-    with pytest.raises(CheckpointError, match="shape|unexpected tensors") as err:
+    with pytest.raises(CheckpointError, match="architecture refused: .* parameters exceed") as err:
         load_field(path)
     assert str(path) in str(err.value)
+
+
+@pytest.mark.parametrize(
+    "change",
+    [{}, {"encoding": "hash", "hash_table_size_log2": 9}, {"view_dependent": True, "hidden_layers": 0},
+     {"levels": 1, "finest_resolution": 8}],
+    ids=["dense", "hash", "view-dependent-no-hidden", "one-level"],
+)
+def test_parameter_count_is_exact_without_building(change: dict) -> None:
+    # The architecture limit is checked on this count, before any model exists.
+    config = NeuralSDFConfig(**{**TINY.to_json(), **change})
+    bounds = torch.tensor([[-0.9, -0.5, -0.3], [0.8, 0.6, 0.95]])
+    model = NeuralSDF(config, bounds=bounds)
+    assert parameter_count(config, bounds[1] - bounds[0]) == sum(p.numel() for p in model.parameters())
