@@ -142,6 +142,50 @@ def symmetry_rotations(
     return R, t
 
 
+def symmetry_axis(library_to_world: np.ndarray) -> np.ndarray:
+    """(3,) unit vector: the canonical +Z axis (the symmetry axis) in the LIBRARY FIELD frame.
+
+    ``library_to_world`` is ``W``: library field frame -> canonical object frame (a similarity).
+    """
+    Rw, _, _ = (np.asarray(a, dtype=np.float64) for a in decompose_similarity(library_to_world))
+    return Rw.T @ np.array([0.0, 0.0, 1.0])
+
+
+def symmetric_angle(Q: np.ndarray, axis: np.ndarray, order: int) -> float:
+    """Geodesic angle from the rotation ``Q`` to the nearest symmetry rotation about ``axis``.
+
+    Two scene -> library rotations ``R1``, ``R2`` describe the same pose of an object with
+    this symmetry when ``Q = R2 R1^T`` is one of its symmetries; this is how far it is from
+    being one (0 when it is).
+
+    Parameters
+    ----------
+    Q : (3, 3) float
+        A rotation in the library field frame.
+    axis : (3,) float
+        Unit symmetry axis in the library field frame (:func:`symmetry_axis`).
+    order : int
+        1: no symmetry (the plain geodesic angle); k > 1: rotations by 2 pi j / k;
+        0: every rotation about ``axis``.
+    """
+    Q = np.asarray(Q, dtype=np.float64)
+    a = np.asarray(axis, dtype=np.float64)
+    a = a / np.linalg.norm(a)
+    if order == 1:
+        return float(geodesic_angle(Q))
+    if order > 1:
+        th = 2.0 * math.pi * np.arange(order) / order
+        S = Rotation.from_rotvec(np.outer(th, a)).as_matrix()
+        return float(geodesic_angle(np.swapaxes(S, -1, -2) @ Q).min())
+    # Continuous: trace(Rot(a, th)^T Q) = a.Qa + cos(th) (tr Q - a.Qa) + sin(th) tr([a]x^T Q),
+    # largest at sqrt(p^2 + q^2) above a.Qa; the angle follows from the trace.
+    aqa = float(a @ Q @ a)
+    K = np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
+    p_, q_ = float(np.trace(Q)) - aqa, float(np.trace(K.T @ Q))
+    best = aqa + math.hypot(p_, q_)
+    return float(np.arccos(np.clip(0.5 * (best - 1.0), -1.0, 1.0)))
+
+
 def _min_over_symmetry(fn: Callable[[np.ndarray], np.ndarray], symmetry: Symmetry) -> float:
     """min over the group of ``fn(thetas) -> (m,)``, vectorised over ``thetas`` (m,)."""
     order = int(symmetry.order)

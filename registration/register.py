@@ -28,9 +28,11 @@ from registration.initialisation import (
     Hypothesis,
     InitConfig,
     NoHypothesisError,
+    ObjectSymmetry,
     centroid_hypothesis,
     initial_hypotheses,
 )
+from registration.metrics import symmetry_axis
 from registration.proposal import ProposalBox
 from registration.refinement import RefineConfig, refine_many
 from registration.result import HypothesisReport, RegistrationResult
@@ -76,13 +78,20 @@ def sample_pair(
     return scene, library
 
 
+def library_symmetry(library_field: Field) -> ObjectSymmetry:
+    """The declared symmetry of a library field, its axis in the library field frame."""
+    W = library_field.to_world.detach().cpu().double().numpy()
+    return ObjectSymmetry(int(library_field.info.symmetry.order), symmetry_axis(W))
+
+
 def hypotheses_or_fallback(
-    scene: SurfaceSamples, library: SurfaceSamples, config: InitConfig
+    scene: SurfaceSamples, library: SurfaceSamples, config: InitConfig,
+    symmetry: ObjectSymmetry | None = None,
 ) -> list[Hypothesis]:
     """Stage 2, or the centroid start when RANSAC finds nothing, so that the refinement
     runs and a low confidence (not an exception) reports the failed registration."""
     try:
-        return initial_hypotheses(scene, library, config)
+        return initial_hypotheses(scene, library, config, symmetry)
     except NoHypothesisError:
         return [centroid_hypothesis(scene, library, config)]
 
@@ -126,7 +135,7 @@ def register(
     timings["sampling"] = time.perf_counter() - t0
 
     t1 = time.perf_counter()
-    hyps = hypotheses_or_fallback(scene_samples, lib_samples, cfg.init)
+    hyps = hypotheses_or_fallback(scene_samples, lib_samples, cfg.init, library_symmetry(library_field))
     timings["initialisation"] = time.perf_counter() - t1
 
     t2 = time.perf_counter()

@@ -115,3 +115,49 @@ def test_bad_inputs_raise(library: SurfaceSamples) -> None:
     bad = SurfaceSamples(library.points[:, :2], library.normals, library.view_ids)
     with pytest.raises(ValueError, match=r"\(n, 3\)"):
         initial_hypotheses(bad, library)
+
+
+# -- hypotheses equal under the object's symmetry are one ------------------------------------
+def _rot(axis: np.ndarray, angle: float) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+
+    a = np.asarray(axis, dtype=np.float64)
+    return Rotation.from_rotvec(angle * a / np.linalg.norm(a)).as_matrix()
+
+
+def test_symmetric_angle_is_zero_on_the_group_and_the_tilt_off_it() -> None:
+    from registration.metrics import symmetric_angle
+
+    axis = np.array([0.3, -0.2, 0.9])
+    axis /= np.linalg.norm(axis)
+    side = np.cross(axis, [1.0, 0.0, 0.0])
+    side /= np.linalg.norm(side)
+    for k in range(4):
+        assert symmetric_angle(_rot(axis, k * np.pi / 2), axis, 4) == pytest.approx(0.0, abs=1e-7)
+    assert symmetric_angle(_rot(axis, np.pi / 4), axis, 4) == pytest.approx(np.pi / 4)
+    assert symmetric_angle(_rot(axis, 1.234), axis, 0) == pytest.approx(0.0, abs=1e-7)
+    # A tilt of 0.3 rad about an axis perpendicular to the symmetry axis, after any spin about
+    # it, is 0.3 rad from the group (the nearest symmetry undoes the spin).
+    Q = _rot(side, 0.3) @ _rot(axis, 2.0)
+    assert symmetric_angle(Q, axis, 0) == pytest.approx(0.3, abs=1e-7)
+    assert symmetric_angle(Q, axis, 1) == pytest.approx(geodesic_angle(Q))
+
+
+def test_hypotheses_a_symmetry_maps_onto_each_other_are_merged() -> None:
+    from registration.initialisation import ObjectSymmetry, _select
+
+    axis = np.array([0.0, 0.0, 1.0])
+    R1 = _rot([1.0, 0.5, 0.2], 0.7)
+    spun = [_rot(axis, a) @ R1 for a in (0.0, 0.45, 0.9, 1.3)]  # equal poses of a round table
+    tilted = _rot([1.0, 0.0, 0.0], 0.6) @ R1  # a different pose
+    hyps = [Hypothesis(SimilarityTransform(R, np.zeros(3), 1.0), f, 0.01)
+            for R, f in zip([*spun, tilted], (0.9, 0.85, 0.8, 0.75, 0.7))]
+    cfg = InitConfig(top_k=5)
+    assert len(_select(hyps, cfg)) == 5  # no symmetry: five distinct rotations
+    kept = _select(hyps, cfg, ObjectSymmetry(0, axis))
+    assert [h.fitness for h in kept] == [0.9, 0.7]  # the best of the four, and the tilted one
+    four_fold = _select(hyps, cfg, ObjectSymmetry(4, axis))
+    assert len(four_fold) == 5  # spins of 0.45, 0.9, 1.3 rad are at least 15 degrees from quarter turns
+    quarter = [Hypothesis(SimilarityTransform(_rot(axis, k * np.pi / 2) @ R1, np.zeros(3), 1.0), 0.9 - k / 10, 0.01)
+               for k in range(4)]
+    assert len(_select(quarter, cfg, ObjectSymmetry(4, axis))) == 1
