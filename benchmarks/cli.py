@@ -104,6 +104,15 @@ class BenchRegistration:
     """3 pairs, every method, no single-view or scale rows."""
     single_view: bool = True
     """Also run Table II (one uninformative scene view per object)."""
+    coverage: Literal["full", "low", "both"] = "both"
+    """Scene fields trained on the full-coverage captures, the low-coverage ones (objects seen from
+    one or two sides), or both. Table I with every method runs on full coverage only."""
+    library: Literal["rgbd", "mesh", "both"] = "both"
+    """Library fields trained from RGB-D captures, distilled from the meshes, or both (Table I
+    with every method: RGB-D only)."""
+    wrong_pairs: bool = True
+    """Also register every object into the boxes of the other class and every chair into every
+    other chair's box, in every setting, and report the false-accept rates."""
     markdown: Path | None = None
     """Also write the tables as Markdown here."""
     device: str = "cpu"
@@ -124,11 +133,22 @@ class BenchRegistration:
         import os
 
         from benchmarks.registration import PAPER_REGNF, run_registration_benchmark
-        from benchmarks.registration_report import before_after_png, medians, table_one, table_two
+        from benchmarks.registration_report import (
+            before_after_png,
+            coverage_table,
+            is_reference,
+            medians,
+            pair_table,
+            table_one,
+            table_two,
+            wrong_pair_table,
+        )
         from regnf.executors import ExecutorConfig
 
         command = ("regnf bench registration" + (" --quick" if self.quick else "")
                    + ("" if self.single_view else " --no-single-view") + f" --json {self.json}"
+                   + f" --coverage {self.coverage} --library {self.library}"
+                   + ("" if self.wrong_pairs else " --no-wrong-pairs")
                    + (f" --executor {self.executor}" if self.executor != "local" else "")
                    + (f" --workers {self.workers}" if self.workers != 1 else ""))
         threads = self.threads_per_task or max(1, (os.cpu_count() or 1) // max(1, self.workers))
@@ -137,17 +157,30 @@ class BenchRegistration:
                                       address=self.address)
         except ValueError as exc:
             raise SystemExit(f"regnf bench registration: {exc}") from exc
+        coverages = ("full", "low") if self.coverage == "both" else (self.coverage,)
+        sources = ("rgbd", "mesh") if self.library == "both" else (self.library,)
         rows = run_registration_benchmark(Cache(self.cache_dir), quick=self.quick,
                                           single_view=self.single_view, device=self.device,
-                                          executor=executor)
+                                          executor=executor, coverages=coverages, library_sources=sources,
+                                          with_wrong_pairs=self.wrong_pairs)
         pngs = self.json.parent / (self.json.stem + "_png")
         for r in rows:
-            if r["method"] == "regnf" and r["views"] == "multi":
-                before_after_png(r["_result"], pngs / f"{r['scene']}_{r['object']}.png")
+            if r["method"] == "regnf" and r["views"] == "multi" and not r["wrong_pair"]:
+                tag = "" if is_reference(r) else f"_{r['coverage']}_{r['library_source']}"
+                before_after_png(r["_result"], pngs / f"{r['scene']}_{r['object']}{tag}.png")
         clean = [{k: v for k, v in r.items() if not k.startswith("_")} for r in rows]
         write_json(self.json, {"meta": run_meta(command, self.device), "rows": clean})
-        text = (f"Command: `{command}`\n\n### Table I\n\n{table_one(clean, PAPER_REGNF)}\n"
-                f"### Medians over the pairs\n\n{medians(clean)}\n### Table II\n\n{table_two(clean)}")
+        text = f"Command: `{command}`\n\n"
+        if any(is_reference(r) for r in clean):
+            text += (f"### Table I\n\n{table_one(clean, PAPER_REGNF)}\n"
+                     f"### Medians over the pairs\n\n{medians(clean)}\n### Table II\n\n{table_two(clean)}\n")
+        text += f"### Every coverage and library source (method regnf)\n\n{coverage_table(clean)}\n"
+        for cov in coverages:
+            for src in sources:
+                if (cov, src) != ("full", "rgbd"):
+                    text += f"#### {cov} coverage, {src} library\n\n{pair_table(clean, cov, src)}\n"
+        if self.wrong_pairs:
+            text += f"### Wrong-object pairs\n\n{wrong_pair_table(clean)}"
         if self.markdown:
             from synthetic.atomic_io import write_text
 

@@ -1,9 +1,23 @@
 """Registration benchmark: the paper's Table I (11 scene/object pairs x methods) and Table II
-(single uninformative view versus multi-view sampling), plus a scale sweep.
+(single uninformative view versus multi-view sampling), a scale sweep, the same 11 pairs on
+the low-coverage rooms and with mesh-distilled libraries, and wrong-object pairs.
 
 Fields come from the cache (trained once, see ``regnf bench fields``); proposals are the
 instances' ground-truth boxes (the paper's assumption); every method goes through the same
 sampling and the same metrics.
+
+Rows: one per registration, with the scene, the library ``object`` registered, the ``method``,
+``views``, the error metrics of :func:`registration.metrics.registration_errors`, ``seconds``,
+``confidence``, ``accepted``, and ``coverage`` (``full`` or ``low``: which capture the scene
+field was trained on), ``library_source`` (``rgbd`` or ``mesh``), ``wrong_pair`` (the box holds
+another object) and ``box_object`` (the library name of the object the box really holds). A
+wrong pair has no true pose: its error metrics are null.
+
+Wrong pairs (``wrong_pairs=True``): on every room, coverage and library source, every library
+object of one class into every box of the other class (chairs into tables' boxes and the
+reverse), and every chair into every other chair's box. An identification that works rejects
+every cross-class pair, and gives each wrong chair a lower confidence than the right chair for
+its box (or rejects it).
 """
 
 from __future__ import annotations
@@ -25,7 +39,7 @@ from neural_fields.field import Field
 from neural_fields.similarity import similarity_matrix
 from registration.baselines import register_fgr, register_init_only, register_nerf2nerf
 from registration.ground_truth import find_instance, proposal_from_instance, true_scene_to_library
-from registration.metrics import registration_errors
+from registration.metrics import RegistrationErrors, registration_errors
 from registration.proposal import ProposalBox
 from registration.register import RegistrationConfig, paper_method, register, single_hypothesis
 from registration.result import RegistrationResult
@@ -34,7 +48,8 @@ from regnf.cache import Cache
 from regnf.executors import ExecutorConfig, run_tasks
 from synthetic.capture import RoomCaptureConfig
 from synthetic.instance import Instance
-from synthetic.library import make_library_object
+from synthetic.library import LIBRARY_NAMES, make_library_object
+from synthetic.rooms import ROOM_CONTENTS
 
 TABLE_I_PAIRS: tuple[tuple[str, str], ...] = (
     ("ac-room", "c"), ("ac-room", "dc"), ("ac-room", "fc"), ("ac-room", "fc-nop"), ("ac-room", "mc"),
@@ -44,6 +59,13 @@ TABLE_I_PAIRS: tuple[tuple[str, str], ...] = (
 """The paper's Table I: room, library object."""
 
 QUICK_PAIRS = (("ac-room", "dc"), ("atbl-room", "t"), ("mix-room", "fc"))
+
+COVERAGES = ("full", "low")
+"""Room captures: the full trajectory, or the short low-coverage one (objects seen from a side)."""
+LIBRARY_SOURCES = ("rgbd", "mesh")
+"""Library fields trained from RGB-D captures of the objects, or distilled from their meshes."""
+REFERENCE = ("full", "rgbd")
+"""The (coverage, library source) of Table I with every method, Table II and the scale sweep."""
 
 METHODS = ("regnf", "regnf-single", "regnf-k1", "regnf-init", "fgr", "nerf2nerf")
 """``regnf``: ours. Baselines: ``regnf-single`` (Reg-NF as published: one hypothesis, the
@@ -107,10 +129,22 @@ def pair_truth(inst: Instance, scene: Field, library: Field, seed: int = 0) -> P
     return PairTruth(truth, proposal_from_instance(inst, S), surface_lib, diag)
 
 
+METRIC_KEYS = tuple(RegistrationErrors._fields)
+"""Error columns of a row (null for a wrong pair)."""
+
+
 def run_pair(scene_name: str, obj: str, scene: Field, library: Field, capture, methods, single_view: bool,
-             cfg: RegistrationConfig, seed: int = 0) -> list[dict]:
-    inst = find_instance(capture.instances, obj)
-    truth, proposal, surface_lib, diag = pair_truth(inst, scene, library, seed)
+             cfg: RegistrationConfig, seed: int = 0, box_object: str | None = None,
+             coverage: str = "full", library_source: str = "rgbd") -> list[dict]:
+    """Rows of library object ``obj`` registered into the box of ``box_object`` (default: its own)."""
+    box_object = box_object or obj
+    wrong = box_object != obj
+    inst = find_instance(capture.instances, box_object)
+    if wrong:  # no true pose: only the box is used
+        S = scene.to_world.detach().cpu().double().numpy()
+        proposal, truth, surface_lib, diag = proposal_from_instance(inst, S), None, None, float("nan")
+    else:
+        truth, proposal, surface_lib, diag = pair_truth(inst, scene, library, seed)
     if single_view:
         cfg = dataclasses.replace(cfg, scene_sampling=dataclasses.replace(cfg.scene_sampling, views="single"))
     runners: dict[str, Callable[[], RegistrationResult]] = {
@@ -126,11 +160,15 @@ def run_pair(scene_name: str, obj: str, scene: Field, library: Field, capture, m
         t = time.perf_counter()
         res = runners[m]()
         seconds = time.perf_counter() - t
+        errors = (dict.fromkeys(METRIC_KEYS) if wrong
+                  else evaluate(res, truth, scene, library, surface_lib, diag))
         rows.append({
             "scene": scene_name, "object": obj, "method": m,
             "views": "single" if single_view else "multi",
-            **evaluate(res, truth, scene, library, surface_lib, diag),
+            **errors,
             "seconds": seconds, "confidence": res.confidence, "accepted": res.accepted,
+            "coverage": coverage, "library_source": library_source, "wrong_pair": wrong,
+            "box_object": box_object,
             "_result": res, "_truth": truth,
         })
     return rows
@@ -153,50 +191,86 @@ class PairTask(NamedTuple):
     """Scale sweep: the library field in a frame this many times larger (1: as trained)."""
     device: str = "cpu"
     """Torch device."""
+    coverage: str = "full"
+    """Capture of the scene field: ``full`` or ``low``."""
+    library_source: str = "rgbd"
+    """Library field: trained from RGB-D (``rgbd``) or distilled from the mesh (``mesh``)."""
+    box_object: str | None = None
+    """The object whose box is the proposal (None: ``obj`` itself; another one: a wrong pair)."""
+
+
+def wrong_pairs(scene: str) -> list[tuple[str, str]]:
+    """(library object, box object) wrong pairs of a room: every object of the other class into
+    each box, and every other chair into each chair's box."""
+    labels = {name: make_library_object(name).label for name in LIBRARY_NAMES}
+    out = []
+    for box in ROOM_CONTENTS[scene]:
+        for obj in LIBRARY_NAMES:
+            if obj == box:
+                continue
+            if labels[obj] != labels[box] or labels[box] == "chair":
+                out.append((obj, box))
+    return out
 
 
 def benchmark_tasks(cache: Cache, quick: bool = False, single_view: bool = True,
-                    methods=METHODS, device: str = "cpu") -> list[PairTask]:
-    """Table I (every method), Table II (single view, ``regnf``), the scale sweep: one task per pair."""
+                    methods=METHODS, device: str = "cpu", coverages: tuple[str, ...] = ("full",),
+                    library_sources: tuple[str, ...] = ("rgbd",), with_wrong_pairs: bool = False) -> list[PairTask]:
+    """One task per pair: Table I (every method), Table II (single view, ``regnf``) and the scale
+    sweep on the reference (full coverage, RGB-D library); the 11 pairs with ``regnf`` on every
+    other coverage and library source asked for; and the wrong pairs of each."""
     pairs = QUICK_PAIRS if quick else TABLE_I_PAIRS
     root = str(cache.root)
-    tasks = [PairTask(root, scene, obj, tuple(methods), False, 1.0, device) for scene, obj in pairs]
-    if single_view and not quick:
-        first = {}
-        for scene, obj in pairs:
-            first.setdefault(obj, scene)
-        tasks += [PairTask(root, scene, obj, ("regnf",), True, 1.0, device) for obj, scene in first.items()]
-    if not quick:
-        tasks += [PairTask(root, "ac-room", "dc", ("regnf",), False, f, device) for f in (0.25, 4.0)]
+    tasks: list[PairTask] = []
+    for coverage in coverages:
+        for source in library_sources:
+            reference = (coverage, source) == REFERENCE
+            run = tuple(methods) if reference else ("regnf",)
+            tasks += [PairTask(root, scene, obj, run, False, 1.0, device, coverage, source) for scene, obj in pairs]
+            if reference and single_view and not quick:
+                first: dict[str, str] = {}
+                for scene, obj in pairs:
+                    first.setdefault(obj, scene)
+                tasks += [PairTask(root, scene, obj, ("regnf",), True, 1.0, device, coverage, source)
+                          for obj, scene in first.items()]
+            if reference and not quick:
+                tasks += [PairTask(root, "ac-room", "dc", ("regnf",), False, f, device, coverage, source)
+                          for f in (0.25, 4.0)]
+            if with_wrong_pairs:
+                scenes = sorted({scene for scene, _ in pairs})
+                tasks += [PairTask(root, scene, obj, ("regnf",), False, 1.0, device, coverage, source, box)
+                          for scene in scenes for obj, box in wrong_pairs(scene)]
     return tasks
 
 
 def prepare_fields(cache: Cache, tasks: list[PairTask]) -> None:
     """Make every field and capture the tasks need (here, once), so that workers only read them."""
-    for scene in sorted({t.scene for t in tasks}):
-        cache.room_capture(scene, RoomCaptureConfig(coverage="full"))
-        cache.scene_field(scene, "full", tasks[0].device)
-    for obj in sorted({t.obj for t in tasks}):
-        cache.object_field(obj, "rgbd", tasks[0].device)
+    for scene, coverage in sorted({(t.scene, t.coverage) for t in tasks}):
+        cache.room_capture(scene, RoomCaptureConfig(coverage=coverage))
+        cache.scene_field(scene, coverage, tasks[0].device)
+    for obj, source in sorted({(t.obj, t.library_source) for t in tasks}):
+        cache.object_field(obj, source, tasks[0].device)
 
 
 # Per worker process: scene fields and captures already loaded (a worker runs many pairs).
-_LOADED: dict[tuple[str, str], tuple[Field, object]] = {}
+_LOADED: dict[tuple[str, str, str], tuple[Field, object]] = {}
 
 
 def run_pair_task(task: PairTask) -> list[dict]:
     """The rows of one pair (runs in a worker; fields must already be in the cache)."""
     cache = Cache(Path(task.cache_root), progress=False)
-    key = (task.scene, task.device)
+    key = (task.scene, task.coverage, task.device)
     if key not in _LOADED:
-        capture = cache.room_capture(task.scene, RoomCaptureConfig(coverage="full"))
-        _LOADED[key] = (load_field(cache.scene_field(task.scene, "full", task.device), device=task.device), capture)
+        capture = cache.room_capture(task.scene, RoomCaptureConfig(coverage=task.coverage))
+        scene = load_field(cache.scene_field(task.scene, task.coverage, task.device), device=task.device)
+        _LOADED[key] = (scene, capture)
     scene, capture = _LOADED[key]
-    library = load_field(cache.object_field(task.obj, "rgbd", task.device), device=task.device)
+    library = load_field(cache.object_field(task.obj, task.library_source, task.device), device=task.device)
     if task.library_factor != 1.0:
         library = scaled_library(library, task.library_factor)
     rows = run_pair(task.scene, task.obj, scene, library, capture, task.methods, task.single_view,
-                    RegistrationConfig())
+                    RegistrationConfig(), box_object=task.box_object, coverage=task.coverage,
+                    library_source=task.library_source)
     if task.library_factor != 1.0:
         for r in rows:
             r["method"] = f"regnf (library x{task.library_factor:g})"
@@ -205,15 +279,19 @@ def run_pair_task(task: PairTask) -> list[dict]:
 
 def run_registration_benchmark(cache: Cache, quick: bool = False, single_view: bool = True,
                                methods=METHODS, device: str = "cpu",
-                               executor: ExecutorConfig | None = None) -> list[dict]:
-    """All rows: Table I (every method), Table II (single view, default method), scale sweep.
+                               executor: ExecutorConfig | None = None,
+                               coverages: tuple[str, ...] = ("full",),
+                               library_sources: tuple[str, ...] = ("rgbd",),
+                               with_wrong_pairs: bool = False) -> list[dict]:
+    """All rows of :func:`benchmark_tasks` (see the module for what each row holds).
 
     The pairs run as tasks on ``executor`` (default: a local pool of one worker using every
     core, so each pair's time is that of a whole machine); rows come back in task order
     whatever the order of completion. A pair that fails stops the benchmark with its error.
     """
     executor = executor or ExecutorConfig(workers=1, threads_per_task=max(1, torch.get_num_threads()))
-    tasks = benchmark_tasks(cache, quick, single_view, methods, device)
+    tasks = benchmark_tasks(cache, quick, single_view, methods, device, coverages, library_sources,
+                            with_wrong_pairs)
     prepare_fields(cache, tasks)
     results: dict[int, list[dict]] = {}
     bar = tqdm(total=len(tasks), desc=f"bench registration ({executor.kind})", disable=not cache.progress)

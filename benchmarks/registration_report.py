@@ -53,8 +53,25 @@ def before_after_png(result: RegistrationResult, path: Path, size: int = 220) ->
         sheet.save(tmp, format="PNG")
 
 
+BARS = {"rot_geodesic_sym_rad": 0.02, "trans_rel_diag_sym": 0.01, "scale_rel": 0.01}
+"""A registration is within the bars when its symmetry-aware rotation error (rad), centre error
+(fraction of the object's diagonal) and relative scale error are all at most these."""
+
+
+def is_reference(row: dict) -> bool:
+    """A row of Table I's setting: full coverage, RGB-D library, the box's own object."""
+    return (row.get("coverage", "full") == "full" and row.get("library_source", "rgbd") == "rgbd"
+            and not row.get("wrong_pair", False))
+
+
+def within_bars(row: dict) -> bool:
+    """Whether a (right-object) row's errors are all within :data:`BARS`."""
+    return all(row[k] is not None and row[k] <= v for k, v in BARS.items())
+
+
 def table_one(rows: list[dict], paper: dict) -> str:
     """Table I: per pair and method, the symmetric geodesic rotation, translation and scale errors."""
+    rows = [r for r in rows if is_reference(r)]
     header = ("| scene | object | method | ΔR geo sym (rad) | Δt (% diag) | Δs (%) | ADD sym (% diag) | "
               "paper ΔR / Δt / Δs | s | conf |")
     out = [header, "|---|---|---|---|---|---|---|---|---|---|"]
@@ -73,6 +90,7 @@ def table_one(rows: list[dict], paper: dict) -> str:
 
 def table_two(rows: list[dict]) -> str:
     """Table II: single uninformative view against multi-view sampling (default method)."""
+    rows = [r for r in rows if is_reference(r)]
     multi = {r["object"]: r for r in rows if r["views"] == "multi" and r["method"] == "regnf"}
     out = ["| object | views | ΔR geo sym (rad) | Δt (% diag) | Δs (%) |", "|---|---|---|---|---|"]
     for r in rows:
@@ -88,6 +106,7 @@ def table_two(rows: list[dict]) -> str:
 
 def medians(rows: list[dict]) -> str:
     """Median of each error per method over the Table I pairs."""
+    rows = [r for r in rows if is_reference(r)]
     methods = sorted({r["method"] for r in rows if r["views"] == "multi"})
     out = ["| method | median ΔR geo sym (rad) | median Δt (% diag) | median Δs (%) | median s |",
            "|---|---|---|---|---|"]
@@ -97,4 +116,79 @@ def medians(rows: list[dict]) -> str:
                for k in ("rot_geodesic_sym_rad", "trans_rel_diag_sym", "scale_rel", "seconds")}
         out.append(f"| {m} | {med['rot_geodesic_sym_rad']:.4f} | {100 * med['trans_rel_diag_sym']:.2f} | "
                    f"{100 * med['scale_rel']:.2f} | {med['seconds']:.1f} |")
+    return "\n".join(out) + "\n"
+
+
+def _right_rows(rows: list[dict]) -> list[dict]:
+    """``regnf`` multi-view rows of the box's own object (no scale sweep), every setting."""
+    return [r for r in rows if r["method"] == "regnf" and r["views"] == "multi" and not r.get("wrong_pair")]
+
+
+def coverage_table(rows: list[dict]) -> str:
+    """Per coverage and library source: the 11 pairs accepted, within the bars, median errors, times."""
+    out = [("| coverage | library | pairs | accepted | within bars | accepted and within | median ΔR (rad) | "
+            "median Δt (% diag) | median Δs (%) | median s | worst s |"), "|---|---|---|---|---|---|---|---|---|---|---|"]
+    right = _right_rows(rows)
+    for cov, src in sorted({(r.get("coverage", "full"), r.get("library_source", "rgbd")) for r in right}):
+        rs = [r for r in right if (r.get("coverage", "full"), r.get("library_source", "rgbd")) == (cov, src)]
+        med = {k: float(np.median([r[k] for r in rs])) for k in (*BARS, "seconds")}
+        ok = sum(r["accepted"] and within_bars(r) for r in rs)
+        out.append(f"| {cov} | {src} | {len(rs)} | {sum(r['accepted'] for r in rs)} | "
+                   f"{sum(within_bars(r) for r in rs)} | {ok} | {med['rot_geodesic_sym_rad']:.4f} | "
+                   f"{100 * med['trans_rel_diag_sym']:.2f} | {100 * med['scale_rel']:.2f} | "
+                   f"{med['seconds']:.1f} | {max(r['seconds'] for r in rs):.1f} |")
+    return "\n".join(out) + "\n"
+
+
+def pair_table(rows: list[dict], coverage: str, source: str) -> str:
+    """The 11 pairs of one setting: errors, confidence, accepted."""
+    out = ["| scene | object | ΔR geo sym (rad) | Δt (% diag) | Δs (%) | conf | accepted | within bars | s |",
+           "|---|---|---|---|---|---|---|---|---|"]
+    for r in _right_rows(rows):
+        if (r.get("coverage", "full"), r.get("library_source", "rgbd")) != (coverage, source):
+            continue
+        out.append(f"| {r['scene']} | {r['object']} | {r['rot_geodesic_sym_rad']:.4f} | "
+                   f"{100 * r['trans_rel_diag_sym']:.2f} | {100 * r['scale_rel']:.2f} | {r['confidence']:.2f} | "
+                   f"{'yes' if r['accepted'] else 'no'} | {'yes' if within_bars(r) else 'no'} | {r['seconds']:.1f} |")
+    return "\n".join(out) + "\n"
+
+
+def wrong_pair_rates(rows: list[dict]) -> list[dict]:
+    """Per coverage and library source: cross-class false accepts, and within-class ranking.
+
+    A within-class wrong pair (a chair in another chair's box) counts as identified when it
+    is rejected or scores a lower confidence than the box's own chair in the same setting.
+    """
+    right = {(r["scene"], r["object"], r.get("coverage", "full"), r.get("library_source", "rgbd")): r
+             for r in _right_rows(rows)}
+    wrong = [r for r in rows if r.get("wrong_pair")]
+    out = []
+    for cov, src in sorted({(r["coverage"], r["library_source"]) for r in wrong}):
+        rs = [r for r in wrong if (r["coverage"], r["library_source"]) == (cov, src)]
+        cross = [r for r in rs if _label(r["object"]) != _label(r["box_object"])]
+        within = [r for r in rs if r not in cross]
+        lower = [r for r in within
+                 if not r["accepted"] or r["confidence"] < right[(r["scene"], r["box_object"], cov, src)]["confidence"]]
+        out.append({"coverage": cov, "library_source": src, "cross_pairs": len(cross),
+                    "cross_accepted": sum(r["accepted"] for r in cross), "within_pairs": len(within),
+                    "within_accepted": sum(r["accepted"] for r in within),
+                    "within_rejected_or_lower": len(lower)})
+    return out
+
+
+def _label(name: str) -> str:
+    from synthetic.library import make_library_object
+
+    return make_library_object(name).label
+
+
+def wrong_pair_table(rows: list[dict]) -> str:
+    """Markdown of :func:`wrong_pair_rates`."""
+    out = [("| coverage | library | cross-class pairs | false accepts | false-accept rate | chair-in-chair pairs | "
+            "accepted | rejected or below the right chair | rate |"), "|---|---|---|---|---|---|---|---|---|"]
+    for w in wrong_pair_rates(rows):
+        out.append(f"| {w['coverage']} | {w['library_source']} | {w['cross_pairs']} | {w['cross_accepted']} | "
+                   f"{w['cross_accepted'] / max(1, w['cross_pairs']):.0%} | {w['within_pairs']} | "
+                   f"{w['within_accepted']} | {w['within_rejected_or_lower']} | "
+                   f"{w['within_rejected_or_lower'] / max(1, w['within_pairs']):.0%} |")
     return "\n".join(out) + "\n"
