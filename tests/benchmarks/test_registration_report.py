@@ -21,7 +21,7 @@ def _row(obj: str, box: str, conf: float, accepted: bool, **errors: float) -> di
     return {"scene": "ac-room", "object": obj, "box_object": box, "method": "regnf", "views": "multi",
             "coverage": "low", "library_source": "mesh", "wrong_pair": obj != box, "confidence": conf,
             "accepted": accepted, "seconds": 1.0,
-            **{"rot_geodesic_sym_rad": None, "trans_rel_diag_sym": None, "scale_rel": None, **errors}}
+            "rot_geodesic_sym_rad": None, "trans_rel_diag_sym": None, "scale_rel": None, **errors}
 
 
 def test_rates_count_false_accepts_and_wrong_chairs_scoring_below_the_right_one() -> None:
