@@ -132,6 +132,13 @@ class RefineConfig:
     the true pose: scale error 0.65 % without, 0.05-0.15 % with.)"""
     lr_offset: float = 0.003
     """Adam learning rate of delta, *L*."""
+    use_visibility: bool = True
+    """Weight every residual (both terms, and the confidence) by how well the scene field's
+    training views observed the place of its sample (``scene_field.visibility``, recorded at
+    training; a field without it counts as observed everywhere). (Not in the paper. A field
+    trained from a few views knows nothing of an object's far side: counting it as evidence
+    rejects true poses and lets a 180-degree flip that fits the seen half win; a flip that puts
+    library surface into observed free space is still charged for it.)"""
 
     def __post_init__(self) -> None:
         positive = ("lr_rotation", "lr_translation", "lr_scale", "lr_kernel", "kernel_scale_init",
@@ -252,6 +259,11 @@ def _segment_mean(values: torch.Tensor, group: torch.Tensor, counts: torch.Tenso
     return out.index_add(0, group, values) / counts.clamp(min=1)
 
 
+def _segment_sum(values: torch.Tensor, group: torch.Tensor, k: int) -> torch.Tensor:
+    """(k,) sum of ``values`` (n,) per group (n,) long."""
+    return values.new_zeros(k).index_add(0, group, values)
+
+
 class _Nearest:
     """Nearest-neighbour lookup into a fixed point set (KD-tree on CPU, brute force on GPU)."""
 
@@ -322,6 +334,9 @@ class _Batch:
         cfg: RefineConfig,
     ) -> None:
         self.scene, self.library, self.cfg = scene, library, cfg
+        # Where the scene's training views observed space (None: everywhere, e.g. analytic or
+        # mesh-distilled scenes). Samples in unobserved space are no evidence either way.
+        self.visibility = getattr(scene, "visibility", None) if cfg.use_visibility else None
         self.K = K = len(inits)
         dev, dt = A.device, A.dtype
         self.dtype = dt
@@ -383,6 +398,7 @@ class _Batch:
         self.nA = torch.tensor([float(self.A[k].shape[0]) for k in act], device=dev)
         with torch.no_grad():
             self.sA = self.scene.sdf(self.xA)  # S_scene(A): fixed in the scene frame
+            self.wA = self._observed(self.xA)
         _check_finite(self.sA, "the scene field (at A)")
         if self.bidirectional:
             self.gB = torch.cat([torch.full((self.B[k].shape[0],), i, dtype=torch.long, device=dev)
@@ -427,6 +443,12 @@ class _Batch:
                     self.B[k] = self._grow(self.B[k], cB[sel], cfg.min_spacing * L, k)
         self._rebuild()
 
+    def _observed(self, x: torch.Tensor) -> torch.Tensor | None:
+        """(n,) observation weights in [0, 1] of scene-frame points ``x`` (n, 3); None: all observed."""
+        if self.visibility is None:
+            return None
+        return self.visibility.observed(x.detach()).to(x.dtype)
+
     def _directions(self, sets: list[torch.Tensor], like: torch.Tensor) -> torch.Tensor:
         """(n, 3) random unit jitter directions for the stacked active sets, per-hypothesis streams."""
         return torch.cat([_unit_directions(sets[k].shape[0], self.gens[k], like) for k in self.active])
@@ -454,21 +476,37 @@ class _Batch:
         yA = s[gA, None] * torch.einsum("nij,nj->ni", R[gA], self.xA) + t[gA]
         d = (self.delta[idx] * L).to(self.dtype)
         rA = (self.library.sdf(yA) - s[gA] * self.sA - d[gA]).abs()
-        loss = _segment_mean(self.kernel(rA / L, idx[gA]), gA, self.nA)
-        meanA = _segment_mean(rA.detach(), gA, self.nA)
-        inl = _segment_mean((rA.detach() <= cfg.inlier_threshold * L).to(rA.dtype), gA, self.nA) * self.nA
-        count = self.nA.clone()
+        k = len(self.active)
+        if self.wA is None:
+            loss = _segment_mean(self.kernel(rA / L, idx[gA]), gA, self.nA)
+            meanA = _segment_mean(rA.detach(), gA, self.nA)
+            inl = _segment_mean((rA.detach() <= cfg.inlier_threshold * L).to(rA.dtype), gA, self.nA) * self.nA
+            count = self.nA.clone()
+        else:  # every sum weighted by how well the scene's views observed the sample's place
+            wA = self.wA.to(rA.dtype)
+            count = _segment_sum(wA, gA, k)
+            loss = _segment_mean(wA * self.kernel(rA / L, idx[gA]), gA, count)
+            meanA = _segment_mean(wA * rA.detach(), gA, count)
+            inl = _segment_sum(wA * (rA.detach() <= cfg.inlier_threshold * L).to(rA.dtype), gA, k)
         meanB = torch.full_like(meanA, float("nan"))
         reg = torch.zeros_like(meanA)
         if self.bidirectional:
             gB = self.gB
             xB = torch.einsum("nji,nj->ni", R[gB], self.yB - t[gB]) / s[gB, None]
             rB = (s[gB] * self.scene.sdf(xB) + d[gB] - self.sB).abs()
-            loss = loss + _segment_mean(self.kernel(rB / L, idx[gB]), gB, self.nB)
-            meanB = _segment_mean(rB.detach(), gB, self.nB)
-            inl = inl + _segment_mean((rB.detach() <= cfg.inlier_threshold * L).to(rB.dtype), gB,
-                                      self.nB) * self.nB
-            count = count + self.nB
+            wB = self._observed(xB)  # where the library sample lands in the scene, at this pose
+            if wB is None:
+                loss = loss + _segment_mean(self.kernel(rB / L, idx[gB]), gB, self.nB)
+                meanB = _segment_mean(rB.detach(), gB, self.nB)
+                inl = inl + _segment_mean((rB.detach() <= cfg.inlier_threshold * L).to(rB.dtype), gB,
+                                          self.nB) * self.nB
+                count = count + self.nB
+            else:
+                cB = _segment_sum(wB, gB, k)
+                loss = loss + _segment_mean(wB * self.kernel(rB / L, idx[gB]), gB, cB)
+                meanB = _segment_mean(wB * rB.detach(), gB, cB)
+                inl = inl + _segment_sum(wB * (rB.detach() <= cfg.inlier_threshold * L).to(rB.dtype), gB, k)
+                count = count + cB
             if cfg.regulariser_weight > 0:
                 reg = torch.stack([self._regulariser(yA[gA == i], k) for i, k in enumerate(self.active)])
                 loss = loss + cfg.regulariser_weight * reg
