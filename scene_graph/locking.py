@@ -7,15 +7,15 @@ drop the first one's change, so every writer in :mod:`scene_graph` holds :func:`
 before the read until after the write. Readers take no lock: files are replaced atomically
 and the root layer last, and a reader may have no right to write the folder at all.
 
-The lock is re-entrant within a thread (an edit holding it calls :func:`write_stage`, which
-takes it too), and a waiting writer gives up after :data:`STAGE_LOCK_TIMEOUT_S`.
+The lock nests within a thread (an edit holding it calls :func:`write_stage`, which takes it
+too; a command holding its output folder writes a stage there), and a waiting writer gives
+up after :data:`STAGE_LOCK_TIMEOUT_S`.
 """
 
 from __future__ import annotations
 
 import contextlib
 import os
-import threading
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -29,16 +29,6 @@ STAGE_LOCK_TIMEOUT_S = 60.0
 """Seconds a writer waits for another writer of the same stage folder before it raises
 ``synthetic.file_lock.LockBusy``. An edit holds the lock well under a second (an export of a
 large stage a few seconds), so a full minute only runs out when something is stuck."""
-
-_local = threading.local()
-
-
-def _held() -> set[str]:
-    """Real paths of the folders whose lock this thread holds."""
-    if not hasattr(_local, "held"):
-        _local.held = set()
-    return _local.held
-
 
 def _make_folders(folder: Path) -> list[Path]:
     """Create ``folder`` and missing parents; return those created, outermost first."""
@@ -89,10 +79,6 @@ def stage_lock(stage_path: str | os.PathLike, create: bool = False) -> Iterator[
     """
     stage_path = Path(stage_path).absolute()
     folder = stage_path.parent
-    key = os.path.realpath(folder)
-    if key in _held():  # this thread holds it already: an edit calling write_stage
-        yield folder
-        return
     if not create and not stage_path.is_file():
         raise StageError(stage_path, "/", "no such stage file")
     made = _make_folders(folder) if create else []
@@ -103,11 +89,7 @@ def stage_lock(stage_path: str | os.PathLike, create: bool = False) -> Iterator[
             except (PermissionError, FileNotFoundError, NotADirectoryError) as exc:
                 raise StageError(folder / LOCK_NAME, "/", f"cannot take the lock of the stage's folder to write "
                                  f"{stage_path.name}: {exc.strerror or exc}") from exc
-            _held().add(key)
-            try:
-                yield folder
-            finally:
-                _held().discard(key)
+            yield folder
     except BaseException:
         if made:
             (folder / LOCK_NAME).unlink(missing_ok=True)

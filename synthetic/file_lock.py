@@ -13,8 +13,9 @@ file while a second still waits on the old one. It holds the pid and host of the
 holder, which the "busy" message quotes.
 
 Record locks belong to a process, not to a file descriptor, so within one process a
-registry of held paths stands in for them (a second ``with file_lock(p)`` in the same
-process waits for the first, as another process would).
+registry of held paths stands in for them: a second ``with file_lock(p)`` in another thread
+waits for the first, as another process would, and one in the same thread (a command that
+holds its output folder and calls a writer that locks the same folder) simply nests.
 """
 
 from __future__ import annotations
@@ -36,6 +37,7 @@ POLL_SECONDS = 0.05
 
 _held: dict[str, threading.Lock] = {}
 _registry_guard = threading.Lock()
+_this_thread = threading.local()
 
 
 class LockBusy(RuntimeError):
@@ -62,6 +64,13 @@ def _thread_lock(key: str) -> threading.Lock:
         return _held.setdefault(key, threading.Lock())
 
 
+def _held_here() -> set[str]:
+    """Keys of the locks the calling thread holds."""
+    if not hasattr(_this_thread, "keys"):
+        _this_thread.keys = set()
+    return _this_thread.keys
+
+
 def _read_holder(fd: int) -> str:
     try:
         os.lseek(fd, 0, os.SEEK_SET)
@@ -83,6 +92,9 @@ def file_lock(lock_path: str | os.PathLike, what: str = "this folder", timeout: 
     timeout : float
         Seconds to wait for another holder; 0 fails at once, ``inf`` waits for ever.
 
+    The lock nests: a thread that holds it already enters at once (and keeps it until its
+    outermost block ends).
+
     Raises
     ------
     LockBusy
@@ -91,8 +103,12 @@ def file_lock(lock_path: str | os.PathLike, what: str = "this folder", timeout: 
         The file system does not support locks.
     """
     path = Path(lock_path).absolute()
+    key = os.path.realpath(path)
+    if key in _held_here():
+        yield path
+        return
     deadline = time.monotonic() + timeout
-    local = _thread_lock(os.path.realpath(path))
+    local = _thread_lock(key)
     if not local.acquire(timeout=-1 if timeout == float("inf") else max(0.0, timeout)):
         raise LockBusy(path, what, "another thread of this process")
     try:
@@ -110,9 +126,11 @@ def file_lock(lock_path: str | os.PathLike, what: str = "this folder", timeout: 
                     time.sleep(POLL_SECONDS)
             os.ftruncate(fd, 0)
             os.pwrite(fd, f"pid {os.getpid()} on {socket.gethostname()}\n".encode(), 0)
+            _held_here().add(key)
             try:
                 yield path
             finally:
+                _held_here().discard(key)
                 fcntl.lockf(fd, fcntl.LOCK_UN)
         finally:
             os.close(fd)
