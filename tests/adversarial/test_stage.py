@@ -360,3 +360,15 @@ def test_check_writable_refuses_a_read_only_folder(monkeypatch: pytest.MonkeyPat
         if (folder / "stage").exists():
             os.chmod(folder / "stage", 0o755)
         shutil.rmtree(folder, ignore_errors=True)
+
+
+def test_a_command_holding_its_output_folder_can_write_and_export_a_stage_in_it(tmp_path: Path) -> None:
+    # As regnf demo does: its folder's lock is held while the stage and the package are written there.
+    from scene_graph import export_stage
+    from synthetic.output_dir import owned_output_dir
+
+    out = tmp_path / "demo"
+    with owned_output_dir(out, "test-command"):
+        stage = make_stage(out, ("c", "t"))
+        export_stage(stage, out / "room.usdz")
+    assert (out / "room.usdz").is_file()
