@@ -17,6 +17,16 @@ Nothing in a checkpoint is trusted:
 - quantities stored twice, in the header and as a buffer in the weights (:data:`STORED_TWICE`),
   must agree exactly.
 
+A field that records where its training views observed space (``field.visibility``, see
+:mod:`neural_fields.visibility`) stores the grid's counts as the tensor ``visibility.counts``
+(uint8) and its metadata as the header's ``visibility`` block (null without one). Both are
+covered by the digest and checked on load: the block's types, its resolution against
+:class:`ArchitectureLimits` before anything is read, the tensor's shape against the block and
+its dtype. :func:`attach_visibility` adds a grid to a checkpoint from the capture it was
+trained on, without retraining. The grid is optional, so files without it (format 2 files
+written before grids existed have no ``visibility`` key) still load, with
+``visibility = None``; the format version stays 2.
+
 Format versions: 2 (this one) added the digest. Version-1 files carry none, so nothing proves
 their weights are the ones that were saved: :func:`read_header`, :func:`load_field` and
 :func:`verify_checkpoint` refuse them with a message saying to retrain the field (the cache,
@@ -36,7 +46,7 @@ import json
 import math
 import os
 import re
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import BinaryIO, NamedTuple
@@ -47,7 +57,14 @@ from safetensors.torch import save as save_to_bytes
 
 from neural_fields.field import FieldInfo, Symmetry
 from neural_fields.neural_sdf import ARCHITECTURE, NeuralSDF, NeuralSDFConfig, parameter_count
+from neural_fields.rgbd_samples import CaptureLike, capture_where
 from neural_fields.similarity import decompose_similarity
+from neural_fields.visibility import (
+    DEFAULT_MARGIN,
+    DEFAULT_RESOLUTION,
+    VisibilityGrid,
+    build_visibility,
+)
 from synthetic.atomic_io import write_bytes
 
 HEADER_KEY = "regnf"
@@ -61,6 +78,12 @@ LEGACY_FORMAT_VERSIONS = (1,)
 
 DIGEST_KEY = "sha256"
 """Header key of the content digest (64 lowercase hex digits)."""
+
+VISIBILITY_KEY = "visibility"
+"""Header key of the visibility grid's metadata (:meth:`VisibilityGrid.to_json`), or null."""
+
+VISIBILITY_TENSOR = "visibility.counts"
+"""Name of the visibility grid's counts, (R_x, R_y, R_z) uint8, when the header has a grid."""
 
 STORED_TWICE = {"bounds": "bounds", "to_world": "to_world"}
 """Header keys that the weights also hold as a buffer (header key -> tensor name). A reader of
@@ -97,6 +120,13 @@ MAX_PARAMETERS = 2**28
 """Trainable values in all (268 M, 1 GiB of float32; presets: 4 M for an object, about 30 M
 for a room). Bounds what building the field allocates, whatever the other values combine to."""
 
+MAX_VISIBILITY_RESOLUTION = 1024
+"""Voxels along any axis of a visibility grid (training's default: 128 on the longest)."""
+
+MAX_VISIBILITY_VOXELS = 2**26
+"""Voxels of a visibility grid in all (67 M: 64 MiB of uint8 counts and the 256 MiB float32
+lookup volume built on load; training's default: at most 2.1 M)."""
+
 
 @dataclass(frozen=True)
 class ArchitectureLimits:
@@ -116,6 +146,10 @@ class ArchitectureLimits:
     """See :data:`MAX_HASH_TABLE_SIZE_LOG2`."""
     max_parameters: int = MAX_PARAMETERS
     """See :data:`MAX_PARAMETERS`."""
+    max_visibility_resolution: int = MAX_VISIBILITY_RESOLUTION
+    """See :data:`MAX_VISIBILITY_RESOLUTION`."""
+    max_visibility_voxels: int = MAX_VISIBILITY_VOXELS
+    """See :data:`MAX_VISIBILITY_VOXELS`."""
 
 
 class CheckpointError(ValueError):
@@ -177,8 +211,46 @@ def check_architecture(
     return count
 
 
+def check_visibility(meta: Mapping, limits: ArchitectureLimits | None = None) -> int:
+    """Refuse a visibility grid beyond ``limits``, from its parsed metadata (nothing allocated).
+
+    Parameters
+    ----------
+    meta : Mapping
+        :meth:`VisibilityGrid.parse_json` of the header's block.
+    limits : ArchitectureLimits, optional
+        Defaults to the module's MAX_* constants.
+
+    Returns
+    -------
+    int
+        The grid's number of voxels.
+
+    Raises
+    ------
+    ValueError
+        Naming the axis or the voxel count over its limit.
+    """
+    lim = limits or ArchitectureLimits()
+    resolution = meta["resolution"]
+    for axis, n in zip("xyz", resolution):
+        if n > lim.max_visibility_resolution:
+            raise ValueError(
+                f"{n} voxels along {axis} exceed the limit {lim.max_visibility_resolution} "
+                "(ArchitectureLimits.max_visibility_resolution)"
+            )
+    voxels = math.prod(resolution)
+    if voxels > lim.max_visibility_voxels:
+        raise ValueError(
+            f"{voxels} voxels exceed the limit {lim.max_visibility_voxels} "
+            "(ArchitectureLimits.max_visibility_voxels)"
+        )
+    return voxels
+
+
 def field_header(field: NeuralSDF) -> dict:
     """The JSON header describing ``field`` (everything but the weights and the digest)."""
+    visibility = getattr(field, "visibility", None)
     return {
         "format_version": FORMAT_VERSION,
         "architecture": ARCHITECTURE,
@@ -189,6 +261,7 @@ def field_header(field: NeuralSDF) -> dict:
         "name": field.info.name,
         "symmetry": field.info.symmetry.to_json(),
         "provenance": field.info.provenance,
+        VISIBILITY_KEY: None if visibility is None else visibility.to_json(),
     }
 
 
@@ -331,6 +404,8 @@ class _Parsed(NamedTuple):
     to_world: torch.Tensor
     """(4, 4) float64."""
     info: FieldInfo
+    visibility: dict | None
+    """:meth:`VisibilityGrid.parse_json` of the header's block; None without a grid."""
 
 
 def _read(
@@ -393,7 +468,24 @@ def _parse(path: Path, header: dict, limits: ArchitectureLimits | None) -> _Pars
         check_architecture(config, bounds[1] - bounds[0], limits)
     except ValueError as exc:
         raise CheckpointError(path, f"architecture refused: {exc}") from exc
-    return _Parsed(config, bounds.float(), to_world, _field_info(path, header))
+    visibility = None
+    if header.get(VISIBILITY_KEY) is not None:  # absent in files written before grids existed
+        try:
+            visibility = VisibilityGrid.parse_json(header[VISIBILITY_KEY])
+        except (TypeError, ValueError) as exc:
+            raise CheckpointError(path, f"bad '{VISIBILITY_KEY}' block: {exc}") from exc
+        try:
+            check_visibility(visibility, limits)
+        except ValueError as exc:
+            raise CheckpointError(path, f"visibility grid refused: {exc}") from exc
+    return _Parsed(config, bounds.float(), to_world, _field_info(path, header), visibility)
+
+
+def _expected_visibility(parsed: _Parsed) -> dict[str, tuple[tuple[int, ...], torch.dtype]]:
+    """The visibility tensor a header asks for (name -> (shape, dtype)); empty without a grid."""
+    if parsed.visibility is None:
+        return {}
+    return {VISIBILITY_TENSOR: (tuple(parsed.visibility["resolution"]), torch.uint8)}
 
 
 def _check_version(path: Path, version: object, allow_legacy: bool) -> None:
@@ -456,7 +548,8 @@ def read_header(
         Missing or unreadable file, no or corrupted header, an unsupported (or, without
         ``allow_legacy``, legacy) format version, unknown architecture, a config of the
         wrong types or beyond ``limits``, bounds with min >= max, a ``to_world`` that is not
-        a similarity, badly typed label / name / symmetry / provenance, a malformed digest.
+        a similarity, badly typed label / name / symmetry / provenance, a malformed digest,
+        a ``visibility`` block of the wrong types or beyond ``limits``.
         The digest itself is compared by :func:`verify_checkpoint` and :func:`load_field`.
     """
     return _read(Path(path), limits, allow_legacy)[0]
@@ -466,24 +559,30 @@ def verify_checkpoint(path: str | os.PathLike, limits: ArchitectureLimits | None
     """Check a checkpoint's integrity without building the field; returns its header.
 
     :func:`read_header`'s checks, the content digest (the whole file is hashed, in constant
-    memory), and the tensors :data:`STORED_TWICE` against the header. What it does not do is
+    memory), the tensors :data:`STORED_TWICE` against the header, and the visibility counts'
+    presence, shape and dtype against the header's ``visibility`` block. What it does not do is
     :func:`load_field`'s tensor-by-tensor validation against the architecture, which needs
     the model: a file that passes here was written by :func:`save_field` and not altered.
 
     Raises
     ------
     CheckpointError
-        Any of :func:`read_header`'s, a digest mismatch (corrupted or edited file), or a
-        buffer that disagrees with its header copy. Legacy (version-1) files are refused.
+        Any of :func:`read_header`'s, a digest mismatch (corrupted or edited file), a
+        buffer that disagrees with its header copy, or visibility counts missing, unexpected,
+        or of another shape or dtype than the header's block says. Legacy (version-1) files
+        are refused.
     """
     path = Path(path)
-    header = read_header(path, limits)
+    header, parsed = _read(path, limits, allow_legacy=False)
     _check_digest(path, header)
+    visibility = _expected_visibility(parsed)
     try:
         with safe_open(str(path), framework="pt") as f:
-            missing = sorted(set(STORED_TWICE.values()) - set(f.keys()))
+            names = set(f.keys())
+            missing = sorted(set(STORED_TWICE.values()) - names)
             if missing:
                 raise CheckpointError(path, f"missing tensors {missing}")
+            _check_visibility_tensor(path, visibility, names, f)
             tensors = {name: f.get_tensor(name) for name in STORED_TWICE.values()}
     except CheckpointError:
         raise
@@ -491,6 +590,41 @@ def verify_checkpoint(path: str | os.PathLike, limits: ArchitectureLimits | None
         raise CheckpointError(path, f"truncated or corrupted tensor data ({exc})") from exc
     _check_stored_twice(path, header, tensors)
     return header
+
+
+_SAFETENSORS_DTYPES = {torch.uint8: "U8"}
+"""How safetensors names the dtypes checked from a tensor's index entry."""
+
+
+def _check_visibility_tensor(
+    path: Path,
+    expected: Mapping[str, tuple[tuple[int, ...], torch.dtype]],
+    names: set[str],
+    f: object,
+) -> None:
+    """The visibility counts are stored iff the header has a grid, with its shape and dtype.
+
+    ``expected`` is :func:`_expected_visibility`, ``names`` the file's tensors, ``f`` the open
+    ``safe_open`` handle (only index entries are read).
+    """
+    if not expected:
+        if VISIBILITY_TENSOR in names:
+            raise CheckpointError(
+                path, f"unexpected tensors ['{VISIBILITY_TENSOR}'] (the header has no visibility grid)"
+            )
+        return
+    ((name, (shape, dtype)),) = expected.items()
+    if name not in names:
+        raise CheckpointError(path, f"missing tensors ['{name}'] (the header has a visibility grid)")
+    entry = f.get_slice(name)  # type: ignore[attr-defined]
+    stored = tuple(entry.get_shape())
+    if stored != shape:
+        raise CheckpointError(
+            path, f"tensor '{name}' has shape {stored}, the header's visibility resolution {list(shape)}"
+        )
+    want = _SAFETENSORS_DTYPES[dtype]
+    if entry.get_dtype() != want:
+        raise CheckpointError(path, f"tensor '{name}' has dtype {entry.get_dtype()}, expected {want}")
 
 
 # -- saving and loading ------------------------------------------------------------------------
@@ -549,10 +683,12 @@ def load_field(
     CheckpointError
         Any of :func:`read_header`'s; missing / unexpected tensors, wrong shapes or dtypes, a
         content digest mismatch, non-finite weights, a buffer that disagrees with its header
-        copy (``to_world``, ``bounds``).
+        copy (``to_world``, ``bounds``). The field's ``visibility`` is the stored grid, or None
+        when the header has none.
     """
     path = Path(path)
-    header, (config, bounds, to_world, info) = _read(path, limits, allow_legacy)
+    header, parsed = _read(path, limits, allow_legacy)
+    config, bounds, to_world, info, visibility = parsed
     try:
         # Build a weightless skeleton first (meta device: nothing is allocated), so that the
         # stored shapes are compared before the real field allocates anything. The header's
@@ -562,6 +698,7 @@ def load_field(
     except (TypeError, ValueError, AttributeError, RuntimeError) as exc:
         raise CheckpointError(path, f"cannot build the field from the header: {exc}") from exc
     expected = {k: (tuple(v.shape), v.dtype) for k, v in skeleton.state_dict().items()}
+    expected.update(_expected_visibility(parsed))
     try:
         with safe_open(str(path), framework="pt") as f:
             names = set(f.keys())
@@ -590,9 +727,84 @@ def load_field(
     except (SafetensorError, OSError, ValueError, RuntimeError) as exc:
         raise CheckpointError(path, f"truncated or corrupted tensor data ({exc})") from exc
     _check_stored_twice(path, header, state)
+    counts = state.pop(VISIBILITY_TENSOR, None)
     field = NeuralSDF(config, bounds=bounds, to_world=to_world, info=info)
     field.load_state_dict(state)
+    if visibility is not None:
+        meta = {k: v for k, v in visibility.items() if k != "resolution"}
+        try:
+            field.visibility = VisibilityGrid(counts, **meta)
+        except ValueError as exc:  # parse_json checked every value: a bug if it fires
+            raise CheckpointError(path, f"bad visibility grid: {exc}") from exc
     return field.to(device)
+
+
+def attach_visibility(
+    checkpoint_path: str | os.PathLike,
+    capture: CaptureLike,
+    out_path: str | os.PathLike | None = None,
+    resolution: int = DEFAULT_RESOLUTION,
+    margin: float = DEFAULT_MARGIN,
+    pixel_stride: int = 1,
+    device: torch.device | str = "cpu",
+    indices: Sequence[int] | None = None,
+    limits: ArchitectureLimits | None = None,
+) -> Path:
+    """Give a checkpoint the visibility grid of the capture it was trained on, without retraining.
+
+    For fields trained elsewhere or before fields recorded visibility: the grid is built from
+    ``capture``'s training frames over the field's bounds
+    (:func:`neural_fields.visibility.build_visibility`), as
+    :func:`neural_fields.training.train_rgbd` builds it, and replaces any grid the checkpoint
+    had. Everything else (weights, header, provenance) is kept; the file is rewritten
+    atomically with a new digest.
+
+    Parameters
+    ----------
+    checkpoint_path : str or PathLike
+        A checkpoint of a field trained on ``capture`` (it lives in the capture's normalised
+        frame: its ``to_world`` is the capture's ``worldtogt``).
+    capture : Capture
+        The loaded capture (:func:`synthetic.sdfstudio_format.load_capture`).
+    out_path : str or PathLike, optional
+        Where to write the result; default: replace ``checkpoint_path``.
+    resolution, margin, pixel_stride, device, indices
+        As for :func:`neural_fields.visibility.build_visibility` (defaults: training's).
+    limits : ArchitectureLimits, optional
+        For loading and saving (default: the MAX_* constants).
+
+    Returns
+    -------
+    Path
+        The written checkpoint.
+
+    Raises
+    ------
+    CheckpointError
+        Any of :func:`load_field`'s or :func:`save_field`'s, or a field whose ``to_world`` is
+        not the capture's ``worldtogt`` (its frame is not the capture's: the grid would not
+        line up with it).
+    CaptureError
+        The capture has no training frame with depth, or a depth file is bad.
+    """
+    path = Path(checkpoint_path)
+    field = load_field(path, limits=limits)
+    worldtogt = torch.as_tensor(capture.worldtogt, dtype=torch.float64)  # type: ignore[attr-defined]
+    # Training sets to_world to the capture's worldtogt exactly; a tolerance admits a
+    # checkpoint that went through float32 elsewhere, not another frame.
+    diff = float((field.to_world - worldtogt).abs().max())
+    if not diff <= 1e-6 * (1.0 + float(worldtogt.abs().max())):
+        raise CheckpointError(
+            path,
+            f"to_world differs from the worldtogt of {capture_where(capture)} by up to {diff:.3g}: "
+            "the field does not live in this capture's normalised frame, so its visibility "
+            "cannot be taken from it",
+        )
+    field.visibility = build_visibility(
+        capture, field.bounds, resolution=resolution, margin=margin, pixel_stride=pixel_stride,
+        device=device, indices=indices,
+    )
+    return save_field(field, path if out_path is None else out_path, limits)
 
 
 def _matrix(path: Path, key: str, value: object, shape: tuple[int, int]) -> torch.Tensor:

@@ -11,8 +11,12 @@ from __future__ import annotations
 import abc
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import torch
+
+if TYPE_CHECKING:
+    from neural_fields.visibility import VisibilityGrid
 
 DEFAULT_CHUNK = 65536
 """Points evaluated per batch by the chunked helpers (bounded memory, still vectorised)."""
@@ -64,10 +68,17 @@ class Field(torch.nn.Module, metaclass=abc.ABCMeta):
     Subclasses implement :meth:`sdf` and :meth:`color` on batched points and set
     ``bounds`` (2, 3) and ``to_world`` (4, 4) as buffers. Everything else (gradients,
     chunked evaluation, devices) is shared.
+
+    ``visibility`` is where the field's training views observed space
+    (:class:`neural_fields.visibility.VisibilityGrid`, in the field frame), or None: nothing
+    recorded, every point counts as observed (analytic fields, fields distilled from a mesh,
+    checkpoints saved before fields recorded it). A grid assigned to it becomes a submodule:
+    ``to(device)`` moves it and ``state_dict()`` holds its counts.
     """
 
     bounds: torch.Tensor
     to_world: torch.Tensor
+    visibility: VisibilityGrid | None
 
     def __init__(
         self,
@@ -92,6 +103,7 @@ class Field(torch.nn.Module, metaclass=abc.ABCMeta):
         # float64 keeps chained similarity transforms exact to well below a micrometre.
         self.register_buffer("to_world", to_world.clone())
         self.info = info or FieldInfo()
+        self.visibility = None
 
     # -- the two methods a field must provide -------------------------------------------
     @abc.abstractmethod

@@ -15,6 +15,12 @@ A cached field is verified before it is reused (:func:`neural_fields.checkpoint.
 its content digest, and the provenance naming the data it was made from); one that fails
 (truncated, flipped bits, an older checkpoint format, another field under its name) is ours,
 so it is remade and replaced atomically.
+
+A cached RGB-D field saved before fields recorded where their training views observed space
+(no visibility grid, see :mod:`neural_fields.visibility`) is kept: :meth:`Cache.rgbd_field`
+builds the grid from the entry's capture (the one its key and provenance name), attaches it
+and re-saves the entry atomically, without retraining. Only the header's ``visibility`` block,
+the counts tensor and the digest change; the provenance stays, so the entry is reused.
 """
 
 from __future__ import annotations
@@ -29,7 +35,14 @@ from pathlib import Path
 
 import trimesh
 
-from neural_fields.checkpoint import CheckpointError, save_field, verify_checkpoint
+from neural_fields.checkpoint import (
+    VISIBILITY_KEY,
+    CheckpointError,
+    attach_visibility,
+    read_header,
+    save_field,
+    verify_checkpoint,
+)
 from neural_fields.distill import DistillConfig, distill_mesh
 from neural_fields.field import FieldInfo, Symmetry
 from neural_fields.presets import object_mesh_preset, object_rgbd_preset, scene_rgbd_preset
@@ -186,9 +199,21 @@ class Cache:
         return self.root / "fields" / f"{stem}-rgbd-{config_key(config, fingerprint)}.safetensors", fingerprint
 
     def rgbd_field(self, capture: Capture, config: RGBDTrainConfig) -> Path:
-        """Checkpoint of a field trained on ``capture`` with ``config`` (trained if missing or damaged)."""
+        """Checkpoint of a field trained on ``capture`` with ``config`` (trained if missing or damaged).
+
+        An intact entry without the visibility grid that ``config`` asks for (trained before
+        fields recorded one) gets it from ``capture`` and is re-saved, not retrained.
+        """
         path, fingerprint = self.rgbd_entry(capture, config)
         if reusable(path, {"data_sha256": fingerprint}):
+            if config.visibility_resolution > 0 and read_header(path).get(VISIBILITY_KEY) is None:
+                log.info("adding the visibility grid to cached field %s", path)
+                # The key hashed this capture's bytes, so it is the data the field was trained
+                # on: the grid is the one training would have attached.
+                attach_visibility(
+                    path, capture, resolution=config.visibility_resolution,
+                    margin=config.visibility_margin, device=config.device,
+                )
             return path
         info = capture_info(capture)
         info.provenance = {"source": "rgbd", "capture": str(capture.root), "data_sha256": fingerprint}

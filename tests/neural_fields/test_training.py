@@ -2,16 +2,19 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
+from neural_fields.dense_grid import grid_shape
 from neural_fields.evaluation import heldout_psnr, relative_surface_errors
 from neural_fields.field import FieldInfo
 from neural_fields.neural_sdf import NeuralSDF, NeuralSDFConfig
 from neural_fields.training import RGBDTrainConfig, train_rgbd
+from neural_fields.visibility import VisibilityGrid, build_visibility
 from synthetic.sdfstudio_format import Capture, load_capture, write_capture
 
 from .capture_helpers import (
@@ -156,6 +159,29 @@ def test_trained_field_frame_bounds_and_provenance(trained: NeuralSDF, capture: 
     assert prov["train_frames"] == len(capture.train_indices()) == N_VIEWS - N_VIEWS // 8
     assert prov["train_config"]["steps"] == STEPS
     assert not trained.training
+
+
+def test_trained_field_records_where_its_views_observed(trained: NeuralSDF, capture: Capture) -> None:
+    grid = trained.visibility
+    assert isinstance(grid, VisibilityGrid)
+    # Over the field's bounds, in its frame (the capture's normalised one), from the training
+    # frames only; the same grid a checkpoint without one would be given later.
+    assert torch.equal(grid.bounds, trained.bounds)
+    assert grid.resolution == grid_shape(128, trained.bounds[1] - trained.bounds[0])
+    assert grid.views == len(capture.train_indices()) == 35
+    assert torch.equal(grid.counts, build_visibility(capture, trained.bounds).counts)
+    # 35 views from all around: the surface is observed; deep inside the solids is not.
+    points, _ = surface_samples(4000, seed=3)
+    w = grid.observed(as_tensor(points))
+    assert float(w.mean()) > 0.99 and float((w > 0.5).float().mean()) > 0.995
+    inside = as_tensor(np.array([BOX_CENTER, [0.4, 0.2, -0.3], SPHERE_CENTER]))
+    assert grid.observed(inside).tolist() == [0.0, 0.0, 0.0]
+
+
+def test_visibility_resolution_zero_attaches_no_grid(capture: Capture) -> None:
+    config = dataclasses.replace(tiny_config(steps=1), visibility_resolution=0)
+    field, _ = train_rgbd(capture, config, progress=False)
+    assert field.visibility is None
 
 
 def test_training_is_deterministic_for_a_seed(capture: Capture) -> None:
