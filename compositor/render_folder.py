@@ -10,7 +10,7 @@ evaluations per pixel).
 Nothing half-done is ever left in the folder: every camera is checked first (a camera
 inside matter, or a view of more than :data:`MAX_PIXELS`, is refused before anything is
 rendered), the views are written to a staging folder inside the output folder
-(``.regnf-tmp-render-XXXXXXXX``, see :mod:`synthetic.output_dir`), and only when all of
+(``.regnf-tmp-render-<random>``, see :mod:`synthetic.output_dir`), and only when all of
 them are done are they moved into place, ``render.json`` last. On any error the staging
 folder is removed and the output folder is as it was.
 

@@ -269,7 +269,7 @@ def staging_prefix(label: str) -> str:
 
 
 def make_staging_dir(parent: str | os.PathLike, label: str) -> Path:
-    """A new, empty staging folder in ``parent``, named ``.regnf-tmp-<label>-XXXXXXXX``.
+    """A new, empty staging folder in ``parent``, named ``.regnf-tmp-<label>-<random>``.
 
     It gets the permissions a plain ``mkdir`` would (``mkdtemp`` makes it 0700), so that
     once renamed into place it reads as the user's umask says. The caller must hold
