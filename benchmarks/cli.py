@@ -190,6 +190,38 @@ class BenchRegistration:
 
 
 @dataclass
+class BenchDistill:
+    """Distil defective meshes (holes, flipped faces, parts...) and measure them against the clean shape."""
+
+    json: Path = Path("out/bench_distill.json")
+    """Where to write the rows (JSON); rewritten after each row."""
+    quick: bool = False
+    """Four chair rows (clean, holes, flipped, components) instead of every shape and defect."""
+    markdown: Path | None = None
+    """Also write the table as Markdown here."""
+    device: str = "cpu"
+    """Torch device."""
+
+    def run(self) -> None:
+        check_outputs(self)
+        from benchmarks.distill import markdown_table, run_distill_benchmark
+
+        command = "regnf bench distill" + (" --quick" if self.quick else "") + f" --json {self.json}"
+        meta = run_meta(command, self.device)
+        rows = run_distill_benchmark(
+            quick=self.quick, device=self.device,
+            on_row=lambda done: write_json(self.json, {"meta": meta, "rows": done}),
+        )
+        table = markdown_table(rows)
+        if self.markdown:
+            from synthetic.atomic_io import write_text
+
+            write_text(self.markdown, f"Command: `{command}`\n\n{table}")
+        console.print(table)
+        console.print(f"results: {self.json}")
+
+
+@dataclass
 class BenchRender:
     """Sphere tracer against volume rendering on the composite room; object completion."""
 

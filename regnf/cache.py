@@ -43,7 +43,7 @@ from neural_fields.checkpoint import (
     save_field,
     verify_checkpoint,
 )
-from neural_fields.distill import DistillConfig, distill_mesh
+from neural_fields.distill import DISTILL_VERSION, DistillConfig, distill_mesh
 from neural_fields.field import FieldInfo, Symmetry
 from neural_fields.presets import object_mesh_preset, object_rgbd_preset, scene_rgbd_preset
 from neural_fields.training import RGBDTrainConfig, capture_fingerprint, train_rgbd
@@ -240,7 +240,7 @@ class Cache:
         """Checkpoint of a field distilled from ``mesh`` (distilled if missing)."""
         colors = mesh.visual.face_colors.tobytes() if mesh.visual.kind == "face" else b""
         mesh_sha = hashlib.sha256(mesh.vertices.tobytes() + mesh.faces.tobytes() + colors).hexdigest()
-        key = config_key(config, mesh_sha, info.label, info.name, info.symmetry.order)
+        key = config_key(config, mesh_sha, info.label, info.name, info.symmetry.order, DISTILL_VERSION)
         path = self.root / "fields" / f"{entry_stem(info.name, 'mesh')}-mesh-{key}.safetensors"
         if reusable(path, {"mesh_sha256": mesh_sha}):
             return path

@@ -41,7 +41,13 @@ EXIT_INTERRUPTED = 130
 
 def _commands() -> dict[str, type]:
     # Imported lazily so that `regnf --help` answers at once.
-    from benchmarks.cli import BenchEncodings, BenchFields, BenchRegistration, BenchRender
+    from benchmarks.cli import (
+        BenchDistill,
+        BenchEncodings,
+        BenchFields,
+        BenchRegistration,
+        BenchRender,
+    )
     from regnf.commands_demo import Demo
     from regnf.commands_fields import Distill, Mesh, Synth, Train
     from regnf.commands_generate import Generate
@@ -67,6 +73,7 @@ def _commands() -> dict[str, type]:
         "bench registration": BenchRegistration,
         "bench render": BenchRender,
         "bench encodings": BenchEncodings,
+        "bench distill": BenchDistill,
     }
 
 

@@ -120,12 +120,17 @@ class Train:
 
 @dataclass
 class Distill:
-    """Distil a neural SDF from a watertight mesh in metres (CAD libraries)."""
+    """Distil a neural SDF from a mesh in metres (CAD models, scans; need not be watertight)."""
 
     mesh: Path
-    """Input mesh (.ply, .obj, .glb, .stl...), metres, watertight."""
+    """Input mesh (.ply, .obj, .glb, .stl...) in metres. Holes, open or overlapping parts, flipped
+    or inconsistent winding, duplicate and degenerate faces are repaired or tolerated; a mesh
+    that encloses nothing (a flat sheet, a point cloud) is refused."""
     out: Path | None = None
     """Also copy the checkpoint here (.safetensors); it is kept in the cache either way."""
+    up: Literal["z", "y", "x", "-z", "-y", "-x"] = "z"
+    """Up axis of the mesh file; it is turned to +Z, the library's up (y: a Y-up file, as many
+    OBJ and glTF exporters write, +X forward kept)."""
     label: str = "object"
     """Semantic class, e.g. chair."""
     name: str = ""
@@ -142,6 +147,8 @@ class Distill:
     def run(self) -> None:
         import trimesh
 
+        from neural_fields.mesh_repair import MeshError
+
         check_input_file(self.mesh, "--mesh", "mesh file")
         check_checkpoint_out(self.out)
         if self.steps is not None and self.steps < 1:
@@ -150,13 +157,15 @@ class Distill:
             mesh = trimesh.load(self.mesh, force="mesh")
         except Exception as exc:  # trimesh raises many types for unreadable files
             raise SystemExit(f"{self.mesh}: cannot read mesh ({exc})") from exc
-        cfg = object_mesh_preset(self.device)
+        cfg = dataclasses.replace(object_mesh_preset(self.device), up=self.up)
         if self.steps is not None:
             cfg = dataclasses.replace(cfg, steps=self.steps)
         info = FieldInfo(label=self.label, name=self.name or self.mesh.stem,
                          symmetry=Symmetry(self.symmetry), provenance={"mesh": str(self.mesh)})
         try:
             path = Cache(self.cache_dir).distilled_field(mesh, info, cfg)
+        except MeshError:
+            raise  # already "<file>: <reason>"; the command line prints it on one line
         except ValueError as exc:
             raise SystemExit(f"{self.mesh}: {exc}") from exc
         console.print(f"field {info.name!r}: {path}")

@@ -7,9 +7,16 @@ import pytest
 import torch
 import trimesh
 
-from neural_fields.distill import DistillConfig, distill_mesh, face_colors, normalising_transform
+from neural_fields.distill import (
+    DistillConfig,
+    distill_mesh,
+    distillation_targets,
+    face_colors,
+    normalising_transform,
+)
 from neural_fields.evaluation import world_to_field
 from neural_fields.field import FieldInfo
+from neural_fields.mesh_repair import MeshError
 from neural_fields.neural_sdf import NeuralSDF, NeuralSDFConfig
 
 TINY = NeuralSDFConfig(
@@ -61,7 +68,7 @@ def box_sdf_metres(p: np.ndarray) -> np.ndarray:
 @pytest.fixture(scope="module")
 def distilled() -> NeuralSDF:
     mesh = coloured_box(unmerged=True)
-    assert not mesh.is_watertight  # distill_mesh must merge the vertices itself
+    assert not mesh.is_watertight  # distill_mesh must merge the vertices itself (and keep colours)
     # Geometry is done in ~200 steps; the face colours need ~500 (at 400 one side is still
     # 0.07 off in one channel).
     config = DistillConfig(steps=STEPS, batch=2048, pool_surface=20000, architecture=TINY)
@@ -137,16 +144,21 @@ def test_distilled_field_metadata(distilled: NeuralSDF) -> None:
     assert not distilled.training
 
 
-def test_non_watertight_mesh_is_rejected() -> None:
+def test_open_mesh_is_distilled_and_a_flat_sheet_is_refused() -> None:
+    """One triangle of the box gone is a hole the winding number spans: the targets keep the
+    box's signs; a flat sheet encloses nothing and is refused naming the mesh."""
     mesh = trimesh.creation.box(extents=2 * HALF)
     open_box = trimesh.Trimesh(mesh.vertices, mesh.faces[1:], process=False)  # one triangle gone
     assert not open_box.is_watertight
-    with pytest.raises(ValueError, match="watertight"):
-        distill_mesh(
-            open_box,
-            DistillConfig(steps=1, batch=64, pool_surface=500, architecture=TINY),
-            progress=False,
-        )
+    cfg = DistillConfig(steps=1, batch=64, pool_surface=2000, architecture=TINY)
+    targets = distillation_targets(open_box, cfg, source="open.ply")
+    metres = targets.points * targets.to_world[0, 0] + targets.to_world[:3, 3]
+    truth = box_sdf_metres(metres + CENTER)
+    far = np.abs(truth) > 0.01 * DIAG
+    assert (np.sign(targets.sdf[far]) == np.sign(truth[far])).all()
+    sheet = trimesh.Trimesh([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], [[0, 1, 2], [0, 2, 3]])
+    with pytest.raises(MeshError, match=r"^sheet\.obj: the mesh encloses no volume"):
+        distill_mesh(sheet, cfg, info=FieldInfo(provenance={"mesh": "sheet.obj"}), progress=False)
 
 
 def test_normalising_transform_and_face_colours_closed_form() -> None:
