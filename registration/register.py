@@ -4,8 +4,10 @@ Stages (METHOD.md sections 3-5), each a function with its own config:
 
 1. multi-view surface sampling of the scene inside the proposal box and of the whole
    library object (:mod:`registration.sampling`);
-2. scale-aware FPFH + RANSAC + ICP, keeping the best K hypotheses distinct in rotation
-   (:mod:`registration.initialisation`);
+2. scale-aware FPFH + RANSAC + ICP, joined by ICP from a sweep of upright yaws when the
+   object stands as its library model does (:mod:`registration.initialisation`,
+   :mod:`registration.upright`); the distinct results are screened by their SDF evidence at
+   the pose and the best K kept (:mod:`registration.screening`);
 3. bidirectional SDF refinement of every hypothesis with the adaptive robust loss
    (:mod:`registration.refinement`); the one with the most inlier residuals wins (the final
    NLLs are not comparable: each hypothesis learns its own kernel shape and scale).
@@ -37,6 +39,8 @@ from registration.proposal import ProposalBox
 from registration.refinement import RefineConfig, refine_many
 from registration.result import HypothesisReport, RegistrationResult
 from registration.sampling import SamplingConfig, SurfaceSamples, sample_surface
+from registration.screening import screen_hypotheses
+from registration.upright import UprightPrior
 
 
 @dataclass
@@ -51,6 +55,11 @@ class RegistrationConfig:
     """FPFH + RANSAC + ICP initialisation (its ``top_k`` hypotheses are refined)."""
     refine: RefineConfig = field(default_factory=RefineConfig)
     """Bidirectional refinement."""
+    upright: bool = True
+    """The object stands as its library model does (the scene's and the library's up axes,
+    ``scene_sampling.up`` and the library's canonical +Z, correspond): a sweep of yaws adds
+    starts that do not depend on features (:mod:`registration.upright`). False: RANSAC's
+    starts only, for objects in any orientation."""
     acceptance_threshold: float = 0.6
     """A result whose confidence is below this is reported as a failed registration."""
     device: str | None = None
@@ -84,14 +93,25 @@ def library_symmetry(library_field: Field) -> ObjectSymmetry:
     return ObjectSymmetry(int(library_field.info.symmetry.order), symmetry_axis(W))
 
 
+def upright_prior(scene_field: Field, library_field: Field, proposal: ProposalBox,
+                  config: RegistrationConfig) -> UprightPrior | None:
+    """The up axes of both frames and the box centre, or None when ``config.upright`` is off."""
+    if not config.upright:
+        return None
+    W = library_field.to_world.detach().cpu().double().numpy()
+    return UprightPrior(np.asarray(config.scene_sampling.up, dtype=np.float64), symmetry_axis(W),
+                        np.asarray(proposal.center, dtype=np.float64))
+
+
 def hypotheses_or_fallback(
     scene: SurfaceSamples, library: SurfaceSamples, config: InitConfig,
-    symmetry: ObjectSymmetry | None = None,
+    symmetry: ObjectSymmetry | None = None, upright: UprightPrior | None = None,
+    limit: int | None = None,
 ) -> list[Hypothesis]:
     """Stage 2, or the centroid start when RANSAC finds nothing, so that the refinement
     runs and a low confidence (not an exception) reports the failed registration."""
     try:
-        return initial_hypotheses(scene, library, config, symmetry)
+        return initial_hypotheses(scene, library, config, symmetry, upright, limit)
     except NoHypothesisError:
         return [centroid_hypothesis(scene, library, config)]
 
@@ -135,11 +155,14 @@ def register(
     timings["sampling"] = time.perf_counter() - t0
 
     t1 = time.perf_counter()
-    hyps = hypotheses_or_fallback(scene_samples, lib_samples, cfg.init, library_symmetry(library_field))
+    hyps = hypotheses_or_fallback(scene_samples, lib_samples, cfg.init, library_symmetry(library_field),
+                                  upright_prior(scene_field, library_field, proposal, cfg),
+                                  limit=cfg.init.candidates)
+    A, B = sample_tensors(scene_samples, lib_samples, library_field.device)
+    hyps = screen_hypotheses(scene_field, library_field, A, B, hyps, cfg.refine, cfg.init.top_k)
     timings["initialisation"] = time.perf_counter() - t1
 
     t2 = time.perf_counter()
-    A, B = sample_tensors(scene_samples, lib_samples, library_field.device)
     refined = refine_many(scene_field, library_field, A, B, [h.transform for h in hyps], cfg.refine)
     timings["refinement"] = time.perf_counter() - t2
     timings["total"] = time.perf_counter() - t0
