@@ -66,6 +66,11 @@ THRESHOLDS = {"rot_geodesic_rad": 0.02, "trans_rel_diag": 0.01, "scale_rel": 0.0
 """Acceptance targets of a registration against ground truth (issue 3's)."""
 
 
+def within_bars(row: dict[str, Any]) -> bool:
+    """An accepted registration whose errors are all within :data:`THRESHOLDS`."""
+    return bool(row["accepted"]) and all(float(row[k]) <= v for k, v in THRESHOLDS.items())
+
+
 @dataclass(frozen=True)
 class DemoConfig:
     """What the demo makes."""
@@ -389,7 +394,10 @@ def _summary(config: DemoConfig, out: Path, stage: Path, usdz: Path, log: StepLo
     rejected = [r for r in registrations if not r["accepted"]]
     note = (f"The room was captured with {config.coverage} coverage. The proposals are the objects' "
             f"true boxes (the paper's assumption); the errors are measured against the true poses. "
-            f"{len(registrations) - len(rejected)} of {len(registrations)} registrations were accepted.")
+            f"{len(registrations) - len(rejected)} of {len(registrations)} registrations were accepted; "
+            f"{sum(within_bars(r) for r in registrations)} are within the bars (rotation <= "
+            f"{THRESHOLDS['rot_geodesic_rad']} rad, translation <= {100 * THRESHOLDS['trans_rel_diag']:g} % of "
+            f"the object's diagonal, scale <= {100 * THRESHOLDS['scale_rel']:g} %).")
     if rejected:
         note += (" Rejected (confidence below the acceptance threshold, so not written to the stage "
                  "and not substituted): " + ", ".join(f"{r['instance']} ({r['confidence']:.2f})" for r in rejected)
