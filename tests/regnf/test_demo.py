@@ -49,13 +49,3 @@ def test_a_demo_folder_of_an_earlier_version_is_adopted(tmp_path: Path) -> None:
             demo_folder(other, DemoConfig()):
         pass
 
-
-def test_within_bars_needs_acceptance_and_every_error_under_its_bar() -> None:
-    from regnf.demo import THRESHOLDS, within_bars
-
-    good = {"accepted": True, **{k: 0.5 * v for k, v in THRESHOLDS.items()}}
-    assert within_bars(good)
-    assert not within_bars({**good, "accepted": False})
-    for k, v in THRESHOLDS.items():
-        assert not within_bars({**good, k: 1.01 * v})
-        assert within_bars({**good, k: v})
