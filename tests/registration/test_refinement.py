@@ -283,3 +283,22 @@ def test_field_parameters_get_no_gradient(problem: dict) -> None:
     # Neither trained nor left with a gradient, and still trainable afterwards.
     assert lib.offset.grad is None and lib.offset.requires_grad
     assert float(lib.offset.detach()) == 0.0
+
+
+def test_same_bits_on_any_thread_count_and_the_count_is_restored(problem: dict) -> None:
+    """The refinement runs on one torch thread whatever the caller set (repeatable results),
+    and gives the caller's setting back."""
+    T0 = perturbed(problem["T_gt"], 0.1, [0.0, 0.0, 0.0], 1.05)
+    cfg = replace(TEST_CFG, max_iterations=30)
+    before = torch.get_num_threads()
+    runs = []
+    try:
+        for n in (2, 1, 2):
+            torch.set_num_threads(n)
+            runs.append(refine(problem["scene"], problem["lib"], problem["A"], problem["B"], T0, cfg))
+            assert torch.get_num_threads() == n
+    finally:
+        torch.set_num_threads(before)
+    for r in runs[1:]:
+        assert np.array_equal(r.transform.matrix(), runs[0].transform.matrix())
+        assert r.inlier_fraction == runs[0].inlier_fraction
