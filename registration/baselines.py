@@ -28,7 +28,7 @@ from registration.refinement import RefineResult, refine
 from registration.register import (
     RegistrationConfig,
     check_fields,
-    hypotheses_or_fallback,
+    initialise,
     sample_pair,
     sample_tensors,
 )
@@ -84,9 +84,9 @@ def register_init_only(scene: Field, library: Field, proposal: ProposalBox,
                        config: RegistrationConfig | None = None) -> RegistrationResult:
     """Reg-NF-init: the best initial hypothesis, not refined."""
     cfg = config or RegistrationConfig()
-    init = dataclasses.replace(cfg.init, top_k=1)
+    one = dataclasses.replace(cfg, init=dataclasses.replace(cfg.init, top_k=1))
     return _one_hypothesis("regnf-init", scene, library, proposal, cfg,
-                           lambda ss, ls: hypotheses_or_fallback(ss, ls, init)[0])
+                           lambda ss, ls: initialise(scene, library, proposal, ss, ls, one)[0])
 
 
 def register_fgr(scene: Field, library: Field, proposal: ProposalBox,

@@ -116,6 +116,20 @@ def hypotheses_or_fallback(
         return [centroid_hypothesis(scene, library, config)]
 
 
+def initialise(scene_field: Field, library_field: Field, proposal: ProposalBox, scene: SurfaceSamples,
+               library: SurfaceSamples, config: RegistrationConfig) -> list[Hypothesis]:
+    """Stage 2: up to ``config.init.top_k`` hypotheses, best first.
+
+    RANSAC's and the upright sweep's ICP results (``config.init.candidates`` distinct ones at
+    most), screened by their SDF evidence at the pose (:func:`screen_hypotheses`).
+    """
+    hyps = hypotheses_or_fallback(scene, library, config.init, library_symmetry(library_field),
+                                  upright_prior(scene_field, library_field, proposal, config),
+                                  limit=config.init.candidates)
+    A, B = sample_tensors(scene, library, library_field.device)
+    return screen_hypotheses(scene_field, library_field, A, B, hyps, config.refine, config.init.top_k)
+
+
 def sample_tensors(
     scene: SurfaceSamples, library: SurfaceSamples, device: torch.device
 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -155,11 +169,8 @@ def register(
     timings["sampling"] = time.perf_counter() - t0
 
     t1 = time.perf_counter()
-    hyps = hypotheses_or_fallback(scene_samples, lib_samples, cfg.init, library_symmetry(library_field),
-                                  upright_prior(scene_field, library_field, proposal, cfg),
-                                  limit=cfg.init.candidates)
+    hyps = initialise(scene_field, library_field, proposal, scene_samples, lib_samples, cfg)
     A, B = sample_tensors(scene_samples, lib_samples, library_field.device)
-    hyps = screen_hypotheses(scene_field, library_field, A, B, hyps, cfg.refine, cfg.init.top_k)
     timings["initialisation"] = time.perf_counter() - t1
 
     t2 = time.perf_counter()
