@@ -103,6 +103,9 @@ class Register:
     a self-contained folder, and a path out of it may name anybody's file)."""
     top_k: int | None = None
     """Hypotheses refined (default: the config's; 1 is the paper's method)."""
+    upright: bool = True
+    """The object stands as its library model does (the scene's +Z and the library's +Z are
+    both up): 24 yaws also start the search. --no-upright: features alone (any orientation)."""
     device: str = "cpu"
     """Torch device."""
 
@@ -142,11 +145,12 @@ class Register:
         library = load_field(self.library, device=self.device)
         S = scene.to_world.detach().cpu().double().numpy()
         proposal = ProposalBox.from_corners(corners).transformed(np.linalg.inv(S))
-        cfg = RegistrationConfig()
-        if self.top_k is not None:
-            import dataclasses
+        import dataclasses
 
-            cfg = dataclasses.replace(cfg, init=dataclasses.replace(cfg.init, top_k=self.top_k))
+        cfg = RegistrationConfig(upright=self.upright)
+        if self.top_k is not None:
+            init = dataclasses.replace(cfg.init, top_k=self.top_k, candidates=max(cfg.init.candidates, self.top_k))
+            cfg = dataclasses.replace(cfg, init=init)
         result = register(scene, library, proposal, cfg)
         payload = registration_payload(result, scene, library, self.scene, self.library)
         write_json(self.out, payload)
