@@ -21,9 +21,14 @@ Procedure:
    ``registration_ransac_based_on_feature_matching``; each later run drops the matches that
    an earlier hypothesis explains, so that it finds the next-best mode (a symmetric object's
    other poses), with its own seed.
-4. ICP refinement of every RANSAC result on the full (normalised) clouds, point-to-point with
+4. With an upright prior (:mod:`registration.upright`), ``upright_yaws`` evenly spaced yaw
+   starts join RANSAC's results: they need no features, so an object seen from one side,
+   whose features match poorly, still gets a start near its true pose.
+5. ICP refinement of every start on the full (normalised) clouds, point-to-point with
    scaling or point-to-plane; rank by fitness then inlier RMSE; keep hypotheses at least
-   ``min_rotation_deg`` apart; undo the normalisation.
+   ``min_rotation_deg`` apart (modulo the object's symmetry); undo the normalisation.
+   :func:`registration.register.initialise` then screens them by SDF evidence
+   (:mod:`registration.screening`).
 
 Determinism: every RANSAC run seeds Open3D's global generator (``o3d.utility.random.seed``).
 Open3D's RANSAC is parallel (OpenMP); results are bit-reproducible for a seed with one thread
@@ -102,7 +107,8 @@ class InitConfig:
     max_scale_ratio: float = 2.0
     """Hypotheses whose scale differs from the pre-estimate by more than this factor go."""
     top_k: int = 4
-    """Hypotheses returned at most."""
+    """Hypotheses kept for refinement (after the screening of ``candidates``; without the
+    screening, returned at most)."""
     min_rotation_deg: float = 15.0
     """Kept hypotheses differ pairwise by at least this geodesic angle."""
     upright_yaws: int = 24
