@@ -67,7 +67,10 @@ class RefineConfig:
     """
 
     max_iterations: int = 200
-    """Most Adam steps (*paper*: 200)."""
+    """Most Adam steps (*paper*: 200). (Learning rates stay constant, as in the paper. Measured
+    on the low-coverage ac-room: halving the pose rates every 40 steps cut chair c from 200 to
+    100 steps but raised its rotation error from 0.0045 to 0.0079 rad and its scale error from
+    0.28 to 0.56 %; fc-nop and dc took as many steps as before.)"""
     lr_rotation: float = 0.02
     """Adam learning rate of the axis-angle rotation update, radians (*paper*: 0.02)."""
     lr_translation: float = 0.01
