@@ -328,7 +328,7 @@ def _run_demo(folder: OutputFolder, config: DemoConfig, cache: Cache | None) -> 
     with log.step("write the USD stage", "scene field and library, proxy meshes"):
         new_stage(stage, scene_path, [library_paths[n] for n in names],
                   provenance={"made_by": "regnf demo", "room": config.room, "coverage": config.coverage})
-    with log.step("register every object", "multi-view sampling, FPFH + RANSAC, SDF refinement"):
+    with log.step("register every object", "multi-view sampling, FPFH + RANSAC and upright starts, SDF screening and refinement"):
         registrations = _register_all(stage, out / "stage", scene_path, library_paths, capture, config.device)
     accepted = [r for r in registrations if r["accepted"]]
     if not accepted:
