@@ -404,8 +404,8 @@ def _summary(config: DemoConfig, out: Path, stage: Path, usdz: Path, log: StepLo
                  "and not substituted): " + ", ".join(f"{r['instance']} ({r['confidence']:.2f})" for r in rejected)
                  + ". Failing loudly instead of placing a wrong object is the intended behaviour.")
     if config.coverage == "low":
-        note += (" The targets are those of the full-coverage benchmark (docs/benchmarks.md), which every "
-                 "pair there meets; a low-coverage field shows each object from one or two sides only.")
+        note += (" The bars are the registration benchmark's (docs/benchmarks.md); a low-coverage field "
+                 "shows each object from one or two sides only.")
     files = [{"path": rel(stage), "what": "the USD stage (open it in usdview or any USD tool)"},
              {"path": rel(usdz), "what": f"the stage as one package: {len(validation.validators)} OpenUSD "
               f"validators, {len(validation.errors)} errors"},
