@@ -10,7 +10,8 @@
   object's diagonal), solved rigidly (Kabsch, s = 1) and refined.
 
 Each returns a :class:`RegistrationResult` whose confidence is measured the same way as
-Reg-NF's: the fraction of SDF residuals under the inlier threshold at the returned transform.
+Reg-NF's: the fraction of SDF residuals under the inlier threshold at the returned transform,
+times the fraction of the library object inside the proposal (:func:`registration.register.scored`).
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ from registration.register import (
     initialise,
     sample_pair,
     sample_tensors,
+    scored,
 )
 from registration.result import HypothesisReport, RegistrationResult
 from registration.sampling import SurfaceSamples
@@ -38,20 +40,21 @@ from registration.transform import SimilarityTransform
 
 
 def _result(method: str, T: SimilarityTransform, evaluated: RefineResult, cfg: RegistrationConfig,
-            proposal: ProposalBox, timings: dict, fitness: float = float("nan"),
-            initial: SimilarityTransform | None = None, samples=None) -> RegistrationResult:
+            proposal: ProposalBox, timings: dict, *, samples: tuple[np.ndarray, np.ndarray],
+            fitness: float = float("nan"), initial: SimilarityTransform | None = None) -> RegistrationResult:
+    confidence, inside = scored(evaluated, samples[1], proposal, cfg)
     return RegistrationResult(
         samples=samples,
         transform=T,
-        confidence=float(evaluated.inlier_fraction),
-        accepted=bool(evaluated.inlier_fraction >= cfg.acceptance_threshold),
+        confidence=float(confidence),
+        accepted=bool(confidence >= cfg.acceptance_threshold),
         method=method,
         losses={"loss": float(evaluated.loss), "mean_residual_scene": float(evaluated.mean_residual_A),
                 "mean_residual_library": float(evaluated.mean_residual_B),
-                "iterations": float(evaluated.iterations)},
+                "iterations": float(evaluated.iterations),
+                "inlier_fraction": float(evaluated.inlier_fraction), "containment": float(inside)},
         timings=timings,
-        hypotheses=[HypothesisReport(initial or T, T, fitness, float(evaluated.loss),
-                                     float(evaluated.inlier_fraction))],
+        hypotheses=[HypothesisReport(initial or T, T, fitness, float(evaluated.loss), float(confidence))],
         proposal=proposal,
         thresholds={"acceptance_threshold": cfg.acceptance_threshold,
                     "inlier_threshold": cfg.refine.inlier_threshold},
@@ -77,7 +80,7 @@ def _one_hypothesis(method: str, scene: Field, library: Field, proposal: Proposa
     A, B = sample_tensors(ss, ls, library.device)
     timings = {"sampling": t1 - t0, "initialisation": t2 - t1, "total": t2 - t0}
     return _result(method, hyp.transform, _score(scene, library, A, B, hyp.transform, cfg),
-                   cfg, proposal, timings, float(hyp.fitness), samples=(ss.points, ls.points))
+                   cfg, proposal, timings, fitness=float(hyp.fitness), samples=(ss.points, ls.points))
 
 
 def register_init_only(scene: Field, library: Field, proposal: ProposalBox,

@@ -13,7 +13,9 @@ Stages (METHOD.md sections 3-5), each a function with its own config:
    NLLs are not comparable: each hypothesis learns its own kernel shape and scale).
 
 The result carries a confidence (the fraction of SDF residuals under a threshold, both
-directions) so that a failed registration is reported, not silently written.
+directions, times the fraction of the library object that lies in the proposal box,
+:mod:`registration.containment`) so that a failed registration, or the wrong object, is
+reported, not silently written.
 """
 
 from __future__ import annotations
@@ -36,7 +38,8 @@ from registration.initialisation import (
 )
 from registration.metrics import symmetry_axis
 from registration.proposal import ProposalBox
-from registration.refinement import RefineConfig, refine_many
+from registration.containment import containment
+from registration.refinement import RefineConfig, RefineResult, refine_many
 from registration.result import HypothesisReport, RegistrationResult
 from registration.sampling import SamplingConfig, SurfaceSamples, sample_surface
 from registration.screening import screen_hypotheses
@@ -130,6 +133,25 @@ def initialise(scene_field: Field, library_field: Field, proposal: ProposalBox, 
     return screen_hypotheses(scene_field, library_field, A, B, hyps, config.refine, config.init.top_k)
 
 
+def object_region(proposal: ProposalBox, config: RegistrationConfig) -> ProposalBox:
+    """The box the registered object must lie in: the proposal as the scene was sampled in it
+    (grown by ``config.scene_sampling.box_inflate``)."""
+    return proposal.inflated(config.scene_sampling.box_inflate)
+
+
+def scored(refined: RefineResult, library_points: np.ndarray, proposal: ProposalBox,
+           config: RegistrationConfig) -> tuple[float, float]:
+    """(confidence, containment) of a refined hypothesis.
+
+    The confidence is the SDF evidence (``refined.inlier_fraction``) times the containment, the
+    fraction of ``library_points`` (m, 3), library field frame, that the transform maps into
+    :func:`object_region`: a right pose of the right object satisfies both, a wrong object
+    that explains part of the box leaves the rest of itself outside.
+    """
+    inside = containment(library_points, refined.transform, object_region(proposal, config))
+    return refined.inlier_fraction * inside, inside
+
+
 def sample_tensors(
     scene: SurfaceSamples, library: SurfaceSamples, device: torch.device
 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -178,28 +200,32 @@ def register(
     timings["refinement"] = time.perf_counter() - t2
     timings["total"] = time.perf_counter() - t0
 
-    reports = [
-        HypothesisReport(h.transform, r.transform, float(h.fitness), float(r.loss), float(r.inlier_fraction))
-        for h, r in zip(hyps, refined)
-    ]
     # The adaptive NLL is not comparable across hypotheses (each learns its own alpha and c),
-    # so rank by what is: the fraction of inlier residuals, then the mean residual.
+    # so rank by what is: the SDF evidence (the fraction of inlier residuals) times the fraction
+    # of the library object that lies in the proposal, then the mean residual.
+    score, inside = zip(*(scored(r, lib_samples.points, proposal, cfg) for r in refined))
+    reports = [
+        HypothesisReport(h.transform, r.transform, float(h.fitness), float(r.loss), float(sc))
+        for h, r, sc in zip(hyps, refined, score)
+    ]
     order = sorted(
         range(len(refined)),
-        key=lambda i: (-refined[i].inlier_fraction, refined[i].mean_residual_A + refined[i].mean_residual_B),
+        key=lambda i: (-score[i], refined[i].mean_residual_A + refined[i].mean_residual_B),
     )
     reports = [reports[i] for i in order]
-    best = refined[order[0]]
+    best, confidence = refined[order[0]], score[order[0]]
     return RegistrationResult(
         transform=best.transform,
-        confidence=float(best.inlier_fraction),
-        accepted=bool(best.inlier_fraction >= cfg.acceptance_threshold),
+        confidence=float(confidence),
+        accepted=bool(confidence >= cfg.acceptance_threshold),
         method=method,
         losses={
             "loss": float(best.loss),
             "mean_residual_scene": float(best.mean_residual_A),
             "mean_residual_library": float(best.mean_residual_B),
             "iterations": float(best.iterations),
+            "inlier_fraction": float(best.inlier_fraction),
+            "containment": float(inside[order[0]]),
         },
         timings=timings,
         hypotheses=reports,

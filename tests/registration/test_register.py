@@ -57,6 +57,9 @@ def test_register_recovers_a_known_similarity_at_any_library_scale(factor: float
     assert result.accepted and result.confidence > 0.9
     assert set(result.timings) >= {"sampling", "initialisation", "refinement", "total"}
     assert result.hypotheses and result.hypotheses[0].confidence == result.confidence
+    # The whole object lies in its box at the right pose: the confidence is the SDF evidence.
+    assert result.losses["containment"] == 1.0
+    assert result.confidence == result.losses["inlier_fraction"]
 
 
 def test_wrong_object_is_detected() -> None:

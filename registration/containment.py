@@ -1,0 +1,47 @@
+"""Containment: how much of the registered library object lies inside its proposal box.
+
+A proposal says where the object is; the SDF confidence says how well the two surfaces agree
+where there are samples, but its sample sets grow only where they agree (the refinement's
+resampling keeps a new sample only when both fields put it on their surface), so a wrong
+object can score well on the part it explains and say nothing about the rest. Containment
+asks the question the box answers: what fraction of the library's own surface, mapped into the
+scene, falls inside the box the scene was sampled in.
+
+Measured on the low-coverage rooms with mesh-distilled libraries (``regnf bench registration``
+pairs, the wrong pairs included): every right pair's winner has containment 1.000; the chairs
+in the round table ``wt``'s box, accepted before at confidence 0.85 (``c``) and 0.82 (``dc``),
+have 0.19 and 0.26: their fit explains the table top and leaves most of the chair outside.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from registration.proposal import ProposalBox
+from registration.transform import SimilarityTransform
+
+
+def containment(library_points: np.ndarray, transform: SimilarityTransform, region: ProposalBox) -> float:
+    """Fraction of library surface points that ``transform`` maps into ``region``.
+
+    Parameters
+    ----------
+    library_points : (m, 3) float
+        Points spread over the library object's surface, library field frame (m >= 1).
+    transform : SimilarityTransform
+        Scene field frame -> library field frame, ``y = s R x + t``.
+    region : ProposalBox
+        Where the object must lie, scene field frame.
+
+    Returns
+    -------
+    float
+        In [0, 1].
+    """
+    Y = np.asarray(library_points, dtype=np.float64)
+    if Y.ndim != 2 or Y.shape[1] != 3 or len(Y) == 0:
+        raise ValueError(f"library_points must be a non-empty (m, 3) array, got shape {Y.shape}")
+    R = np.asarray(transform.R, dtype=np.float64)
+    t = np.asarray(transform.t, dtype=np.float64).reshape(3)
+    X = (Y - t) @ R / float(transform.s)  # x = R^T (y - t) / s, row-wise
+    return float(region.contains(X).mean())
