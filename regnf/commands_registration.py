@@ -155,7 +155,10 @@ class Register:
         payload = registration_payload(result, scene, library, self.scene, self.library)
         write_json(self.out, payload)
         t = result.transform
-        summary = (f"s = {t.s:.4f}, |t| = {np.linalg.norm(t.t):.4f}, confidence {result.confidence:.3f}, "
+        inside = result.losses.get("containment", float("nan"))
+        summary = (f"s = {t.s:.4f}, |t| = {np.linalg.norm(t.t):.4f}, confidence {result.confidence:.3f} "
+                   f"(SDF agreement {result.losses.get('inlier_fraction', float('nan')):.3f} x "
+                   f"{inside:.3f} of the object inside the box), "
                    f"{result.timings.get('total', float('nan')):.1f} s -> {self.out}")
         written = None
         if self.stage is not None and (result.accepted or self.force):
