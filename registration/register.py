@@ -28,6 +28,7 @@ import numpy as np
 import torch
 
 from neural_fields.field import Field
+from registration.containment import containment
 from registration.initialisation import (
     Hypothesis,
     InitConfig,
@@ -38,7 +39,6 @@ from registration.initialisation import (
 )
 from registration.metrics import symmetry_axis
 from registration.proposal import ProposalBox
-from registration.containment import containment
 from registration.refinement import RefineConfig, RefineResult, refine_many
 from registration.result import HypothesisReport, RegistrationResult
 from registration.sampling import SamplingConfig, SurfaceSamples, sample_surface
