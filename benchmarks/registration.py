@@ -7,7 +7,8 @@ instances' ground-truth boxes (the paper's assumption); every method goes throug
 sampling and the same metrics.
 
 Rows: one per registration, with the scene, the library ``object`` registered, the ``method``,
-``views``, the error metrics of :func:`registration.metrics.registration_errors`, ``seconds``,
+``views``, the error metrics of :func:`registration.metrics.registration_errors`, ``seconds``
+(and ``seconds_sampling``, ``seconds_initialisation``, ``seconds_refinement``: its stages),
 ``confidence``, ``accepted``, and ``coverage`` (``full`` or ``low``: which capture the scene
 field was trained on), ``library_source`` (``rgbd`` or ``mesh``), ``wrong_pair`` (the box holds
 another object) and ``box_object`` (the library name of the object the box really holds). A
@@ -167,6 +168,9 @@ def run_pair(scene_name: str, obj: str, scene: Field, library: Field, capture, m
             "views": "single" if single_view else "multi",
             **errors,
             "seconds": seconds, "confidence": res.confidence, "accepted": res.accepted,
+            # Where the time goes (null for a stage the method does not have).
+            **{f"seconds_{stage}": (float(res.timings[stage]) if stage in res.timings else None)
+               for stage in ("sampling", "initialisation", "refinement")},
             "coverage": coverage, "library_source": library_source, "wrong_pair": wrong,
             "box_object": box_object,
             "_result": res, "_truth": truth,
