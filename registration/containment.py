@@ -41,7 +41,4 @@ def containment(library_points: np.ndarray, transform: SimilarityTransform, regi
     Y = np.asarray(library_points, dtype=np.float64)
     if Y.ndim != 2 or Y.shape[1] != 3 or len(Y) == 0:
         raise ValueError(f"library_points must be a non-empty (m, 3) array, got shape {Y.shape}")
-    R = np.asarray(transform.R, dtype=np.float64)
-    t = np.asarray(transform.t, dtype=np.float64).reshape(3)
-    X = (Y - t) @ R / float(transform.s)  # x = R^T (y - t) / s, row-wise
-    return float(region.contains(X).mean())
+    return float(region.contains(transform.inverse().apply(Y)).mean())
