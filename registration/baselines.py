@@ -25,7 +25,7 @@ import numpy as np
 from neural_fields.field import Field
 from registration.initialisation import Hypothesis, fgr_baseline
 from registration.proposal import ProposalBox
-from registration.refinement import RefineResult, refine
+from registration.refinement import RefineResult, refine, without_steps
 from registration.register import (
     RegistrationConfig,
     check_fields,
@@ -64,7 +64,7 @@ def _result(method: str, T: SimilarityTransform, evaluated: RefineResult, cfg: R
 
 def _score(scene: Field, library: Field, A, B, T: SimilarityTransform, cfg: RegistrationConfig) -> RefineResult:
     """Residuals and confidence at ``T`` without moving it (zero refinement steps)."""
-    return refine(scene, library, A, B, T, dataclasses.replace(cfg.refine, max_iterations=0))
+    return refine(scene, library, A, B, T, without_steps(cfg.refine))
 
 
 def _one_hypothesis(method: str, scene: Field, library: Field, proposal: ProposalBox,
@@ -149,7 +149,7 @@ def register_nerf2nerf(scene: Field, library: Field, proposal: ProposalBox,
     kp_scene = kp_scene + rng.normal(0.0, keypoint_noise_rel * diag_scene, kp_scene.shape)
     T0 = kabsch(kp_scene, kp_lib)
     A, _ = sample_tensors(ss, ss, library.device)
-    n2n = dataclasses.replace(cfg.refine, bidirectional=False, fix_scale=True)
+    n2n = dataclasses.replace(cfg.refine, bidirectional=False, fix_scale=True, optimizer="adam")
     res = refine(scene, library, A, None, T0, n2n)
     t2 = time.perf_counter()
     timings = {"sampling": t1 - t0, "initialisation": 0.0, "refinement": t2 - t1, "total": t2 - t0}

@@ -44,17 +44,19 @@ over the stacked per-hypothesis parameters is exactly K independent optimisation
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import math
 import time
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Literal, NamedTuple
 
 import numpy as np
 import torch
 
 from neural_fields.field import Field
-from registration.robust_loss import AdaptiveRobustLoss
+from registration.irls import barron_weight, damped_step, fit_kernel, segment_normal_equations
+from registration.robust_loss import AdaptiveRobustLoss, general_rho, log_partition
 from registration.transform import SimilarityTransform
 
 
@@ -152,6 +154,26 @@ class RefineConfig:
     rejects true poses and lets a 180-degree flip that fits the seen half win; a flip that puts
     library surface into observed free space is still charged for it.)"""
 
+    optimizer: Literal["lm", "adam"] = "lm"
+    """``lm``: Levenberg-Marquardt on the iteratively reweighted problem, the kernel's (alpha, c)
+    fitted to the residuals at every iterate (:mod:`registration.irls`); ``adam``: the paper's
+    Adam on all parameters at once. (Not in the paper. The objective is a 7-parameter robust
+    least-squares problem: a damped Gauss-Newton step converges in a few iterations where Adam
+    at the paper's rates takes 100-200 steps; measured in ``docs/benchmarks.md``.)"""
+    lm_max_iterations: int = 30
+    """Most Levenberg-Marquardt iterations (``optimizer="lm"``); ``max_iterations`` caps Adam."""
+    lm_resample_every: int = 3
+    """Resample every this many LM iterations (Adam: ``resample_every``); 0 never resamples."""
+    lm_prune_after: int = 3
+    """At this LM iteration stop hypotheses whose inlier fraction trails the best one by more than
+    ``prune_margin`` (Adam: ``prune_after``); 0 disables."""
+    lm_step_tolerance: float = 1e-4
+    """A hypothesis has converged once an accepted LM step moves it less than this in rotation
+    (radians), in the mapped centroid of A (*L*) and in relative scale."""
+    lm_damping: float = 1e-3
+    """Initial Levenberg-Marquardt damping mu (relative to the diagonal): divided by 3 after an
+    accepted step, multiplied by 4 after a rejected one."""
+
     def __post_init__(self) -> None:
         positive = ("lr_rotation", "lr_translation", "lr_scale", "lr_kernel", "kernel_scale_init",
                     "jitter_fraction", "surface_tolerance", "residual_tolerance", "min_spacing",
@@ -160,7 +182,13 @@ class RefineConfig:
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"RefineConfig.{name} must be finite and > 0, got {v}")
-        for name in ("max_iterations", "resample_every", "max_samples"):
+        if self.optimizer not in ("lm", "adam"):
+            raise ValueError(f"RefineConfig.optimizer must be 'lm' or 'adam', got {self.optimizer!r}")
+        if not (math.isfinite(self.lm_step_tolerance) and self.lm_step_tolerance > 0
+                and math.isfinite(self.lm_damping) and self.lm_damping > 0):
+            raise ValueError("RefineConfig.lm_step_tolerance and lm_damping must be finite and > 0")
+        for name in ("max_iterations", "resample_every", "max_samples", "lm_max_iterations",
+                     "lm_resample_every", "lm_prune_after"):
             if int(getattr(self, name)) < 0:
                 raise ValueError(f"RefineConfig.{name} must be >= 0, got {getattr(self, name)}")
         if not (math.isfinite(self.regulariser_weight) and self.regulariser_weight >= 0):
@@ -193,11 +221,20 @@ class RefineResult(NamedTuple):
     inlier_fraction: float
     """Fraction of residuals <= inlier_threshold * L: a confidence in [0, 1]."""
     iterations: int
-    """Adam steps taken."""
+    """Optimiser iterations taken (Adam steps or Levenberg-Marquardt iterations)."""
     history: list[dict]
     """Per iteration: loss, mean residuals, alpha, c, s, sample counts."""
     seconds: float
     """Wall time of the whole batch this hypothesis was refined in."""
+    inlier_fraction_scene: float = float("nan")
+    """The inlier fraction of the scene samples' residuals alone (A -> library)."""
+    inlier_fraction_library: float = float("nan")
+    """The inlier fraction of the library samples' residuals alone (B -> scene; nan if unused)."""
+
+
+def without_steps(config: RefineConfig) -> RefineConfig:
+    """``config`` with no optimisation step: refining with it scores the initial poses."""
+    return dataclasses.replace(config, max_iterations=0, lm_max_iterations=0)
 
 
 def reference_length(library_field: Field) -> float:
@@ -354,6 +391,53 @@ def _bounding_radius(x: torch.Tensor) -> float:
 # -- the batched problem ---------------------------------------------------------------------
 
 
+class _Linear(NamedTuple):
+    """The active hypotheses' residuals at their current pose and the residuals' Jacobians in
+    the local update ``(dw, dl, dtau, dd)`` (rotation, log scale, translation, offset latent).
+
+    Rows of the SDF terms are grouped by hypothesis (``group``, active index); residuals are
+    in reference lengths, signed."""
+
+    x: torch.Tensor
+    """(n,) float64 SDF residuals (A rows, then B rows)."""
+    J: torch.Tensor
+    """(n, 8) float64 d x / d (dw, dl, dtau, dd)."""
+    a: torch.Tensor
+    """(n,) float64 weight of each residual in its hypothesis's objective (the visibility over
+    the weighted count of its set: each set contributes a weighted mean)."""
+    group: torch.Tensor
+    """(n,) long."""
+    q: torch.Tensor
+    """(m, 3) float64 regulariser vectors: kept mapped scene samples minus their nearest library
+    sample, reference lengths."""
+    Jq: torch.Tensor
+    """(m, 3, 8) float64 their Jacobians."""
+    aq: torch.Tensor
+    """(m,) float64 regulariser weight of each vector (w over the kept count)."""
+    gq: torch.Tensor
+    """(m,) long hypothesis of each vector."""
+    stats: torch.Tensor
+    """(k, 7) as :meth:`_Batch.evaluate`."""
+
+    def merge(self, other: _Linear, take: torch.Tensor) -> _Linear:
+        """Rows of ``other`` for the hypotheses where ``take`` (k,) is true, else these rows (the
+        two must share their sample sets)."""
+        rows, reg = take[self.group], take[self.gq]
+        return _Linear(
+            torch.where(rows, other.x, self.x), torch.where(rows[:, None], other.J, self.J),
+            torch.where(rows, other.a, self.a), self.group,
+            torch.where(reg[:, None], other.q, self.q), torch.where(reg[:, None, None], other.Jq, self.Jq),
+            torch.where(reg, other.aq, self.aq), self.gq, torch.where(take[:, None], other.stats, self.stats))
+
+    def select(self, keep: torch.Tensor) -> _Linear:
+        """Only the hypotheses where ``keep`` (k,) is true, renumbered in order."""
+        new_id = torch.cumsum(keep.long(), 0) - 1
+        rows, reg = keep[self.group], keep[self.gq]
+        return _Linear(self.x[rows], self.J[rows], self.a[rows], new_id[self.group[rows]], self.q[reg],
+                       self.Jq[reg], self.aq[reg], new_id[self.gq[reg]], self.stats[keep])
+
+
+
 class _Batch:
     """K hypotheses' parameters, samples and cached SDFs, refined together."""
 
@@ -504,8 +588,9 @@ class _Batch:
 
     # -- the objective ----------------------------------------------------------------------
     def evaluate(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """Loss per active hypothesis (k,) and a (k, 5) stats table (no grad): mean rA, mean rB,
-        inlier count, residual count, regulariser; residuals in library units."""
+        """Loss per active hypothesis (k,) and a (k, 7) stats table (no grad): mean rA, mean rB,
+        inlier count, residual count, regulariser, and the inlier count and residual count of A
+        alone; residuals in library units, counts weighted by the visibility."""
         cfg, L = self.cfg, self.L
         R, t, s = self.pose()
         idx = torch.tensor(self.active, device=R.device)
@@ -528,6 +613,7 @@ class _Batch:
             inl = _segment_sum(wA * (rA.detach() <= cfg.inlier_threshold * L).to(rA.dtype), gA, k)
         meanB = torch.full_like(meanA, float("nan"))
         reg = torch.zeros_like(meanA)
+        inl_A, count_A = inl.detach().clone(), count.detach().clone()
         if self.bidirectional:
             gB = self.gB
             xB = torch.einsum("nji,nj->ni", R[gB], self.yB - t[gB]) / s[gB, None]
@@ -548,7 +634,7 @@ class _Batch:
             if cfg.regulariser_weight > 0:
                 reg = torch.stack([self._regulariser(yA[gA == i], k) for i, k in enumerate(self.active)])
                 loss = loss + cfg.regulariser_weight * reg
-        stats = torch.stack([meanA, meanB, inl, count, reg.detach()], dim=1)
+        stats = torch.stack([meanA, meanB, inl, count, reg.detach(), inl_A, count_A], dim=1)
         return loss, stats.detach()
 
     def _regulariser(self, yA: torch.Tensor, k: int) -> torch.Tensor:
@@ -559,6 +645,147 @@ class _Batch:
         keep = max(1, math.floor(self.cfg.trim_fraction * d2.shape[0]))
         return torch.topk(d2, keep, largest=False, sorted=False).values.mean()
 
+    # -- Levenberg-Marquardt -----------------------------------------------------------------
+    def linearise(self) -> _Linear:
+        """Residuals, Jacobians and stats of the active hypotheses at their pose (no autograd
+        through the pose: the fields' spatial gradients and the chain rule written out).
+
+        The local update of a pose is ``y -> e^dl exp([dw]x) (y - c) + c + L dtau`` about the
+        centre ``c``, and the offset's latent moves by ``dd``; with ``v = T(x) - c`` and ``g``
+        the library SDF gradient at ``T(x)``, the scene-side residual's derivatives are
+        ``(v x g, g.v - s S_scene(x), L g, -L delta'(d))``; for a library sample ``y``, with
+        ``u = y - c`` and ``h = R grad S_scene(T^-1 y)``, ``(h x u, s S_scene - h.u, -L h,
+        L delta'(d))``. All divided by ``L`` (residuals in reference lengths)."""
+        cfg, L = self.cfg, self.L
+        act = self.active
+        k = len(act)
+        idx = torch.tensor(act, device=self.xA.device)
+        with torch.no_grad():
+            R, t, s = (v[idx] for v in self.pose())
+            d = self.offset()[idx] * L
+            c = self.centre[idx]
+            m = cfg.max_offset
+            dd = 1 - torch.tanh(self.delta[idx] / m) ** 2 if m > 0 else torch.ones_like(d)
+        thr = cfg.inlier_threshold * L
+        gA = self.gA
+        yA = s[gA, None] * torch.einsum("nij,nj->ni", R[gA], self.xA.double()) + t[gA]
+        slib, glib = (v.double() for v in self.library.sdf_and_gradient(yA.to(self.dtype)))
+        _check_finite(slib, "the library field (at the mapped scene samples)")
+        ssA = s[gA] * self.sA.double()
+        eA = slib - ssA - d[gA]
+        v = yA - c[gA]
+        JA = torch.cat([torch.linalg.cross(v, glib), ((glib * v).sum(1) - ssA)[:, None], L * glib,
+                        (-L * dd[gA])[:, None]], dim=1)
+        wA = self.wA.double() if self.wA is not None else torch.ones_like(eA)
+        cntA = _segment_sum(wA, gA, k)
+        rows = [(eA, JA, wA / cntA.clamp(min=1)[gA], gA)]
+        stats = torch.zeros(k, 7, dtype=torch.float64, device=eA.device)
+        stats[:, 0] = _segment_sum(wA * eA.abs(), gA, k) / cntA.clamp(min=1)
+        stats[:, 1] = float("nan")
+        stats[:, 2] = stats[:, 5] = _segment_sum(wA * (eA.abs() <= thr).double(), gA, k)
+        stats[:, 3] = stats[:, 6] = cntA
+        q = Jq = aq = gq = None
+        if self.bidirectional:
+            gB = self.gB
+            yB = self.yB.double()
+            xB = torch.einsum("nji,nj->ni", R[gB], yB - t[gB]) / s[gB, None]
+            ssc, gsc = (v.double() for v in self.scene.sdf_and_gradient(xB.to(self.dtype)))
+            _check_finite(ssc, "the scene field (at the mapped library samples)")
+            eB = s[gB] * ssc + d[gB] - self.sB.double()
+            u = yB - c[gB]
+            h = torch.einsum("nij,nj->ni", R[gB], gsc)
+            JB = torch.cat([torch.linalg.cross(h, u), (s[gB] * ssc - (h * u).sum(1))[:, None], -L * h,
+                            (L * dd[gB])[:, None]], dim=1)
+            wB = self._observed(xB)
+            wB = wB.double() if wB is not None else torch.ones_like(eB)
+            cntB = _segment_sum(wB, gB, k)
+            rows.append((eB, JB, wB / cntB.clamp(min=1)[gB], gB))
+            stats[:, 1] = _segment_sum(wB * eB.abs(), gB, k) / cntB.clamp(min=1)
+            stats[:, 2] += _segment_sum(wB * (eB.abs() <= thr).double(), gB, k)
+            stats[:, 3] += cntB
+            if cfg.regulariser_weight > 0:
+                q, Jq, aq, gq = self._linear_regulariser(yA, v, stats)
+        if q is None:
+            z = eA.new_zeros(0)
+            q, Jq, aq, gq = z.view(0, 3), z.view(0, 3, 8), z, gA.new_zeros(0)
+        x, J, a, group = (torch.cat(parts) for parts in zip(*rows))
+        return _Linear(x / L, J / L, a, group, q, Jq, aq, gq, stats)
+
+    def _linear_regulariser(self, yA: torch.Tensor, v: torch.Tensor, stats: torch.Tensor
+                            ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The kept nearest-neighbour vectors of the regulariser, their Jacobians, weights and
+        hypotheses; writes each hypothesis's trimmed mean into ``stats[:, 4]``."""
+        L, parts = self.L, []
+        for i, k in enumerate(self.active):
+            sel = self.gA == i
+            y = yA[sel]
+            nn = self.nearest[i].query(y).to(y.device)
+            diff = (y - self.B[k][nn].double()) / L
+            d2 = (diff**2).sum(1)
+            keep = max(1, math.floor(self.cfg.trim_fraction * d2.shape[0]))
+            kept = torch.topk(d2, keep, largest=False, sorted=False).indices.sort().values
+            stats[i, 4] = d2[kept].mean()
+            vk = v[sel][kept]
+            eye = torch.eye(3, dtype=vk.dtype, device=vk.device).expand(vk.shape[0], 3, 3)
+            Jq = torch.cat([-_skew(vk), vk[:, :, None], L * eye, vk.new_zeros(vk.shape[0], 3, 1)], dim=2) / L
+            w = torch.full((keep,), self.cfg.regulariser_weight / keep, dtype=vk.dtype, device=vk.device)
+            parts.append((diff[kept], Jq, w, torch.full((keep,), i, dtype=torch.long, device=vk.device)))
+        return tuple(torch.cat(p) for p in zip(*parts))  # type: ignore[return-value]
+
+    def objective(self, lin: _Linear, alpha: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
+        """(k,) the loss of :meth:`evaluate` from a linearisation, under the kernels (k,) given."""
+        a, c = alpha[lin.group], scale[lin.group]
+        nll = general_rho(lin.x, a, c) + torch.log(c) + log_partition(a)
+        k = lin.stats.shape[0]
+        return _segment_sum(lin.a * nll, lin.group, k) + _segment_sum(lin.aq * (lin.q**2).sum(1), lin.gq, k)
+
+    def normal_equations(self, lin: _Linear, alpha: torch.Tensor, scale: torch.Tensor
+                         ) -> tuple[torch.Tensor, torch.Tensor]:
+        """(k, 8, 8) H and (k, 8) g of the reweighted problem (:mod:`registration.irls`)."""
+        k = lin.stats.shape[0]
+        W = barron_weight(lin.x, alpha[lin.group], scale[lin.group])
+        H, g = segment_normal_equations(lin.J, lin.x, lin.a * W, lin.group, k)
+        if lin.q.shape[0]:
+            Jq = lin.Jq.reshape(-1, 8)
+            Hq, gq = segment_normal_equations(Jq, lin.q.reshape(-1), 2.0 * lin.aq.repeat_interleave(3),
+                                              lin.gq.repeat_interleave(3), k)
+            H, g = H + Hq, g + gq
+        return H, g
+
+    def fit_kernels(self, lin: _Linear) -> tuple[torch.Tensor, torch.Tensor]:
+        """(k,) alpha and c minimising the residuals' NLL; also set in ``self.kernel`` (reported)."""
+        cfg = self.cfg
+        alpha, scale = fit_kernel(lin.x, lin.a, lin.group, lin.stats.shape[0], cfg.alpha_lo, cfg.alpha_hi)
+        self.kernel.assign(torch.tensor(self.active, device=alpha.device), alpha, scale)
+        return alpha, scale
+
+    def pose_state(self) -> tuple[torch.Tensor, ...]:
+        """Clones of every pose parameter (for undoing a rejected step)."""
+        return tuple(p.detach().clone() for p in (self.R0, self.t0, self.s0, self.w, self.log_s, self.tau,
+                                                  self.delta))
+
+    def restore_pose(self, state: tuple[torch.Tensor, ...], which: torch.Tensor) -> None:
+        """Put the hypotheses ``which`` (K,) bool back to ``state``."""
+        with torch.no_grad():
+            for p, saved in zip((self.R0, self.t0, self.s0, self.w, self.log_s, self.tau, self.delta), state):
+                p[which] = saved[which]
+
+    def apply_step(self, step: torch.Tensor) -> None:
+        """Move the active hypotheses by their local updates ``step`` (k, 8), re-basing each
+        pose on the result: ``R0, t0, s0`` become the new pose and ``w, log_s, tau`` zero."""
+        idx = torch.tensor(self.active, device=step.device)
+        with torch.no_grad():
+            R, t, s = (v[idx] for v in self.pose())
+            c = self.centre[idx]
+            E = torch.linalg.matrix_exp(_skew(step[:, :3]))
+            e = torch.exp(step[:, 3])
+            self.R0[idx] = E @ R
+            self.s0[idx] = e * s
+            self.t0[idx] = e[:, None] * (E @ (t - c)[..., None])[..., 0] + c + self.L * step[:, 4:7]
+            for p in (self.w, self.log_s, self.tau):
+                p[idx] = 0.0
+            self.delta[idx] = self.delta[idx] + step[:, 7]
+
     # -- convergence ------------------------------------------------------------------------
     def pose_snapshot(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """(K, 3, 3) R, (K, 3) mapped centroid of A, (K,) s, detached."""
@@ -567,15 +794,19 @@ class _Batch:
             c = s[:, None] * (R @ self.a_mean) + t
         return R, c, s
 
-    def converged(self, previous: tuple[torch.Tensor, torch.Tensor, torch.Tensor]) -> list[int]:
-        """Active hypotheses whose pose moved less than the tolerances since ``previous``."""
-        cfg = self.cfg
+    def motion(self, previous: tuple[torch.Tensor, torch.Tensor, torch.Tensor]
+               ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(K,) rotation (rad), motion of the mapped centroid of A (*L*) and relative scale change
+        of every hypothesis since ``previous`` (a :meth:`pose_snapshot`)."""
         R0, c0, s0 = previous
         R1, c1, s1 = self.pose_snapshot()
         cos = ((R0.transpose(1, 2) @ R1).diagonal(dim1=1, dim2=2).sum(-1) - 1) / 2
-        angle = torch.arccos(cos.clamp(-1.0, 1.0))
-        moved = (c1 - c0).norm(dim=1) / self.L
-        ds = (s1 / s0 - 1).abs()
+        return torch.arccos(cos.clamp(-1.0, 1.0)), (c1 - c0).norm(dim=1) / self.L, (s1 / s0 - 1).abs()
+
+    def converged(self, previous: tuple[torch.Tensor, torch.Tensor, torch.Tensor]) -> list[int]:
+        """Active hypotheses whose pose moved less than the tolerances since ``previous``."""
+        cfg = self.cfg
+        angle, moved, ds = self.motion(previous)
         ok = (angle < cfg.convergence_rotation) & (moved < cfg.convergence_translation) \
             & (ds < cfg.convergence_scale)
         return [k for k in self.active if bool(ok[k])]
@@ -669,37 +900,7 @@ def refine_many(
         K = len(inits)
         histories: list[list[dict]] = [[] for _ in range(K)]
         steps = [0] * K
-        previous = batch.pose_snapshot()
-        for it in range(cfg.max_iterations):
-            if not batch.active:
-                break
-            if it > 0 and cfg.resample_every > 0 and it % cfg.resample_every == 0:
-                batch.resample()
-            loss, stats = batch.evaluate()
-            _check_finite(loss.detach(), f"the refinement loss (iteration {it})")
-            batch.opt.zero_grad(set_to_none=True)
-            loss.sum().backward()
-            _record(batch, histories, it, loss.detach(), stats)
-            # Early stop on the transform just evaluated: it is the one returned, no step after.
-            done = [k for i, k in enumerate(batch.active)
-                    if float(stats[i, 0]) < cfg.early_stop_residual * batch.L]
-            if cfg.convergence_window > 0 and it % cfg.convergence_window == 0:
-                done += [k for k in batch.converged(previous) if k not in done] if it > 0 else []
-                previous = batch.pose_snapshot()
-            if cfg.prune_after > 0 and it == cfg.prune_after and len(batch.active) > 1:
-                frac = (stats[:, 2] / stats[:, 3].clamp(min=1)).tolist()
-                best = max(frac)
-                pruned = [k for i, k in enumerate(batch.active)
-                          if frac[i] < best - cfg.prune_margin and k not in done]
-                done += pruned
-            for k in done:
-                batch.snapshot(k)
-            batch.opt.step()
-            for k in batch.active:
-                if k not in done:
-                    steps[k] += 1
-            if done:
-                batch.deactivate(done)
+        (_run_lm if cfg.optimizer == "lm" else _run_adam)(batch, histories, steps)
         # One more evaluation at the returned parameters, so the reported numbers describe them.
         batch.restore_all()
         with torch.no_grad():
@@ -717,9 +918,106 @@ def refine_many(
             iterations=steps[k],
             history=histories[k],
             seconds=seconds,
+            inlier_fraction_scene=float(stats[k, 5] / max(stats[k, 6], 1.0)),
+            inlier_fraction_library=float((stats[k, 2] - stats[k, 5]) / max(stats[k, 3] - stats[k, 6], 1.0))
+            if cfg.bidirectional else float("nan"),
         )
         for k in range(K)
     ]
+
+
+def _run_adam(batch: _Batch, histories: list[list[dict]], steps: list[int]) -> None:
+    """The paper's refinement: Adam on the pose, the offset and the kernel together."""
+    cfg = batch.cfg
+    previous = batch.pose_snapshot()
+    for it in range(cfg.max_iterations):
+        if not batch.active:
+            break
+        if it > 0 and cfg.resample_every > 0 and it % cfg.resample_every == 0:
+            batch.resample()
+        loss, stats = batch.evaluate()
+        _check_finite(loss.detach(), f"the refinement loss (iteration {it})")
+        batch.opt.zero_grad(set_to_none=True)
+        loss.sum().backward()
+        _record(batch, histories, it, loss.detach(), stats)
+        # Early stop on the transform just evaluated: it is the one returned, no step after.
+        done = [k for i, k in enumerate(batch.active) if float(stats[i, 0]) < cfg.early_stop_residual * batch.L]
+        if cfg.convergence_window > 0 and it % cfg.convergence_window == 0:
+            done += [k for k in batch.converged(previous) if k not in done] if it > 0 else []
+            previous = batch.pose_snapshot()
+        if cfg.prune_after > 0 and it == cfg.prune_after:
+            done += [k for k in _trailing(batch, stats) if k not in done]
+        for k in done:
+            batch.snapshot(k)
+        batch.opt.step()
+        for k in batch.active:
+            if k not in done:
+                steps[k] += 1
+        if done:
+            batch.deactivate(done)
+
+
+def _trailing(batch: _Batch, stats: torch.Tensor) -> list[int]:
+    """Active hypotheses whose inlier fraction trails the best by more than ``prune_margin``."""
+    if len(batch.active) < 2:
+        return []
+    frac = (stats[:, 2] / stats[:, 3].clamp(min=1)).tolist()
+    best = max(frac)
+    return [k for i, k in enumerate(batch.active) if frac[i] < best - batch.cfg.prune_margin]
+
+
+def _run_lm(batch: _Batch, histories: list[list[dict]], steps: list[int]) -> None:
+    """Levenberg-Marquardt on the iteratively reweighted problem (:mod:`registration.irls`).
+
+    Each iteration fits every active hypothesis's kernel (alpha, c) to its residuals, solves the
+    damped normal equations for a local update, and keeps the update where it lowers that
+    hypothesis's loss (same kernel), else undoes it and raises the damping. A hypothesis stops
+    when an accepted step moves it less than ``lm_step_tolerance``, when no damping finds a
+    lower loss, on the paper's residual stop, or when pruned.
+    """
+    cfg, K = batch.cfg, batch.K
+    dev = batch.xA.device
+    free = torch.tensor([True] * 3 + [not cfg.fix_scale] + [True] * 3 + [cfg.level_set_offset], device=dev)
+    mu = torch.full((K,), cfg.lm_damping, dtype=torch.float64, device=dev)
+    lin: _Linear | None = None
+    for it in range(cfg.lm_max_iterations):
+        if not batch.active:
+            break
+        if it > 0 and cfg.lm_resample_every > 0 and it % cfg.lm_resample_every == 0:
+            batch.resample()
+            lin = None
+        if lin is None:
+            lin = batch.linearise()
+        alpha, scale = batch.fit_kernels(lin)
+        loss = batch.objective(lin, alpha, scale)
+        _check_finite(loss, f"the refinement loss (iteration {it})")
+        _record(batch, histories, it, loss, lin.stats)
+        act = torch.tensor(batch.active, device=dev)
+        done = [k for i, k in enumerate(batch.active)
+                if float(lin.stats[i, 0]) < cfg.early_stop_residual * batch.L]
+        if cfg.lm_prune_after > 0 and it == cfg.lm_prune_after:
+            done += [k for k in _trailing(batch, lin.stats) if k not in done]
+        H, g = batch.normal_equations(lin, alpha, scale)
+        state, before = batch.pose_state(), batch.pose_snapshot()
+        batch.apply_step(damped_step(H, g, mu[act], free))
+        trial = batch.linearise()
+        accepted = batch.objective(trial, alpha, scale) <= loss
+        rejected = torch.zeros(K, dtype=torch.bool, device=dev)
+        rejected[act] = ~accepted
+        batch.restore_pose(state, rejected)
+        mu[act] = torch.where(accepted, (mu[act] / 3).clamp(min=1e-9), mu[act] * 4)
+        lin = lin.merge(trial, accepted)
+        angle, moved, ds = batch.motion(before)
+        tol = cfg.lm_step_tolerance
+        small = (angle < tol) & (moved < tol) & (ds < tol)
+        for i, k in enumerate(batch.active):
+            steps[k] += 1
+            if k not in done and ((bool(accepted[i]) and bool(small[k])) or float(mu[k]) > 1e8):
+                done.append(k)
+        if done:
+            keep = torch.tensor([k not in done for k in batch.active], device=dev)
+            batch.deactivate(done)
+            lin = lin.select(keep) if batch.active else None
 
 
 def _record(batch: _Batch, histories: list[list[dict]], it: int, loss: torch.Tensor,

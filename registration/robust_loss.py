@@ -283,3 +283,15 @@ class AdaptiveRobustLoss(torch.nn.Module):
         if group.shape != residuals.shape:
             raise ValueError(f"group {tuple(group.shape)} must match residuals {tuple(residuals.shape)}")
         return robust_nll(residuals, alpha[group], scale[group])
+
+    @torch.no_grad()
+    def assign(self, index: torch.Tensor, alpha: torch.Tensor, scale: torch.Tensor) -> None:
+        """Set the pairs ``index`` (k,) long to the shapes ``alpha`` (k,) and scales ``scale`` (k,)
+        (clamped just inside the allowed ranges)."""
+        span = self.alpha_hi - self.alpha_lo
+        frac = ((alpha.double() - self.alpha_lo) / span).clamp(1e-9, 1.0 - 1e-9)
+        self.latent_alpha[index] = torch.log(frac / (1.0 - frac)).to(self.latent_alpha.dtype)
+        y = (scale.double() - self.scale_lo).clamp(min=1e-12)
+        latent = y + torch.log(-torch.expm1(-y))  # inverse softplus, finite for large y
+        self.latent_scale[index] = latent.to(self.latent_scale.dtype)
+

@@ -13,14 +13,12 @@ refined.
 
 from __future__ import annotations
 
-import dataclasses
-
 import torch
 
 from neural_fields.field import Field
 
 from .initialisation import Hypothesis
-from .refinement import RefineConfig, refine_many
+from .refinement import RefineConfig, refine_many, without_steps
 
 
 def screen_hypotheses(
@@ -56,8 +54,8 @@ def screen_hypotheses(
     """
     if len(hypotheses) <= 1:
         return list(hypotheses[:keep])
-    at_pose = dataclasses.replace(config, max_iterations=0)
-    scores = refine_many(scene_field, library_field, A, B, [h.transform for h in hypotheses], at_pose)
+    scores = refine_many(scene_field, library_field, A, B, [h.transform for h in hypotheses],
+                         without_steps(config))
     order = sorted(range(len(hypotheses)),
                    key=lambda i: (-round(scores[i].inlier_fraction, 6), -hypotheses[i].fitness, i))
     return [hypotheses[i] for i in order[:keep]]

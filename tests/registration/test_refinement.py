@@ -96,28 +96,42 @@ def problem() -> dict:
     }
 
 
-def test_recovers_the_truth_from_within_the_basin(problem: dict) -> None:
+@pytest.mark.parametrize("optimizer, tolerance", [("adam", 1e-3), ("lm", 1e-5)])
+def test_recovers_the_truth_from_within_the_basin(problem: dict, optimizer: str, tolerance: float) -> None:
+    """Both optimisers reach the truth; Levenberg-Marquardt converges to it much more tightly."""
     size = problem["size"]
     T0 = perturbed(problem["T_gt"], 0.15, [0.05 * size, -0.02 * size, 0.01 * size], 1.07)
-    res = refine(problem["scene"], problem["lib"], problem["A"], problem["B"], T0, TEST_CFG)
+    res = refine(problem["scene"], problem["lib"], problem["A"], problem["B"], T0,
+                 replace(TEST_CFG, optimizer=optimizer))
     rot, dt, ds = errors(res.transform, problem["T_gt"])
-    assert rot < 1e-3 and dt / size < 1e-3 and ds < 1e-3, (rot, dt / size, ds)
+    assert rot < tolerance and dt / size < tolerance and ds < tolerance, (rot, dt / size, ds)
     assert res.inlier_fraction > 0.99
-    assert res.iterations <= TEST_CFG.max_iterations
+    assert res.iterations <= max(TEST_CFG.max_iterations, TEST_CFG.lm_max_iterations)
     assert len(res.history) >= res.iterations
     h = res.history[-1]
     assert {"loss", "mean_residual_A", "mean_residual_B", "alpha", "c", "s"} <= set(h)
     assert 0.0 < h["alpha"] <= 1.0
     assert res.seconds > 0
     # Resampling grew both sets (jittered points on both surfaces), never past the cap.
+    if optimizer == "lm":
+        assert res.iterations <= 10  # where Adam takes about 100
     n_A = [h["n_A"] for h in res.history]
     assert n_A[0] == 2000 and n_A[-1] > 2000 and max(n_A) <= TEST_CFG.max_samples
     assert res.history[-1]["n_B"] > 2000
 
 
-def test_resampling_respects_the_cap(problem: dict) -> None:
+# Caps that make each optimiser take a fixed number of iterations (no convergence stop).
+FIXED_STEPS = {
+    "adam": lambda n: replace(TEST_CFG, optimizer="adam", max_iterations=n, convergence_window=0),
+    "lm": lambda n: replace(TEST_CFG, optimizer="lm", lm_max_iterations=n, lm_step_tolerance=1e-30,
+                            early_stop_residual=0.0),
+}
+
+
+@pytest.mark.parametrize("optimizer, iterations", [("adam", 40), ("lm", 13)])
+def test_resampling_respects_the_cap(problem: dict, optimizer: str, iterations: int) -> None:
     T0 = perturbed(problem["T_gt"], 0.02, [0.0, 0.0, 0.0], 1.0)
-    cfg = replace(TEST_CFG, max_iterations=40, max_samples=2300)
+    cfg = replace(FIXED_STEPS[optimizer](iterations), max_samples=2300)
     res = refine(problem["scene"], problem["lib"], problem["A"], problem["B"], T0, cfg)
     assert res.history[-1]["n_A"] == 2300 and res.history[-1]["n_B"] == 2300
 
@@ -171,25 +185,26 @@ def test_large_scale_differences(scale: float) -> None:
     assert res.mean_residual_A < 1e-3 * reference_length(lib)
 
 
-def test_the_last_step_is_returned(problem: dict) -> None:
+@pytest.mark.parametrize("optimizer", ["adam", "lm"])
+def test_the_last_step_is_returned(problem: dict, optimizer: str) -> None:
     T0 = perturbed(problem["T_gt"], 0.1, [0.02, 0.0, 0.0], 1.05)
-    res = refine(problem["scene"], problem["lib"], problem["A"], problem["B"], T0,
-                 replace(TEST_CFG, max_iterations=1))
+    res = refine(problem["scene"], problem["lib"], problem["A"], problem["B"], T0, FIXED_STEPS[optimizer](1))
     assert res.iterations == 1
-    # One Adam step moves every free parameter by about its learning rate.
+    # One step moves every free parameter (Adam: by about its learning rate).
     assert not np.allclose(res.transform.matrix(), T0.matrix(), atol=1e-4)
     assert res.transform.s != pytest.approx(T0.s, rel=1e-4)
     assert res.history[0]["s"] == pytest.approx(T0.s)  # the history is of the evaluated step
-    none = refine(problem["scene"], problem["lib"], problem["A"], problem["B"], T0,
-                  replace(TEST_CFG, max_iterations=0))
+    none = refine(problem["scene"], problem["lib"], problem["A"], problem["B"], T0, FIXED_STEPS[optimizer](0))
     assert none.iterations == 0 and np.allclose(none.transform.matrix(), T0.matrix(), atol=1e-12)
 
 
-def test_fix_scale_and_one_directional(problem: dict) -> None:
+@pytest.mark.parametrize("optimizer", ["adam", "lm"])
+def test_fix_scale_and_one_directional(problem: dict, optimizer: str) -> None:
     T0 = perturbed(problem["T_gt"], 0.1, [0.03, -0.02, 0.0], 1.0)
-    cfg = replace(TEST_CFG, max_iterations=30, bidirectional=False, fix_scale=True)
+    base = replace(TEST_CFG, optimizer=optimizer, max_iterations=30)
+    cfg = replace(base, bidirectional=False, fix_scale=True)
     fixed = refine(problem["scene"], problem["lib"], problem["A"], problem["B"], T0,
-                   replace(TEST_CFG, max_iterations=30, fix_scale=True))
+                   replace(base, fix_scale=True))
     assert fixed.transform.s == T0.s
     one = refine(problem["scene"], problem["lib"], problem["A"], problem["B"], T0, cfg)
     garbage = 100.0 + 7.0 * torch.rand(50, 3, generator=torch.Generator().manual_seed(5))
@@ -205,21 +220,23 @@ def test_fix_scale_and_one_directional(problem: dict) -> None:
     assert errors(one.transform, problem["T_gt"])[0] < rot0
 
 
-def test_refine_many_picks_the_hypothesis_nearest_the_truth(problem: dict) -> None:
+@pytest.mark.parametrize("optimizer", ["adam", "lm"])
+def test_refine_many_picks_the_hypothesis_nearest_the_truth(problem: dict, optimizer: str) -> None:
     T_gt, size = problem["T_gt"], problem["size"]
     inits = [
         perturbed(T_gt, 2.5, [0.2 * size, 0.0, 0.1 * size], 1.2),  # far off: a wrong basin
         perturbed(T_gt, 0.1, [0.02 * size, 0.01 * size, 0.0], 1.03),  # near the truth
         perturbed(T_gt, math.pi / 2, [0.0, 0.15 * size, 0.0], 0.85),
     ]
-    cfg = replace(TEST_CFG, max_iterations=80)
+    cfg = replace(TEST_CFG, optimizer=optimizer, max_iterations=80)
     results = refine_many(problem["scene"], problem["lib"], problem["A"], problem["B"], inits, cfg)
     assert len(results) == 3
     best = int(np.argmin([r.loss for r in results]))
     assert best == 1
     assert errors(results[1].transform, T_gt)[0] < 1e-2
     assert results[1].inlier_fraction > max(results[0].inlier_fraction, results[2].inlier_fraction)
-    # Batched refinement equals refining the hypothesis alone (Adam is elementwise).
+    # Batched refinement equals refining the hypothesis alone (Adam is elementwise; LM solves,
+    # accepts and fits a kernel per hypothesis).
     alone = refine(problem["scene"], problem["lib"], problem["A"], problem["B"], inits[1], cfg)
     assert np.allclose(alone.transform.matrix(), results[1].transform.matrix(), atol=1e-5)
 
@@ -257,6 +274,10 @@ def test_bad_input(problem: dict) -> None:
         RefineConfig(trim_fraction=0.0)
     with pytest.raises(ValueError, match="lr_rotation"):
         RefineConfig(lr_rotation=-1.0)
+    with pytest.raises(ValueError, match="optimizer"):
+        RefineConfig(optimizer="sgd")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="lm_damping"):
+        RefineConfig(lm_damping=0.0)
 
 
 class _Trainable(Field):
@@ -274,22 +295,23 @@ class _Trainable(Field):
         return self.child.color(x, d)
 
 
-def test_field_parameters_get_no_gradient(problem: dict) -> None:
+@pytest.mark.parametrize("optimizer", ["adam", "lm"])
+def test_field_parameters_get_no_gradient(problem: dict, optimizer: str) -> None:
     lib = _Trainable(make_library())
     T0 = perturbed(problem["T_gt"], 0.05, [0.01, 0.0, 0.0], 1.0)
-    res = refine(problem["scene"], lib, problem["A"], problem["B"], T0,
-                 replace(TEST_CFG, max_iterations=3))
+    res = refine(problem["scene"], lib, problem["A"], problem["B"], T0, FIXED_STEPS[optimizer](3))
     assert res.iterations == 3
     # Neither trained nor left with a gradient, and still trainable afterwards.
     assert lib.offset.grad is None and lib.offset.requires_grad
     assert float(lib.offset.detach()) == 0.0
 
 
-def test_same_bits_on_any_thread_count_and_the_count_is_restored(problem: dict) -> None:
+@pytest.mark.parametrize("optimizer", ["adam", "lm"])
+def test_same_bits_on_any_thread_count_and_the_count_is_restored(problem: dict, optimizer: str) -> None:
     """The refinement runs on one torch thread whatever the caller set (repeatable results),
     and gives the caller's setting back."""
     T0 = perturbed(problem["T_gt"], 0.1, [0.0, 0.0, 0.0], 1.05)
-    cfg = replace(TEST_CFG, max_iterations=30)
+    cfg = replace(TEST_CFG, optimizer=optimizer, max_iterations=30)
     before = torch.get_num_threads()
     runs = []
     try:
@@ -302,3 +324,35 @@ def test_same_bits_on_any_thread_count_and_the_count_is_restored(problem: dict) 
     for r in runs[1:]:
         assert np.array_equal(r.transform.matrix(), runs[0].transform.matrix())
         assert r.inlier_fraction == runs[0].inlier_fraction
+
+
+def test_lm_jacobian_matches_finite_differences(problem: dict) -> None:
+    """The Jacobian written out in ``linearise`` against central differences of the residuals
+    under the same local updates (rotation, log scale, translation, offset latent)."""
+    from registration.refinement import _Batch
+
+    T0 = perturbed(problem["T_gt"], 0.1, [0.02, -0.01, 0.0], 1.04)
+    A, B = problem["A"].double(), problem["B"].double()
+    cfg = replace(TEST_CFG, max_offset=0.01, trim_fraction=1.0)
+    batch = _Batch(problem["scene"], problem["lib"], A, B, [T0], cfg)
+    with torch.no_grad():
+        batch.delta[0] = 0.004  # off zero, so that the offset's tanh bound matters
+    lin = batch.linearise()
+    state = batch.pose_state()
+    eps = 1e-6
+    numeric = []
+    for j in range(8):
+        diffs = []
+        for sign in (1.0, -1.0):
+            step = torch.zeros(1, 8, dtype=torch.float64)
+            step[0, j] = sign * eps
+            batch.apply_step(step)
+            diffs.append(batch.linearise())
+            batch.restore_pose(state, torch.ones(1, dtype=torch.bool))
+        numeric.append((diffs[0].x - diffs[1].x) / (2 * eps))
+        # Regulariser vectors (all kept, in sample order): equal but where a nearest
+        # neighbour switches under the perturbation.
+        fd = (diffs[0].q - diffs[1].q) / (2 * eps)
+        close = ((lin.Jq[:, :, j] - fd).abs() <= 1e-6 + 1e-4 * fd.abs()).all(dim=1)
+        assert float(close.double().mean()) > 0.995, (j, float(close.double().mean()))
+    torch.testing.assert_close(lin.J, torch.stack(numeric, dim=1), rtol=1e-4, atol=1e-6)
