@@ -59,6 +59,28 @@ def barron_weight(x: torch.Tensor, alpha: torch.Tensor, scale: torch.Tensor) -> 
     return torch.pow((x / scale) ** 2 / beta + 1.0, 0.5 * alpha - 1.0) / scale**2
 
 
+def barron_curvature(x: torch.Tensor, alpha: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
+    """``max(rho''(x), 0)`` of Barron's loss (elementwise, broadcasting): the Newton weight.
+
+    ``rho''(x) = (1 / c^2) u^(alpha / 2 - 2) (1 - z^2 (1 - 1 / |alpha - 2|))`` with ``z = x / c``
+    and ``u = z^2 / |alpha - 2| + 1``; negative beyond the kernel's inflection, where the term
+    is no longer convex, and clamped to 0 there.
+
+    Parameters
+    ----------
+    x, alpha, scale : (n,) float
+        As :func:`barron_weight`.
+
+    Returns
+    -------
+    (n,) float, non-negative.
+    """
+    beta = (alpha - 2.0).abs().clamp(min=1e-7)
+    z2 = (x / scale) ** 2
+    u = z2 / beta + 1.0
+    return (torch.pow(u, 0.5 * alpha - 2.0) * (1.0 - z2 * (1.0 - 1.0 / beta))).clamp(min=0.0) / scale**2
+
+
 def fit_kernel(
     x: torch.Tensor, weight: torch.Tensor, group: torch.Tensor, k: int, alpha_lo: float, alpha_hi: float
 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -138,25 +160,23 @@ def damped_step(H: torch.Tensor, g: torch.Tensor, damping: torch.Tensor, free: t
         Gradients.
     damping : (k,) float64
         mu per problem.
-    free : (p,) bool
-        Parameters that may move; the others get a zero step.
+    free : (p,) or (k, p) bool
+        Parameters that may move (for all problems, or per problem); the others get a zero step.
 
     Returns
     -------
     (k, p) float64
     """
-    fixed = ~free
-    H = H.clone()
-    g = g.clone()
-    H[:, fixed, :] = 0.0
-    H[:, :, fixed] = 0.0
-    g[:, fixed] = 0.0
+    fixed = (~free).expand_as(g).to(H.dtype)
+    keep = 1.0 - fixed
+    H = H * keep[:, :, None] * keep[:, None, :]
+    g = g * keep
     diag = H.diagonal(dim1=1, dim2=2)
     # Marquardt's scaling by the diagonal, floored so that a parameter the data barely
     # constrain still gets a finite step.
     floor = 1e-9 * diag.amax(dim=1, keepdim=True).clamp(min=1e-30)
     scaled = diag.clamp(min=0.0) + floor
-    A = H + torch.diag_embed(damping[:, None] * scaled + fixed.to(H.dtype) * 1.0)
+    A = H + torch.diag_embed(damping[:, None] * scaled + fixed)
     step = torch.linalg.solve(A, -g[..., None])[..., 0]
     return torch.where(torch.isfinite(step), step, torch.zeros_like(step))
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 from rich.console import Console
@@ -106,6 +106,8 @@ class Register:
     upright: bool = True
     """The object stands as its library model does (the scene's +Z and the library's +Z are
     both up): 24 yaws also start the search. --no-upright: features alone (any orientation)."""
+    optimizer: Literal["lm", "adam"] = "lm"
+    """Refinement optimiser: Levenberg-Marquardt (ours, a few iterations) or the paper's Adam."""
     device: str = "cpu"
     """Torch device."""
 
@@ -148,6 +150,7 @@ class Register:
         import dataclasses
 
         cfg = RegistrationConfig(upright=self.upright)
+        cfg = dataclasses.replace(cfg, refine=dataclasses.replace(cfg.refine, optimizer=self.optimizer))
         if self.top_k is not None:
             init = dataclasses.replace(cfg.init, top_k=self.top_k, candidates=max(cfg.init.candidates, self.top_k))
             cfg = dataclasses.replace(cfg, init=init)
