@@ -9,7 +9,9 @@ sampling and the same metrics.
 Rows: one per registration, with the scene, the library ``object`` registered, the ``method``,
 ``views``, the error metrics of :func:`registration.metrics.registration_errors`, ``seconds``
 (and ``seconds_sampling``, ``seconds_initialisation``, ``seconds_refinement``: its stages),
-``confidence``, ``accepted``, and ``coverage`` (``full`` or ``low``: which capture the scene
+``confidence``, ``accepted``, the confidence's factors (``inlier_fraction``, both directions,
+and its ``inlier_fraction_scene`` and ``inlier_fraction_library`` parts; ``containment``), the
+refinement's ``iterations``, and ``coverage`` (``full`` or ``low``: which capture the scene
 field was trained on), ``library_source`` (``rgbd`` or ``mesh``), ``wrong_pair`` (the box holds
 another object) and ``box_object`` (the library name of the object the box really holds). A
 wrong pair has no true pose: its error metrics are null.
@@ -176,6 +178,10 @@ def run_pair(scene_name: str, obj: str, scene: Field, library: Field, capture, m
             "views": "single" if single_view else "multi",
             **errors,
             "seconds": seconds, "confidence": res.confidence, "accepted": res.accepted,
+            # The confidence's factors (null where a method does not report one).
+            **{k: (float(res.losses[k]) if k in res.losses else None)
+               for k in ("inlier_fraction", "inlier_fraction_scene", "inlier_fraction_library", "containment")},
+            "iterations": float(res.losses["iterations"]) if "iterations" in res.losses else None,
             # Where the time goes (null for a stage the method does not have).
             **{f"seconds_{stage}": (float(res.timings[stage]) if stage in res.timings else None)
                for stage in ("sampling", "initialisation", "refinement")},

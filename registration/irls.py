@@ -9,8 +9,10 @@ slope at the current residual: ``rho(x + d) ~ rho(x) + W x d + W d^2 / 2`` with
 
     W(x) = (1 / c^2) ((x / c)^2 / |alpha - 2| + 1)^(alpha / 2 - 1),
 
-non-increasing in |x| for alpha <= 2, so the quadratic lies above the loss (a majoriser).
-One Gauss-Newton step on the weighted problem then solves a 7- or 8-parameter linear system.
+non-increasing in |x| for alpha <= 2, so the quadratic lies above the loss (a majoriser):
+safe steps, but only linear convergence. The loss's own curvature ``max(rho''(x), 0)``
+(:func:`barron_curvature`) gives Newton's faster steps; the refinement uses it, and the
+majoriser after a step that failed. Either way one step solves a damped 8 x 8 system.
 
 The kernel's (alpha, c) minimise the negative log-likelihood of the residuals (the adaptive
 loss, :mod:`registration.robust_loss`). With the residuals fixed that is a two-parameter
@@ -19,8 +21,6 @@ problem; it is solved exactly on a grid, evaluated on a log-spaced histogram of 
 """
 
 from __future__ import annotations
-
-import math
 
 import torch
 
@@ -180,7 +180,3 @@ def damped_step(H: torch.Tensor, g: torch.Tensor, damping: torch.Tensor, free: t
     step = torch.linalg.solve(A, -g[..., None])[..., 0]
     return torch.where(torch.isfinite(step), step, torch.zeros_like(step))
 
-
-def log_partition_value(alpha: float) -> float:
-    """``log Z(alpha)`` as a float (for reporting the NLL of a fitted kernel)."""
-    return float(log_partition(torch.tensor([alpha], dtype=torch.float64))[0]) if math.isfinite(alpha) else alpha

@@ -1,7 +1,8 @@
 """Bidirectional SDF refinement of a scene -> library similarity (Reg-NF, METHOD.md section 5).
 
 Given surface samples ``A`` of the object in the scene field (scene field frame) and ``B`` of
-the library object (library field frame), and an initial similarity ``T0``, Adam minimises
+the library object (library field frame), and an initial similarity ``T0``, the refinement
+minimises
 
     mean_{x in A} k(|S_lib(T x) - s S_scene(x)|) + mean_{y in B} k(|s S_scene(T^-1 y) - S_lib(y)|)
         + w L_reg
@@ -36,9 +37,21 @@ at the truth (about the sample spacing), bias the optimum (scale error 1-3e-3 ag
 1e-3, and the early stop is never reached). The default 0.1 keeps the paper's term at no
 measurable cost in accuracy.
 
+Two optimisers (``RefineConfig.optimizer``):
+
+- ``lm`` (default, not in the paper): Levenberg-Marquardt. The objective is a robust
+  least-squares problem in 8 parameters (pose, scale, offset), so each iteration writes out the
+  residuals' Jacobians from the fields' spatial gradients (:meth:`_Batch.linearise`), fits each
+  hypothesis's kernel (alpha, c) to its residuals by minimising their NLL (what Adam does by
+  gradient steps), and solves a damped 8 x 8 system whose curvature is the loss's own (clamped
+  at 0 where a term is not convex; :mod:`registration.irls`). 5-15 iterations instead of 80-200
+  Adam steps, to the same or a tighter optimum (``docs/benchmarks.md``).
+- ``adam``: the paper's, as published: Adam on all parameters and the kernel together.
+
 Several hypotheses are refined in one batch (:func:`refine_many`): their samples are stacked so
-that each iteration costs two field queries in all, and because Adam is elementwise, one Adam
-over the stacked per-hypothesis parameters is exactly K independent optimisations.
+that each iteration costs two field queries in all. Adam is elementwise, so one Adam over the
+stacked per-hypothesis parameters is exactly K independent optimisations; Levenberg-Marquardt
+solves, accepts and fits a kernel per hypothesis, which is the same.
 """
 
 from __future__ import annotations
@@ -55,7 +68,13 @@ import numpy as np
 import torch
 
 from neural_fields.field import Field
-from registration.irls import barron_curvature, barron_weight, damped_step, fit_kernel, segment_normal_equations
+from registration.irls import (
+    barron_curvature,
+    barron_weight,
+    damped_step,
+    fit_kernel,
+    segment_normal_equations,
+)
 from registration.robust_loss import AdaptiveRobustLoss, general_rho, log_partition
 from registration.transform import SimilarityTransform
 

@@ -8,6 +8,7 @@ import torch
 
 from registration.irls import (
     ALPHA_FRACTIONS,
+    barron_curvature,
     SCALE_DECADES,
     SCALE_STEPS,
     barron_weight,
@@ -31,6 +32,19 @@ def test_weights_are_the_loss_slope_over_the_residual() -> None:
             # Non-increasing in |x| for alpha <= 2: the IRLS quadratic majorises the loss.
             pos = x.detach() > 0
             assert bool((W[pos][1:] <= W[pos][:-1] * (1 + 1e-12)).all())
+
+
+def test_curvature_is_the_loss_second_derivative_clamped_at_zero() -> None:
+    x = torch.linspace(-0.3, 0.3, 241, dtype=torch.float64).requires_grad_(True)
+    for alpha in (1e-6, 0.3, 1.0, 1.7):
+        for c in (0.003, 0.05):
+            (slope,) = torch.autograd.grad(general_rho(x, alpha, c).sum(), x, create_graph=True)
+            (second,) = torch.autograd.grad(slope.sum(), x)
+            got = barron_curvature(x.detach(), torch.full_like(x, alpha), torch.full_like(x, c))
+            torch.testing.assert_close(got, second.clamp(min=0.0), rtol=1e-6, atol=1e-9)
+            # Never above the reweighting's curvature: the majoriser is the cautious step.
+            W = barron_weight(x.detach(), torch.full_like(x, alpha), torch.full_like(x, c))
+            assert bool((got <= W * (1 + 1e-12)).all())
 
 
 def test_kernel_fit_finds_the_generating_scale_and_shape() -> None:
