@@ -174,11 +174,11 @@ class RefineConfig:
     library surface into observed free space is still charged for it.)"""
 
     optimizer: Literal["lm", "adam"] = "lm"
-    """``lm``: Levenberg-Marquardt on the iteratively reweighted problem, the kernel's (alpha, c)
-    fitted to the residuals at every iterate (:mod:`registration.irls`); ``adam``: the paper's
-    Adam on all parameters at once. (Not in the paper. The objective is a 7-parameter robust
-    least-squares problem: a damped Gauss-Newton step converges in a few iterations where Adam
-    at the paper's rates takes 100-200 steps; measured in ``docs/benchmarks.md``.)"""
+    """``lm``: Levenberg-Marquardt, the kernel's (alpha, c) fitted to the residuals at every
+    iterate (:mod:`registration.irls`); ``adam``: the paper's Adam on all parameters at once.
+    (Not in the paper. The objective is a robust least-squares problem in 8 parameters: a
+    damped Newton step converges in 5-15 iterations where Adam at the paper's rates takes
+    80-200 steps; measured in ``docs/benchmarks.md``.)"""
     lm_max_iterations: int = 30
     """Most Levenberg-Marquardt iterations (``optimizer="lm"``); ``max_iterations`` caps Adam."""
     lm_resample_every: int = 3
@@ -192,7 +192,7 @@ class RefineConfig:
     """At this LM iteration stop hypotheses whose inlier fraction trails the best one by more than
     ``prune_margin`` (Adam: ``prune_after``); 0 disables."""
     lm_step_tolerance: float = 1e-4
-    """A hypothesis has converged once an accepted LM step moves it less than this in rotation
+    """A hypothesis has converged once an LM step would move it less than this in rotation
     (radians), in the mapped centroid of A (*L*) and in relative scale."""
     lm_curvature: Literal["irls", "newton"] = "newton"
     """Curvature of each robust term in the LM system: ``irls`` the reweighting's ``rho'(x)/x``
@@ -464,7 +464,6 @@ class _Linear(NamedTuple):
         rows, reg = keep[self.group], keep[self.gq]
         return _Linear(self.x[rows], self.J[rows], self.a[rows], new_id[self.group[rows]], self.q[reg],
                        self.Jq[reg], self.aq[reg], new_id[self.gq[reg]], self.stats[keep])
-
 
 
 class _Batch:
