@@ -8,9 +8,9 @@ import torch
 
 from registration.irls import (
     ALPHA_FRACTIONS,
-    barron_curvature,
     SCALE_DECADES,
     SCALE_STEPS,
+    barron_curvature,
     barron_weight,
     damped_step,
     fit_kernel,
