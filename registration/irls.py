@@ -142,11 +142,19 @@ def segment_normal_equations(
     H : (k, p, p) float64
     g : (k, p) float64
     """
-    p = J.shape[1]
     aJ = a[:, None] * J
+    return _gram(aJ, J, group, k), J.new_zeros(k, J.shape[1]).index_add_(0, group, aJ * x[:, None])
+
+
+def segment_gram(J: torch.Tensor, a: torch.Tensor, group: torch.Tensor, k: int) -> torch.Tensor:
+    """``H = sum_i a_i J_i J_i^T`` per group alone: (k, p, p) from J (n, p), a (n,), group (n,)."""
+    return _gram(a[:, None] * J, J, group, k)
+
+
+def _gram(aJ: torch.Tensor, J: torch.Tensor, group: torch.Tensor, k: int) -> torch.Tensor:
+    p = J.shape[1]
     H = J.new_zeros(k, p * p).index_add_(0, group, (aJ[:, :, None] * J[:, None, :]).reshape(-1, p * p))
-    g = J.new_zeros(k, p).index_add_(0, group, aJ * x[:, None])
-    return H.view(k, p, p), g
+    return H.view(k, p, p)
 
 
 def damped_step(H: torch.Tensor, g: torch.Tensor, damping: torch.Tensor, free: torch.Tensor) -> torch.Tensor:
