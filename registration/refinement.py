@@ -253,7 +253,7 @@ class RefineResult(NamedTuple):
     iterations: int
     """Optimiser iterations taken (Adam steps or Levenberg-Marquardt iterations)."""
     history: list[dict]
-    """Per iteration: loss, mean residuals, alpha, c, s, sample counts."""
+    """Per iteration: loss, mean residuals, alpha, c, s, the level-set offset (*L*), sample counts."""
     seconds: float
     """Wall time of the whole batch this hypothesis was refined in."""
     inlier_fraction_scene: float = float("nan")
@@ -1097,13 +1097,13 @@ def _record(batch: _Batch, histories: list[list[dict]], it: int, loss: torch.Ten
         s = (torch.exp(batch.log_s) * batch.s0)[idx]
         table = torch.stack([loss.double(), stats[:, 0].double(), stats[:, 1].double(),
                              batch.kernel.alpha[idx].double(), batch.kernel.scale[idx].double(), s,
-                             stats[:, 4].double()], dim=1).cpu().numpy()
+                             stats[:, 4].double(), batch.offset()[idx].double()], dim=1).cpu().numpy()
     for i, k in enumerate(batch.active):
         row = table[i]
         histories[k].append({
             "iteration": it, "loss": float(row[0]), "mean_residual_A": float(row[1]),
             "mean_residual_B": float(row[2]), "alpha": float(row[3]), "c": float(row[4]),
-            "s": float(row[5]), "regulariser": float(row[6]),
+            "s": float(row[5]), "regulariser": float(row[6]), "offset": float(row[7]),
             "n_A": int(batch.A[k].shape[0]), "n_B": int(batch.B[k].shape[0]) if batch.B else 0,
         })
 
