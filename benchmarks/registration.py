@@ -13,14 +13,18 @@ Rows: one per registration, with the scene, the library ``object`` registered, t
 and its ``inlier_fraction_scene`` and ``inlier_fraction_library`` parts; ``containment``), the
 refinement's ``iterations``, and ``coverage`` (``full`` or ``low``: which capture the scene
 field was trained on), ``library_source`` (``rgbd`` or ``mesh``), ``wrong_pair`` (the box holds
-another object) and ``box_object`` (the library name of the object the box really holds). A
+another object), ``box_object`` (the library name of the object the box really holds) and, for
+a wrong pair, ``difference_observed`` (how much of the surface where the two objects differ the
+scene's views observed, see :mod:`benchmarks.observed_difference`; null for a right pair). A
 wrong pair has no true pose: its error metrics are null.
 
 Wrong pairs (``wrong_pairs=True``): on every room, coverage and library source, every library
 object of one class into every box of the other class (chairs into tables' boxes and the
 reverse), and every chair into every other chair's box. An identification that works rejects
 every cross-class pair, and gives each wrong chair a lower confidence than the right chair for
-its box (or rejects it).
+its box (or rejects it), as far as the scene observed what tells the two apart: a wrong chair
+that differs from the right one only where no view looked (``difference_observed`` near 0)
+fits the observed evidence as well as the right one, and the report counts it apart.
 """
 
 from __future__ import annotations
@@ -36,6 +40,7 @@ import torch
 import trimesh
 from tqdm import tqdm
 
+from benchmarks.observed_difference import observed_difference
 from neural_fields.analytic import Transformed
 from neural_fields.checkpoint import load_field
 from neural_fields.field import Field
@@ -153,8 +158,11 @@ def run_pair(scene_name: str, obj: str, scene: Field, library: Field, capture, m
     if wrong:  # no true pose: only the box is used
         S = scene.to_world.detach().cpu().double().numpy()
         proposal, truth, surface_lib, diag = proposal_from_instance(inst, S), None, None, float("nan")
+        difference = observed_difference(scene, inst.object_to_world, make_library_object(obj).mesh,
+                                         make_library_object(box_object).mesh)
     else:
         truth, proposal, surface_lib, diag = pair_truth(inst, scene, library, seed)
+        difference = None
     if single_view:
         cfg = dataclasses.replace(cfg, scene_sampling=dataclasses.replace(cfg.scene_sampling, views="single"))
     runners: dict[str, Callable[[], RegistrationResult]] = {
@@ -186,7 +194,7 @@ def run_pair(scene_name: str, obj: str, scene: Field, library: Field, capture, m
             **{f"seconds_{stage}": (float(res.timings[stage]) if stage in res.timings else None)
                for stage in ("sampling", "initialisation", "refinement")},
             "coverage": coverage, "library_source": library_source, "wrong_pair": wrong,
-            "box_object": box_object,
+            "box_object": box_object, "difference_observed": difference,
             "_result": res, "_truth": truth,
         })
     return rows

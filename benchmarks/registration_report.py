@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, ImageDraw
 
+from benchmarks.observed_difference import UNOBSERVED
 from registration.result import RegistrationResult
 from synthetic.atomic_io import atomic_path
 
@@ -157,7 +158,10 @@ def wrong_pair_rates(rows: list[dict]) -> list[dict]:
     """Per coverage and library source: cross-class false accepts, and within-class ranking.
 
     A within-class wrong pair (a chair in another chair's box) counts as identified when it
-    is rejected or scores a lower confidence than the box's own chair in the same setting.
+    is rejected or scores a lower confidence than the box's own chair in the same setting;
+    ``within_unidentified_unobserved`` counts the others whose difference from the right chair
+    the scene never observed (``difference_observed`` below
+    :data:`benchmarks.observed_difference.UNOBSERVED`): no observed evidence ranks those.
     """
     right = {(r["scene"], r["object"], r.get("coverage", "full"), r.get("library_source", "rgbd")): r
              for r in _right_rows(rows)}
@@ -169,10 +173,19 @@ def wrong_pair_rates(rows: list[dict]) -> list[dict]:
         within = [r for r in rs if r not in cross]
         lower = [r for r in within
                  if not r["accepted"] or r["confidence"] < right[(r["scene"], r["box_object"], cov, src)]["confidence"]]
+        unidentified = [r for r in within if r not in lower]
+        unobserved = [r for r in unidentified
+                      if r.get("difference_observed") is not None and r["difference_observed"] < UNOBSERVED]
         out.append({"coverage": cov, "library_source": src, "cross_pairs": len(cross),
                     "cross_accepted": sum(r["accepted"] for r in cross), "within_pairs": len(within),
                     "within_accepted": sum(r["accepted"] for r in within),
-                    "within_rejected_or_lower": len(lower)})
+                    "within_rejected_or_lower": len(lower),
+                    "within_unidentified_unobserved": len(unobserved),
+                    "within_unidentified": [f"{r['scene']}: {r['object']} in {r['box_object']}'s box "
+                                            f"({r['confidence']:.4f} vs "
+                                            f"{right[(r['scene'], r['box_object'], cov, src)]['confidence']:.4f}; "
+                                            f"difference observed {r.get('difference_observed', float('nan')):.2f})"
+                                            for r in unidentified]})
     return out
 
 
@@ -185,10 +198,17 @@ def _label(name: str) -> str:
 def wrong_pair_table(rows: list[dict]) -> str:
     """Markdown of :func:`wrong_pair_rates`."""
     out = [("| coverage | library | cross-class pairs | false accepts | false-accept rate | chair-in-chair pairs | "
-            "accepted | rejected or below the right chair | rate |"), "|---|---|---|---|---|---|---|---|---|"]
-    for w in wrong_pair_rates(rows):
+            "accepted | rejected or below the right chair | rate | not ranked, difference unobserved |"),
+           "|---|---|---|---|---|---|---|---|---|---|"]
+    rates = wrong_pair_rates(rows)
+    for w in rates:
         out.append(f"| {w['coverage']} | {w['library_source']} | {w['cross_pairs']} | {w['cross_accepted']} | "
                    f"{w['cross_accepted'] / max(1, w['cross_pairs']):.0%} | {w['within_pairs']} | "
                    f"{w['within_accepted']} | {w['within_rejected_or_lower']} | "
-                   f"{w['within_rejected_or_lower'] / max(1, w['within_pairs']):.0%} |")
+                   f"{w['within_rejected_or_lower'] / max(1, w['within_pairs']):.0%} | "
+                   f"{w['within_unidentified_unobserved']} |")
+    missed = [f"- {w['coverage']} coverage, {w['library_source']} library: {m}"
+              for w in rates for m in w["within_unidentified"]]
+    if missed:
+        out += ["", "Chairs not ranked below the right chair (confidence of the wrong vs the right chair):", *missed]
     return "\n".join(out) + "\n"
