@@ -295,6 +295,40 @@ class _Trainable(Field):
         return self.child.color(x, d)
 
 
+class _Dilated(Field):
+    """``child`` grown by ``eps`` field units everywhere: SDF ``child - eps``."""
+
+    def __init__(self, child: Field, eps: float) -> None:
+        super().__init__(bounds=child.bounds, to_world=child.to_world)
+        self.child, self.eps = child, eps
+
+    def sdf(self, x: torch.Tensor) -> torch.Tensor:
+        return self.child.sdf(x) - self.eps
+
+    def color(self, x: torch.Tensor, d: torch.Tensor | None = None) -> torch.Tensor:
+        return self.child.color(x, d)
+
+
+def test_a_uniformly_dilated_scene_is_explained_by_the_offset_it_records(problem: dict) -> None:
+    """Scene grown by eps: at the true pose ``S_lib(T x) = s (S_scene(x) + eps)``, so the
+    offset is ``s eps / L``, reported with the result, and the pose stays at the truth."""
+    T_gt, lib = problem["T_gt"], problem["lib"]
+    obj, _ = scene_for(lib, T_gt)
+    eps = 0.004  # scene units: well inside the offset's bound
+    scene = _Dilated(obj, eps)
+    A = surface_samples(scene, 2000, seed=3)
+    res = refine(scene, lib, A, problem["B"], T_gt, TEST_CFG)
+    expected = T_gt.s * eps / reference_length(lib)
+    assert res.offset == pytest.approx(expected, rel=0.02)
+    assert res.history[0]["offset"] == 0.0  # the history starts from no offset
+    rot, dt, ds = errors(res.transform, T_gt)
+    assert rot < 1e-4 and dt / problem["size"] < 1e-4 and ds < 1e-4, (rot, dt, ds)
+    # Without the offset, the same dilation can only be absorbed by moving the pose.
+    fixed = refine(scene, lib, A, problem["B"], T_gt, replace(TEST_CFG, level_set_offset=False))
+    assert fixed.offset == 0.0
+    assert errors(fixed.transform, T_gt)[2] > 10 * max(ds, 1e-5)
+
+
 @pytest.mark.parametrize("optimizer", ["adam", "lm"])
 def test_field_parameters_get_no_gradient(problem: dict, optimizer: str) -> None:
     lib = _Trainable(make_library())

@@ -14,11 +14,12 @@ import dataclasses
 import numpy as np
 import pytest
 import torch
+import trimesh
 
-from neural_fields.analytic import Sphere, Union
+from neural_fields.analytic import Box, Sphere, Union
 from neural_fields.visibility import VisibilityGrid
 from registration.metrics import geodesic_angle
-from registration.refinement import RefineConfig, refine
+from registration.refinement import RefineConfig, refine, without_steps
 from registration.register import RegistrationConfig, sample_pair, sample_tensors
 from registration.transform import SimilarityTransform
 
@@ -92,3 +93,40 @@ def test_library_surface_put_into_observed_free_space_still_counts(setting: dict
     finally:
         scene.visibility = None
     assert flip_score < true_score - 0.2
+
+
+def _slab_seen_from_above() -> dict:
+    """A 40 mm slab whose top (z = 0) the views saw from above: the grid counts space down to
+    its margin (2 voxels, 0.1) below the top as observed, so its underside (z = -0.04) lies in
+    "observed" space though no view saw it; the scene field fills everything under the top."""
+    library = Box(half_extents=(0.4, 0.4, 0.02), center=(0.0, 0.0, -0.02))
+    scene = Box(half_extents=(0.4, 0.4, 0.5), center=(0.0, 0.0, -0.5))  # top and sides, filled
+    bounds = np.array([[-1.0, -1.0, -1.2], [1.0, 1.0, 0.8]])
+    n = 40  # 0.05 voxels
+    centres_z = bounds[0, 2] + (np.arange(n) + 0.5) * (bounds[1, 2] - bounds[0, 2]) / n
+    counts = torch.zeros((n, n, n), dtype=torch.uint8)
+    counts[:, :, torch.as_tensor(centres_z > -0.1)] = 2
+    scene.visibility = VisibilityGrid(counts, torch.as_tensor(bounds, dtype=torch.float32))
+    mesh = trimesh.creation.box(extents=(0.8, 0.8, 0.04))
+    mesh.apply_translation((0.0, 0.0, -0.02))
+    B, faces = trimesh.sample.sample_surface(mesh, 3000, seed=0)
+    under = mesh.face_normals[faces][:, 2] < -0.9
+    xy = np.stack(np.meshgrid(np.linspace(-0.35, 0.35, 30), np.linspace(-0.35, 0.35, 30)), -1).reshape(-1, 2)
+    A = np.concatenate([xy, np.zeros((xy.shape[0], 1))], axis=1)  # the scene's seen top
+    return {"scene": scene, "library": library, "A": torch.as_tensor(A, dtype=torch.float32),
+            "B": torch.as_tensor(B, dtype=torch.float32), "under": float(under.mean())}
+
+
+def test_a_back_face_within_the_grids_margin_is_read_in_front_and_carries_no_weight() -> None:
+    s = _slab_seen_from_above()
+    cfg = without_steps(RefineConfig())  # score the true pose as it is
+    truth = SimilarityTransform.identity()
+    ahead = refine(s["scene"], s["library"], s["A"], s["B"], truth, cfg)
+    at_sample = refine(s["scene"], s["library"], s["A"], s["B"], truth,
+                       dataclasses.replace(cfg, visibility_lookahead=0.0))
+    # Top and sides fit the scene; the underside is 0.04 inside the fill (an outlier) and
+    # unobserved. Read at the sample it counts: the library's inliers are the rest of its area.
+    assert at_sample.inlier_fraction_library == pytest.approx(1.0 - s["under"], abs=0.03)
+    # Read in front of it (3 voxels below), it is unobserved and no evidence either way.
+    assert ahead.inlier_fraction_library > 0.98
+    assert ahead.inlier_fraction_scene == pytest.approx(at_sample.inlier_fraction_scene)
