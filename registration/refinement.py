@@ -181,11 +181,11 @@ class RefineConfig:
     surface as observed: about 100 mm on the rooms' 48 mm voxels. So the underside of the round
     table's 40 mm top, which no low-coverage view saw, read as observed, and its library
     samples, 41 mm inside the fill the scene field holds under the top, pulled on the pose.
-    Measured on the low-coverage atbl-room `wt` (mesh / RGB-D library): scale error 4.33 / 5.00
-    % at the sample, 2.95 / 2.65 % with 3 voxels; translation 1.83 /
-    2.19 % to 1.55 / 1.52 %; the other low-coverage pairs within 0.1 points. Scene samples (A)
-    are read at the sample: read in front, the made-up surfaces bounding the fill, whose
-    front is observed free space, went from 0.014 to 0.25 of wt's scene weight.)"""
+    Measured on the low-coverage atbl-room `wt` (mesh / RGB-D library): scale error 4.33 /
+    5.00 % read at the sample, 2.95 / 2.65 % with 3 voxels; translation 1.83 / 2.19 % to
+    1.55 / 1.52 %; the other low-coverage pairs within 0.1 points. Scene samples (A) are read
+    at the sample: read in front, the made-up surfaces bounding the fill, whose front is
+    observed free space, went from 0.014 to 0.25 of wt's scene weight.)"""
 
     optimizer: Literal["lm", "adam"] = "lm"
     """``lm``: Levenberg-Marquardt, the kernel's (alpha, c) fitted to the residuals at every
