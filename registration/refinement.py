@@ -580,7 +580,7 @@ class _Batch:
             with torch.no_grad():
                 self.sB = self.library.sdf(self.yB)  # S_lib(B): fixed in the library frame
                 # Outward library normals at B, for the visibility lookup in front of them.
-                self.normal_B = self._normals(self.library, self.yB) if self.lookahead > 0 else None
+                self.normal_B = self.library.normal(self.yB) if self.lookahead > 0 else None
             _check_finite(self.sB, "the library field (at B)")
             self.nearest = [_Nearest(self.B[k]) for k in act] if self.cfg.regulariser_weight > 0 else []
 
@@ -634,12 +634,6 @@ class _Batch:
         if self.normal_B is None:
             return None
         return torch.einsum("nji,nj->ni", R[self.gB].to(self.normal_B.dtype), self.normal_B)
-
-    @staticmethod
-    def _normals(field: Field, x: torch.Tensor) -> torch.Tensor:
-        """(n, 3) unit SDF gradients of ``field`` at ``x`` (zero where the gradient vanishes)."""
-        g = field.sdf_and_gradient(x)[1].detach()
-        return g / g.norm(dim=1, keepdim=True).clamp(min=1e-12)
 
     def _directions(self, sets: list[torch.Tensor], like: torch.Tensor) -> torch.Tensor:
         """(n, 3) random unit jitter directions for the stacked active sets, per-hypothesis streams."""
