@@ -11,11 +11,11 @@ grid there (:meth:`neural_fields.visibility.VisibilityGrid.observed`).
 from __future__ import annotations
 
 import numpy as np
-import open3d as o3d
 import torch
 import trimesh
 
 from neural_fields.field import Field
+from synthetic.primitives import surface_distance
 
 DIFFERENCE_TOLERANCE = 0.01
 """Surface farther than this fraction of the box object's diagonal from the other shape differs."""
@@ -27,14 +27,6 @@ UNOBSERVED = 0.05
 """Below this ``observed_difference`` the views saw (next to) nothing of what tells the two
 objects apart: the wrong one fits the observed evidence as well as the right one.
 """
-
-
-def _distances(mesh: trimesh.Trimesh, points: np.ndarray) -> np.ndarray:
-    """(n,) unsigned distances from ``points`` (n, 3) to the surface of ``mesh``."""
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(np.asarray(mesh.vertices, dtype=np.float32)),
-                        o3d.core.Tensor(np.asarray(mesh.faces, dtype=np.uint32)))
-    return scene.compute_distance(o3d.core.Tensor(points.astype(np.float32))).numpy()
 
 
 def observed_difference(scene: Field, object_to_world: np.ndarray, mesh_a: trimesh.Trimesh,
@@ -62,7 +54,7 @@ def observed_difference(scene: Field, object_to_world: np.ndarray, mesh_a: trime
     parts = []
     for mesh, other, s in ((mesh_a, mesh_b, seed), (mesh_b, mesh_a, seed + 1)):
         pts, _ = trimesh.sample.sample_surface(mesh, SAMPLES, seed=s)
-        parts.append(pts[_distances(other, np.asarray(pts)) > DIFFERENCE_TOLERANCE * diag])
+        parts.append(pts[surface_distance(other, pts) > DIFFERENCE_TOLERANCE * diag])
     differ = np.concatenate(parts)
     if differ.shape[0] == 0:
         return float("nan")

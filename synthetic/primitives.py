@@ -124,6 +124,14 @@ def union_parts(parts: Sequence[Part], context: str = "object") -> trimesh.Trime
     return union
 
 
+def surface_distance(mesh: trimesh.Trimesh, points: np.ndarray) -> np.ndarray:
+    """(n,) float32 unsigned distances from ``points`` (n, 3) to the triangles of ``mesh``."""
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(np.asarray(mesh.vertices, dtype=np.float32)),
+                        o3d.core.Tensor(np.asarray(mesh.faces, dtype=np.uint32)))
+    return scene.compute_distance(o3d.core.Tensor(np.asarray(points, dtype=np.float32))).numpy()
+
+
 def color_faces_by_part(mesh: trimesh.Trimesh, parts: Sequence[Part]) -> np.ndarray:
     """Per-face RGBA colours: each face takes the colour of the part nearest its centroid.
 
@@ -134,15 +142,9 @@ def color_faces_by_part(mesh: trimesh.Trimesh, parts: Sequence[Part]) -> np.ndar
     -------
     (F, 4) uint8
     """
-    centroids = o3d.core.Tensor(mesh.triangles_center.astype(np.float32))
     dist = np.empty((len(parts), len(mesh.faces)), dtype=np.float32)
     for k, part in enumerate(parts):  # loop over parts (few), vectorised over faces
-        scene = o3d.t.geometry.RaycastingScene()
-        scene.add_triangles(
-            o3d.core.Tensor(part.mesh.vertices.astype(np.float32)),
-            o3d.core.Tensor(part.mesh.faces.astype(np.uint32)),
-        )
-        dist[k] = scene.compute_distance(centroids).numpy()
+        dist[k] = surface_distance(part.mesh, mesh.triangles_center)
     palette = np.array([p.color for p in parts], dtype=np.float64)
     rgb = np.round(palette[np.argmin(dist, axis=0)] * 255.0).astype(np.uint8)
     return np.concatenate([rgb, np.full((len(rgb), 1), 255, dtype=np.uint8)], axis=1)
