@@ -13,8 +13,8 @@ import torch
 from rich.console import Console
 
 from regnf.cache import Cache, default_cache_dir
-from regnf.preflight import check_output_file
-from synthetic.atomic_io import write_json
+from regnf.core.atomic_io import write_json
+from regnf.core.preflight import check_output_file
 
 console = Console(stderr=True)
 
@@ -55,7 +55,7 @@ class BenchFields:
 
     def run(self) -> None:
         check_outputs(self)
-        from benchmarks.fields import (
+        from regnf.benchmarks.fields import (
             contact_sheet,
             markdown_table,
             run_fields_benchmark,
@@ -69,7 +69,7 @@ class BenchFields:
         contact_sheet(renders, sheet)
         table = markdown_table(rows)
         if self.markdown:
-            from synthetic.atomic_io import write_text
+            from regnf.core.atomic_io import write_text
 
             write_text(self.markdown, f"Command: `{command}`\n\n{table}")
         console.print(table)
@@ -87,7 +87,7 @@ class BenchEncodings:
 
     def run(self) -> None:
         check_outputs(self)
-        from benchmarks.encodings import markdown_table, run_encodings_benchmark
+        from regnf.benchmarks.encodings import markdown_table, run_encodings_benchmark
 
         rows = run_encodings_benchmark(self.device)
         write_json(self.json, {"meta": run_meta("regnf bench encodings", self.device), "rows": rows})
@@ -132,8 +132,8 @@ class BenchRegistration:
         check_outputs(self)
         import os
 
-        from benchmarks.registration import PAPER_REGNF, run_registration_benchmark
-        from benchmarks.registration_report import (
+        from regnf.benchmarks.registration import PAPER_REGNF, run_registration_benchmark
+        from regnf.benchmarks.registration_report import (
             before_after_png,
             coverage_table,
             is_reference,
@@ -143,7 +143,7 @@ class BenchRegistration:
             table_two,
             wrong_pair_table,
         )
-        from regnf.executors import ExecutorConfig
+        from regnf.core.executors import ExecutorConfig
 
         command = ("regnf bench registration" + (" --quick" if self.quick else "")
                    + ("" if self.single_view else " --no-single-view") + f" --json {self.json}"
@@ -182,7 +182,7 @@ class BenchRegistration:
         if self.wrong_pairs:
             text += f"### Wrong-object pairs\n\n{wrong_pair_table(clean)}"
         if self.markdown:
-            from synthetic.atomic_io import write_text
+            from regnf.core.atomic_io import write_text
 
             write_text(self.markdown, text)
         console.print(text)
@@ -204,7 +204,7 @@ class BenchDistill:
 
     def run(self) -> None:
         check_outputs(self)
-        from benchmarks.distill import markdown_table, run_distill_benchmark
+        from regnf.benchmarks.distill import markdown_table, run_distill_benchmark
 
         command = "regnf bench distill" + (" --quick" if self.quick else "") + f" --json {self.json}"
         meta = run_meta(command, self.device)
@@ -214,7 +214,7 @@ class BenchDistill:
         )
         table = markdown_table(rows)
         if self.markdown:
-            from synthetic.atomic_io import write_text
+            from regnf.core.atomic_io import write_text
 
             write_text(self.markdown, f"Command: `{command}`\n\n{table}")
         console.print(table)
@@ -236,8 +236,8 @@ class BenchRender:
 
     def run(self) -> None:
         check_outputs(self)
-        from benchmarks.render import run_render_benchmark
-        from benchmarks.render_report import markdown_tables, write_images
+        from regnf.benchmarks.render import run_render_benchmark
+        from regnf.benchmarks.render_report import markdown_tables, write_images
 
         command = f"regnf bench render --json {self.json}"
         result, images = run_render_benchmark(Cache(self.cache_dir), device=self.device)
@@ -245,7 +245,7 @@ class BenchRender:
         write_json(self.json, {"meta": run_meta(command, self.device), **result})
         text = f"Command: `{command}`\n\n{markdown_tables(result)}"
         if self.markdown:
-            from synthetic.atomic_io import write_text
+            from regnf.core.atomic_io import write_text
 
             write_text(self.markdown, text)
         console.print(text)

@@ -2,9 +2,9 @@
 
 Each shape (:data:`SHAPES`) is a clean, watertight mesh in the library's frame (metres, +Z
 up, base centred on the origin at z = 0) with an exact analytic field
-(:mod:`neural_fields.analytic`) whose sign is exact everywhere; :func:`defective_mesh` returns
+(:mod:`regnf.neural_fields.analytic`) whose sign is exact everywhere; :func:`defective_mesh` returns
 it with one defect of :data:`DEFECTS` applied. The distillation benchmark
-(:mod:`benchmarks.distill`) and the tests (``tests/neural_fields/test_mesh_sign.py``) share
+(:mod:`regnf.benchmarks.distill`) and the tests (``tests/neural_fields/test_mesh_sign.py``) share
 them. :func:`unsignable_meshes` are inputs no sign can be given to.
 
 Every defect is deterministic for its seed.
@@ -19,10 +19,10 @@ import numpy as np
 import open3d as o3d
 import trimesh
 
-from neural_fields.analytic import Box, Capsule, Union
-from neural_fields.field import Field
-from synthetic.primitives import box as box_part
-from synthetic.primitives import union_parts
+from regnf.neural_fields.analytic import Box, Capsule, Union
+from regnf.neural_fields.field import Field
+from regnf.synthetic.primitives import box as box_part
+from regnf.synthetic.primitives import union_parts
 
 SHAPES: tuple[str, ...] = ("box", "capsule", "chair")
 """A 0.8 x 0.5 x 0.3 m box, a capsule 0.7 m tall of radius 0.15 m, a plain chair of 6 boxes."""

@@ -1,7 +1,7 @@
 """Distillation of defective meshes: does a mesh as users have it give the field of the clean one?
 
-Per shape and defect (:mod:`benchmarks.defective_meshes`): the field is distilled from the
-damaged mesh with the library's preset (:func:`neural_fields.presets.object_mesh_preset`,
+Per shape and defect (:mod:`regnf.benchmarks.defective_meshes`): the field is distilled from the
+damaged mesh with the library's preset (:func:`regnf.neural_fields.presets.object_mesh_preset`,
 the Y-up copy with ``up="y"``) and measured against the CLEAN mesh and the shape's exact SDF:
 
 - ``surface_error_mean_rel`` / ``_p95_rel``: |SDF of the field| at 20 000 points sampled on the
@@ -25,11 +25,11 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from benchmarks.defective_meshes import DEFECTS, SHAPES, DefectiveMesh, defective_mesh
-from neural_fields.distill import DistillConfig, distill_mesh
-from neural_fields.evaluation import relative_surface_errors, surface_samples, world_to_field
-from neural_fields.field import FieldInfo
-from neural_fields.presets import object_mesh_preset
+from regnf.benchmarks.defective_meshes import DEFECTS, SHAPES, DefectiveMesh, defective_mesh
+from regnf.neural_fields.distill import DistillConfig, distill_mesh
+from regnf.neural_fields.evaluation import relative_surface_errors, surface_samples, world_to_field
+from regnf.neural_fields.field import FieldInfo
+from regnf.neural_fields.presets import object_mesh_preset
 
 BAR_REL = 0.005
 """Acceptance bar on the mean surface error, a fraction of the diagonal."""

@@ -10,7 +10,7 @@ import time
 
 import torch
 
-from neural_fields.neural_sdf import NeuralSDF, NeuralSDFConfig
+from regnf.neural_fields.neural_sdf import NeuralSDF, NeuralSDFConfig
 
 CANDIDATES: dict[str, NeuralSDFConfig] = {
     "dense L6 F4 16-128": NeuralSDFConfig(encoding="dense", levels=6, features_per_level=4, finest_resolution=128),

@@ -15,14 +15,14 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from neural_fields.checkpoint import load_field
-from neural_fields.evaluation import chamfer_relative, heldout_psnr, surface_error
-from neural_fields.field import Field
 from regnf.cache import Cache
-from synthetic.atomic_io import write_json
-from synthetic.capture import RoomCaptureConfig
-from synthetic.library import LIBRARY_NAMES, make_library_object
-from synthetic.rooms import ROOM_NAMES
+from regnf.core.atomic_io import write_json
+from regnf.neural_fields.checkpoint import load_field
+from regnf.neural_fields.evaluation import chamfer_relative, heldout_psnr, surface_error
+from regnf.neural_fields.field import Field
+from regnf.synthetic.capture import RoomCaptureConfig
+from regnf.synthetic.library import LIBRARY_NAMES, make_library_object
+from regnf.synthetic.rooms import ROOM_NAMES
 
 QUICK_OBJECTS = ("c", "et")
 
@@ -98,7 +98,7 @@ def contact_sheet(renders: dict, path: Path, per_row: int = 2) -> None:
     """PNG: for each field, held-out renders next to the ground truth (render | truth)."""
     import imageio.v3 as iio
 
-    from synthetic.atomic_io import atomic_path
+    from regnf.core.atomic_io import atomic_path
 
     rows = []
     for (imgs, truths) in renders.values():

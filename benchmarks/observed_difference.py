@@ -5,7 +5,7 @@ scene holds. Where the two shapes differ only in a part the capture never saw (a
 far side of a chair, say), no registration can rank them, and the benchmark says so: it places
 both meshes at the box object's true pose, takes the surface of each that lies more than a
 tolerance from the other (their symmetric difference), and reads the scene field's visibility
-grid there (:meth:`neural_fields.visibility.VisibilityGrid.observed`).
+grid there (:meth:`regnf.neural_fields.visibility.VisibilityGrid.observed`).
 """
 
 from __future__ import annotations
@@ -14,8 +14,8 @@ import numpy as np
 import torch
 import trimesh
 
-from neural_fields.field import Field
-from synthetic.primitives import surface_distance
+from regnf.neural_fields.field import Field
+from regnf.synthetic.primitives import surface_distance
 
 DIFFERENCE_TOLERANCE = 0.01
 """Surface farther than this fraction of the box object's diagonal from the other shape differs."""

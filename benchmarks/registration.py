@@ -7,7 +7,7 @@ instances' ground-truth boxes (the paper's assumption); every method goes throug
 sampling and the same metrics.
 
 Rows: one per registration, with the scene, the library ``object`` registered, the ``method``,
-``views``, the error metrics of :func:`registration.metrics.registration_errors`, ``seconds``
+``views``, the error metrics of :func:`regnf.registration.metrics.registration_errors`, ``seconds``
 (and ``seconds_sampling``, ``seconds_initialisation``, ``seconds_refinement``: its stages),
 ``confidence``, ``accepted``, the confidence's factors (``inlier_fraction``, both directions,
 and its ``inlier_fraction_scene`` and ``inlier_fraction_library`` parts; ``containment``), the
@@ -15,7 +15,7 @@ refinement's ``iterations``, and ``coverage`` (``full`` or ``low``: which captur
 field was trained on), ``library_source`` (``rgbd`` or ``mesh``), ``wrong_pair`` (the box holds
 another object), ``box_object`` (the library name of the object the box really holds) and, for
 a wrong pair, ``difference_observed`` (how much of the surface where the two objects differ the
-scene's views observed, see :mod:`benchmarks.observed_difference`; null for a right pair). A
+scene's views observed, see :mod:`regnf.benchmarks.observed_difference`; null for a right pair). A
 wrong pair has no true pose: its error metrics are null.
 
 Wrong pairs (``wrong_pairs=True``): on every room, coverage and library source, every library
@@ -40,30 +40,34 @@ import torch
 import trimesh
 from tqdm import tqdm
 
-from benchmarks.observed_difference import observed_difference
-from neural_fields.analytic import Transformed
-from neural_fields.checkpoint import load_field
-from neural_fields.field import Field
-from neural_fields.similarity import similarity_matrix
-from registration.baselines import register_fgr, register_init_only, register_nerf2nerf
-from registration.ground_truth import find_instance, proposal_from_instance, true_scene_to_library
-from registration.metrics import RegistrationErrors, registration_errors
-from registration.proposal import ProposalBox
-from registration.register import (
+from regnf.benchmarks.observed_difference import observed_difference
+from regnf.cache import Cache
+from regnf.core.executors import ExecutorConfig, run_tasks
+from regnf.neural_fields.analytic import Transformed
+from regnf.neural_fields.checkpoint import load_field
+from regnf.neural_fields.field import Field
+from regnf.neural_fields.similarity import similarity_matrix
+from regnf.registration.baselines import register_fgr, register_init_only, register_nerf2nerf
+from regnf.registration.ground_truth import (
+    find_instance,
+    proposal_from_instance,
+    true_scene_to_library,
+)
+from regnf.registration.metrics import RegistrationErrors, registration_errors
+from regnf.registration.proposal import ProposalBox
+from regnf.registration.register import (
     RegistrationConfig,
     adam_method,
     paper_method,
     register,
     single_hypothesis,
 )
-from registration.result import RegistrationResult
-from registration.transform import SimilarityTransform
-from regnf.cache import Cache
-from regnf.executors import ExecutorConfig, run_tasks
-from synthetic.capture import RoomCaptureConfig
-from synthetic.instance import Instance
-from synthetic.library import LIBRARY_NAMES, make_library_object
-from synthetic.rooms import ROOM_CONTENTS
+from regnf.registration.result import RegistrationResult
+from regnf.registration.transform import SimilarityTransform
+from regnf.synthetic.capture import RoomCaptureConfig
+from regnf.synthetic.instance import Instance
+from regnf.synthetic.library import LIBRARY_NAMES, make_library_object
+from regnf.synthetic.rooms import ROOM_CONTENTS
 
 TABLE_I_PAIRS: tuple[tuple[str, str], ...] = (
     ("ac-room", "c"), ("ac-room", "dc"), ("ac-room", "fc"), ("ac-room", "fc-nop"), ("ac-room", "mc"),

@@ -7,9 +7,9 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, ImageDraw
 
-from benchmarks.observed_difference import UNOBSERVED
-from registration.result import RegistrationResult
-from synthetic.atomic_io import atomic_path
+from regnf.benchmarks.observed_difference import UNOBSERVED
+from regnf.core.atomic_io import atomic_path
+from regnf.registration.result import RegistrationResult
 
 SCENE_RGB = (40, 110, 220)
 LIBRARY_RGB = (240, 140, 30)
@@ -161,7 +161,7 @@ def wrong_pair_rates(rows: list[dict]) -> list[dict]:
     is rejected or scores a lower confidence than the box's own chair in the same setting;
     ``within_unidentified_unobserved`` counts the others whose difference from the right chair
     the scene never observed (``difference_observed`` below
-    :data:`benchmarks.observed_difference.UNOBSERVED`): no observed evidence ranks those.
+    :data:`regnf.benchmarks.observed_difference.UNOBSERVED`): no observed evidence ranks those.
     """
     right = {(r["scene"], r["object"], r.get("coverage", "full"), r.get("library_source", "rgbd")): r
              for r in _right_rows(rows)}
@@ -190,7 +190,7 @@ def wrong_pair_rates(rows: list[dict]) -> list[dict]:
 
 
 def _label(name: str) -> str:
-    from synthetic.library import make_library_object
+    from regnf.synthetic.library import make_library_object
 
     return make_library_object(name).label
 

@@ -27,24 +27,24 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from compositor import Camera, look_at, render, render_volume
-from compositor.distance_grid import DistanceGrid
-from compositor.oriented_box import OrientedBox
-from compositor.sphere_tracer import SphereTracerConfig
-from compositor.stage_config import StageCompositeConfig
-from compositor.substitution import SubstitutedInstance, build_composite
-from compositor.volume_renderer import VolumeRendererConfig
-from neural_fields.checkpoint import load_field
-from neural_fields.evaluation import psnr, world_to_field
-from neural_fields.field import Field
-from neural_fields.meshing import extract_mesh
-from registration.ground_truth import proposal_from_instance
-from registration.register import register
 from regnf.cache import Cache
-from synthetic.capture import RoomCaptureConfig
-from synthetic.render import RGBDRenderer
-from synthetic.rooms import Room, make_room
-from synthetic.shading import shaded_copy
+from regnf.compositor import Camera, look_at, render, render_volume
+from regnf.compositor.distance_grid import DistanceGrid
+from regnf.compositor.oriented_box import OrientedBox
+from regnf.compositor.sphere_tracer import SphereTracerConfig
+from regnf.compositor.stage_config import StageCompositeConfig
+from regnf.compositor.substitution import SubstitutedInstance, build_composite
+from regnf.compositor.volume_renderer import VolumeRendererConfig
+from regnf.neural_fields.checkpoint import load_field
+from regnf.neural_fields.evaluation import psnr, world_to_field
+from regnf.neural_fields.field import Field
+from regnf.neural_fields.meshing import extract_mesh
+from regnf.registration.ground_truth import proposal_from_instance
+from regnf.registration.register import register
+from regnf.synthetic.capture import RoomCaptureConfig
+from regnf.synthetic.render import RGBDRenderer
+from regnf.synthetic.rooms import Room, make_room
+from regnf.synthetic.shading import shaded_copy
 
 ROOM = "ac-room"
 """The room of both parts (the paper's completion example is a chair in it)."""

@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from compositor.contact_sheets import contact_sheet
-from synthetic.atomic_io import atomic_path
+from regnf.compositor.contact_sheets import contact_sheet
+from regnf.core.atomic_io import atomic_path
 
 
 def markdown_tables(result: dict) -> str:

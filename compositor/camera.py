@@ -1,6 +1,6 @@
 """Pinhole cameras posed in metres, and their rays in a field's frame.
 
-Convention: the one of :func:`neural_fields.raycast.pinhole_rays`, OpenCV axes (x right,
+Convention: the one of :func:`regnf.neural_fields.raycast.pinhole_rays`, OpenCV axes (x right,
 y down, z forward), pixel ``(u, v)`` sampled at its centre ``(u + 0.5, v + 0.5)``, rays
 row-major. ``camera_to_world`` is a RIGID pose in the world (metres) of the field: the
 renderers map it into the field frame with ``inverse(field.to_world)``.
@@ -15,9 +15,9 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from neural_fields.field import Field
-from neural_fields.raycast import pinhole_rays
-from synthetic.sdfstudio_format import check_intrinsics, check_rigid_pose
+from regnf.neural_fields.field import Field
+from regnf.neural_fields.raycast import pinhole_rays
+from regnf.synthetic.sdfstudio_format import check_intrinsics, check_rigid_pose
 
 from .oriented_box import ArrayLike
 
@@ -28,14 +28,14 @@ class Camera:
 
     K: np.ndarray
     """(3, 3) float64 pinhole intrinsics (pixels), ``fx, fy > 0``
-    (:func:`synthetic.sdfstudio_format.check_intrinsics`)."""
+    (:func:`regnf.synthetic.sdfstudio_format.check_intrinsics`)."""
     width: int
     """Image width in pixels."""
     height: int
     """Image height in pixels."""
     camera_to_world: np.ndarray
     """(4, 4) float64 rigid pose camera -> world metres, OpenCV axes
-    (:func:`synthetic.sdfstudio_format.check_rigid_pose`)."""
+    (:func:`regnf.synthetic.sdfstudio_format.check_rigid_pose`)."""
 
     def __post_init__(self) -> None:
         K = np.asarray(self.K, dtype=np.float64)

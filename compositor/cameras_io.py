@@ -1,10 +1,10 @@
 """Cameras to render from: a capture's trajectory, or an orbit inside the scene's bounds.
 
-A capture (:func:`synthetic.sdfstudio_format.load_capture`) stores OpenCV camera-to-world
+A capture (:func:`regnf.synthetic.sdfstudio_format.load_capture`) stores OpenCV camera-to-world
 poses in its normalised frame and the pinhole ``K`` of its images (pixel centres at
-``u + 0.5``); :meth:`~synthetic.sdfstudio_format.Capture.camtoworld_metres` brings the poses
+``u + 0.5``); :meth:`~regnf.synthetic.sdfstudio_format.Capture.camtoworld_metres` brings the poses
 to metres, the frame of a scene field trained from that capture. Both conventions are the
-compositor's own (:mod:`compositor.camera`), so nothing is flipped here. Resizing scales the
+compositor's own (:mod:`regnf.compositor.camera`), so nothing is flipped here. Resizing scales the
 rows of ``K`` by the size ratios: with pixel-centre sampling this keeps every ray through the
 same point of the image plane.
 """
@@ -18,8 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from neural_fields.field import Field
-from synthetic.sdfstudio_format import load_capture
+from regnf.neural_fields.field import Field
+from regnf.synthetic.sdfstudio_format import load_capture
 
 from .camera import Camera, look_at
 
@@ -63,10 +63,10 @@ def cameras_from_capture(
 
     Raises
     ------
-    synthetic.sdfstudio_format.CaptureError
+    regnf.synthetic.sdfstudio_format.CaptureError
         A missing or malformed capture (the message names the file and the frame): poses and
-        intrinsics are checked by :func:`~synthetic.sdfstudio_format.load_capture` with the
-        rules :class:`~compositor.camera.Camera` applies, so a capture that trains renders.
+        intrinsics are checked by :func:`~regnf.synthetic.sdfstudio_format.load_capture` with the
+        rules :class:`~regnf.compositor.camera.Camera` applies, so a capture that trains renders.
     ValueError
         An index out of range.
     """

@@ -1,7 +1,7 @@
 """The composite field: a scene with regions cut away and library objects added.
 
 It lives in the SCENE FIELD frame (same ``to_world`` as the scene, bounds grown to hold the
-placed objects) and is itself a :class:`~neural_fields.field.Field`, so registration,
+placed objects) and is itself a :class:`~regnf.neural_fields.field.Field`, so registration,
 meshing and both renderers accept it::
 
     scene_masked(x) = max(S_scene(x), -M(x)),       M = min over removal regions
@@ -10,7 +10,7 @@ meshing and both renderers accept it::
 with ``T_i`` the similarity library field frame -> scene field frame and ``s_i`` its scale
 (METHOD.md section 9 writes the same with the inverse map, scene -> library, and divides
 by its scale ``1 / s_i``). Each placed field is culled to its oriented box (see
-:mod:`compositor.placement`): with culling, the composite keeps the sign of the exact one
+:mod:`regnf.compositor.placement`): with culling, the composite keeps the sign of the exact one
 everywhere, never exceeds it in magnitude, and equals it within ``cull_pad`` of the surface.
 """
 
@@ -23,7 +23,7 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from neural_fields.field import Field, FieldInfo, check_points
+from regnf.neural_fields.field import Field, FieldInfo, check_points
 
 from .placement import PlacedObject, Placement
 from .regions import RemovalRegion

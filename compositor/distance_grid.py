@@ -19,7 +19,7 @@ from typing import NamedTuple
 
 import torch
 
-from neural_fields.field import DEFAULT_CHUNK, Field
+from regnf.neural_fields.field import DEFAULT_CHUNK, Field
 
 from .composite_field import sample_field
 

@@ -1,12 +1,12 @@
 """A composite field from a USD stage: the scene field, minus and plus its instances.
 
-Works on everything :func:`scene_graph.read_stage` reads: .usda / .usdc stages, replacement
+Works on everything :func:`regnf.scene_graph.read_stage` reads: .usda / .usdc stages, replacement
 layers (an instance then SHOWS the newly selected object but the ORIGINAL one, the object
 that was registered, is removed) and .usdz packages (checkpoints carried inside). Frames and
-removal regions are those of :mod:`compositor.substitution`.
+removal regions are those of :mod:`regnf.compositor.substitution`.
 
 Every stage, and every base stage a replacement layer names (``replacementOf``), is read
-inside its folder's trust boundary (:mod:`scene_graph.boundary`): a path that leaves the
+inside its folder's trust boundary (:mod:`regnf.scene_graph.boundary`): a path that leaves the
 folder is refused before the file it names is opened, unless ``allow_outside``.
 """
 
@@ -20,12 +20,18 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from neural_fields.checkpoint import CheckpointError, load_field
-from neural_fields.field import Field
-from scene_graph import ComposedScene, FieldRecord, RegistrationProvenance, StageError, read_stage
-from scene_graph import layout as L
-from scene_graph.embedded_checkpoint import checkpoint_file
-from scene_graph.usd_read import replacement_base as _replacement_base
+from regnf.neural_fields.checkpoint import CheckpointError, load_field
+from regnf.neural_fields.field import Field
+from regnf.scene_graph import (
+    ComposedScene,
+    FieldRecord,
+    RegistrationProvenance,
+    StageError,
+    read_stage,
+)
+from regnf.scene_graph import layout as L
+from regnf.scene_graph.embedded_checkpoint import checkpoint_file
+from regnf.scene_graph.usd_read import replacement_base as _replacement_base
 
 from .composite_field import CompositeField
 from .oriented_box import OrientedBox
@@ -66,7 +72,7 @@ def composite_from_stage(
         Where every field is loaded.
     allow_outside : bool
         Accept asset paths and base stages outside the stage's folder (see
-        :func:`scene_graph.read_stage`); refused by default.
+        :func:`regnf.scene_graph.read_stage`); refused by default.
 
     Returns
     -------

@@ -24,7 +24,7 @@ import numpy as np
 import torch
 from PIL import Image
 
-from synthetic.atomic_io import atomic_path
+from regnf.core.atomic_io import atomic_path
 
 UINT16_MAX = 65535
 """Largest value of a 16-bit PNG sample."""

@@ -22,8 +22,8 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from neural_fields.analytic import Transformed
-from neural_fields.field import Field
+from regnf.neural_fields.analytic import Transformed
+from regnf.neural_fields.field import Field
 
 from .oriented_box import ArrayLike, OrientedBox, as_float64
 

@@ -22,7 +22,7 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from neural_fields.field import Field
+from regnf.neural_fields.field import Field
 
 from .oriented_box import ArrayLike, OrientedBox
 from .placement import Placement

@@ -2,15 +2,15 @@
 
 Per view ``k`` (4 digits): ``rgb_k.png`` (8-bit), ``depth_k.png`` (16-bit millimetres, 0 no
 hit) and ``instance_k.png`` (16-bit ``id + 1``: 0 background, 1 scene, ``i + 1`` instance
-``i``); see :mod:`compositor.image_io`. Then ``contact_sheet.png`` (the RGB views tiled),
+``i``); see :mod:`regnf.compositor.image_io`. Then ``contact_sheet.png`` (the RGB views tiled),
 optionally ``sequence.gif`` or ``sequence.mp4`` (the RGB views in order, see
-:mod:`compositor.sequence_io`), and ``render.json`` (cameras, settings, timings, field
+:mod:`regnf.compositor.sequence_io`), and ``render.json`` (cameras, settings, timings, field
 evaluations per pixel).
 
 Nothing half-done is ever left in the folder: every camera is checked first (a camera
 inside matter, or a view of more than :data:`MAX_PIXELS`, is refused before anything is
 rendered), the views are written to a staging folder inside the output folder
-(``.regnf-tmp-render-<random>``, see :mod:`synthetic.output_dir`), and only when all of
+(``.regnf-tmp-render-<random>``, see :mod:`regnf.core.output_dir`), and only when all of
 them are done are they moved into place, ``render.json`` last. On any error the staging
 folder is removed and the output folder is as it was.
 
@@ -20,8 +20,8 @@ lists; a file of the same name that no ``render.json`` lists (say the user's own
 ``rgb_0000.png``) makes the render refuse, and overwriting an earlier render
 (``overwrite``) removes only the view and sequence files that render's ``render.json``
 lists. While it writes, a render holds the folder's lock (``.regnf.lock``, a POSIX record
-lock, see :mod:`synthetic.file_lock`): a second render into the same folder at the same
-time fails at once with :class:`synthetic.file_lock.LockBusy`, and under the lock the
+lock, see :mod:`regnf.core.file_lock`): a second render into the same folder at the same
+time fails at once with :class:`regnf.core.file_lock.LockBusy`, and under the lock the
 staging folders a killed render left behind are removed (nothing else is).
 """
 
@@ -42,10 +42,10 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from neural_fields.field import Field
-from synthetic.atomic_io import write_json
-from synthetic.file_lock import folder_lock
-from synthetic.output_dir import remove_leftovers, staging_dir, staging_prefix
+from regnf.core.atomic_io import write_json
+from regnf.core.file_lock import folder_lock
+from regnf.core.output_dir import remove_leftovers, staging_dir, staging_prefix
+from regnf.neural_fields.field import Field
 
 from .camera import Camera
 from .contact_sheets import contact_sheet
@@ -201,7 +201,7 @@ def check_sequence(cameras: Sequence[Camera], config: RenderConfig) -> None:
     ------
     ValueError
         Cameras of different image sizes.
-    compositor.sequence_io.SequenceBackendError
+    regnf.compositor.sequence_io.SequenceBackendError
         An MP4 sequence without ``imageio-ffmpeg`` (an ``ImportError``).
     """
     if config.sequence == "none":
@@ -249,9 +249,9 @@ def render_views(
         an output folder that already holds a render (unless ``overwrite``), a file in the
         way that no earlier render there wrote, non-finite field values, a sequence of
         views of different sizes; nothing is written then.
-    compositor.sequence_io.SequenceBackendError
+    regnf.compositor.sequence_io.SequenceBackendError
         An MP4 sequence without its package (an ``ImportError``); nothing is written then.
-    synthetic.file_lock.LockBusy
+    regnf.core.file_lock.LockBusy
         Another process is rendering into ``out`` now (a ``RuntimeError``); nothing is written.
     """
     if len(cameras) == 0:

@@ -2,13 +2,13 @@
 
 For a seed, every instance gets a random library object of its own class (another one when
 the class has another; an instance whose class has only its own object keeps it). The swap
-is a replacement layer (:func:`scene_graph.make_replacement_layer`) at ``out/replacement.usda``;
-the substitute composite of that layer is rendered as by :func:`compositor.render_folder.render_views`
+is a replacement layer (:func:`regnf.scene_graph.make_replacement_layer`) at ``out/replacement.usda``;
+the substitute composite of that layer is rendered as by :func:`regnf.compositor.render_folder.render_views`
 and described by a nerfstudio ``transforms.json``.
 
 A replacement layer must lie beside its base stage (its asset paths are relative). When
 ``out`` is not the stage's folder, the base stage is therefore first exported into ``out``
-(:func:`scene_graph.export_stage`; a .usdz package is unpacked), so that the output folder
+(:func:`regnf.scene_graph.export_stage`; a .usdz package is unpacked), so that the output folder
 is a complete stage plus its renders.
 """
 
@@ -25,8 +25,14 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from scene_graph import ComposedScene, StageError, export_stage, make_replacement_layer, read_stage
-from synthetic.atomic_io import write_json
+from regnf.core.atomic_io import write_json
+from regnf.scene_graph import (
+    ComposedScene,
+    StageError,
+    export_stage,
+    make_replacement_layer,
+    read_stage,
+)
 
 from .camera import Camera
 from .from_stage import composite_from_scene, composite_from_stage, original_selections
@@ -144,7 +150,7 @@ def replace_and_render(
         Posed in scene metres.
     config : ReplaceConfig
     allow_outside : bool
-        Read a stage whose asset paths leave its folder (see :func:`scene_graph.read_stage`);
+        Read a stage whose asset paths leave its folder (see :func:`regnf.scene_graph.read_stage`);
         its base is then exported into ``out``, self-contained.
 
     Raises
@@ -154,7 +160,7 @@ def replace_and_render(
     ValueError
         No camera, a camera inside matter, an existing layer in ``out`` (unless overwriting),
         a sequence of views of different sizes.
-    compositor.sequence_io.SequenceBackendError
+    regnf.compositor.sequence_io.SequenceBackendError
         An MP4 sequence without its package (an ``ImportError``); nothing is written then.
     """
     t0 = time.perf_counter()

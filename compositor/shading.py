@@ -8,7 +8,7 @@ from typing import NamedTuple
 
 import torch
 
-from neural_fields.field import Field
+from regnf.neural_fields.field import Field
 
 from .composite_field import sample_field
 

@@ -4,7 +4,7 @@ Per ray (vectorised over rays; the loops are over STEPS, each touching only the 
 active):
 
 1. Rays are clipped to the field's bounds (and ``[near, far]``).
-2. Empty-space skipping: where the coarse :class:`~compositor.distance_grid.DistanceGrid`
+2. Empty-space skipping: where the coarse :class:`~regnf.compositor.distance_grid.DistanceGrid`
    guarantees at least ``grid_skip_cells`` cells of free space, the ray steps that far for
    one table look-up and no field evaluation. Not from the landing point of an unverified
    relaxed step, though, unless the grid's free sphere there overlaps the last safe sphere
@@ -46,8 +46,8 @@ from typing import NamedTuple
 
 import torch
 
-from neural_fields.field import DEFAULT_CHUNK, Field
-from neural_fields.raycast import by_chunks, check_rays, ray_aabb
+from regnf.neural_fields.field import DEFAULT_CHUNK, Field
+from regnf.neural_fields.raycast import by_chunks, check_rays, ray_aabb
 
 from .camera import Camera, CameraRays, camera_rays
 from .composite_field import BACKGROUND_ID, CompositeSample, sample_field
@@ -176,7 +176,7 @@ def trace(
     Parameters
     ----------
     field : Field
-        Any field; a :class:`~compositor.composite_field.CompositeField` also reports the
+        Any field; a :class:`~regnf.compositor.composite_field.CompositeField` also reports the
         winning component and its per-point evaluation cost.
     origins : (n, 3) float
         Field frame.

@@ -14,7 +14,7 @@ REMOVALS = ("box", "shell")
 
 @dataclass(frozen=True)
 class StageCompositeConfig:
-    """Settings of :func:`compositor.from_stage.composite_from_stage` (lengths in scene METRES)."""
+    """Settings of :func:`regnf.compositor.from_stage.composite_from_stage` (lengths in scene METRES)."""
 
     mode: Literal["scene", "substitute"] = "substitute"
     """``scene``: the scene field alone (no removal, no objects); ``substitute``: every instance's

@@ -29,8 +29,8 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from neural_fields.field import Field
-from neural_fields.similarity import decompose_similarity
+from regnf.neural_fields.field import Field
+from regnf.neural_fields.similarity import decompose_similarity
 
 from .composite_field import CompositeConfig, CompositeField
 from .oriented_box import OrientedBox

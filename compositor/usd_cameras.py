@@ -1,7 +1,7 @@
 """Cameras from ``UsdGeom.Camera`` prims, and compositor cameras authored as such prims.
 
 USD's camera looks down its local -Z with +Y up and x right; the compositor's
-(:mod:`compositor.camera`) looks down +Z with y down (OpenCV), so the camera axes differ by
+(:mod:`regnf.compositor.camera`) looks down +Z with y down (OpenCV), so the camera axes differ by
 a flip of y and z: ``opencv_to_world = usd_camera_to_world @ diag(1, -1, -1, 1)``.
 
 Intrinsics: ``focalLength``, ``horizontalAperture``, ``verticalAperture`` and the aperture
@@ -34,9 +34,9 @@ from pathlib import Path
 import numpy as np
 from pxr import Gf, Sdf, Usd, UsdGeom
 
-from scene_graph import StageError
-from scene_graph.usd_read import open_stage
-from synthetic.atomic_io import atomic_path
+from regnf.core.atomic_io import atomic_path
+from regnf.scene_graph import StageError
+from regnf.scene_graph.usd_read import open_stage
 
 from .camera import Camera
 

@@ -25,8 +25,8 @@ from typing import NamedTuple
 
 import torch
 
-from neural_fields.field import Field
-from neural_fields.raycast import by_chunks, check_rays, ray_aabb
+from regnf.neural_fields.field import Field
+from regnf.neural_fields.raycast import by_chunks, check_rays, ray_aabb
 
 from .camera import Camera, camera_rays
 from .composite_field import BACKGROUND_ID, sample_field
@@ -242,7 +242,7 @@ def render_volume(
 ) -> Render:
     """Volume-render one view of ``field`` from ``camera`` (posed in the field's metres).
 
-    Same outputs and conventions as :func:`compositor.sphere_tracer.render`: depth is the
+    Same outputs and conventions as :func:`regnf.compositor.sphere_tracer.render`: depth is the
     opacity-normalised expected z-depth in metres (0 off the mask), normals in the world
     frame, instance id of the heaviest interval (-1 off the mask), no grid look-ups.
     Raises ``ValueError`` for a camera inside matter or non-finite field values; an empty

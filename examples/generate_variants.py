@@ -11,8 +11,8 @@ folder anyway (keeping its files).
 
 import sys
 
-from compositor.cameras_io import OrbitConfig
-from regnf.executors import ExecutorConfig
+from regnf.compositor.cameras_io import OrbitConfig
+from regnf.core.executors import ExecutorConfig
 from regnf.generate import GenerateConfig, generate
 
 if __name__ == "__main__":  # the worker processes import this file: run only in the parent

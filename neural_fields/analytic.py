@@ -1,6 +1,6 @@
 """Exact analytic SDF fields: primitives, unions and similarity-transformed children.
 
-They answer to the same :class:`~neural_fields.field.Field` interface as neural fields, so
+They answer to the same :class:`~regnf.neural_fields.field.Field` interface as neural fields, so
 registration, compositing, meshing and rendering can be tested against closed forms. All
 are differentiable in torch; parameters are float64 buffers (so ``.to(device)`` moves them
 and closed-form tests are exact) and are cast to the dtype of the query points.

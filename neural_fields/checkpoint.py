@@ -18,7 +18,7 @@ Nothing in a checkpoint is trusted:
   must agree exactly.
 
 A field that records where its training views observed space (``field.visibility``, see
-:mod:`neural_fields.visibility`) stores the grid's counts as the tensor ``visibility.counts``
+:mod:`regnf.neural_fields.visibility`) stores the grid's counts as the tensor ``visibility.counts``
 (uint8) and its metadata as the header's ``visibility`` block (null without one). Both are
 covered by the digest and checked on load: the block's types, its resolution against
 :class:`ArchitectureLimits` before anything is read, the tensor's shape against the block and
@@ -55,17 +55,17 @@ import torch
 from safetensors import SafetensorError, safe_open
 from safetensors.torch import save as save_to_bytes
 
-from neural_fields.field import FieldInfo, Symmetry
-from neural_fields.neural_sdf import ARCHITECTURE, NeuralSDF, NeuralSDFConfig, parameter_count
-from neural_fields.rgbd_samples import CaptureLike, capture_where
-from neural_fields.similarity import decompose_similarity
-from neural_fields.visibility import (
+from regnf.core.atomic_io import write_bytes
+from regnf.neural_fields.field import FieldInfo, Symmetry
+from regnf.neural_fields.neural_sdf import ARCHITECTURE, NeuralSDF, NeuralSDFConfig, parameter_count
+from regnf.neural_fields.rgbd_samples import CaptureLike, capture_where
+from regnf.neural_fields.similarity import decompose_similarity
+from regnf.neural_fields.visibility import (
     DEFAULT_MARGIN,
     DEFAULT_RESOLUTION,
     VisibilityGrid,
     build_visibility,
 )
-from synthetic.atomic_io import write_bytes
 
 HEADER_KEY = "regnf"
 """Key of the JSON header in the safetensors metadata."""
@@ -754,8 +754,8 @@ def attach_visibility(
 
     For fields trained elsewhere or before fields recorded visibility: the grid is built from
     ``capture``'s training frames over the field's bounds
-    (:func:`neural_fields.visibility.build_visibility`), as
-    :func:`neural_fields.training.train_rgbd` builds it, and replaces any grid the checkpoint
+    (:func:`regnf.neural_fields.visibility.build_visibility`), as
+    :func:`regnf.neural_fields.training.train_rgbd` builds it, and replaces any grid the checkpoint
     had. Everything else (weights, header, provenance) is kept; the file is rewritten
     atomically with a new digest.
 
@@ -765,11 +765,11 @@ def attach_visibility(
         A checkpoint of a field trained on ``capture`` (it lives in the capture's normalised
         frame: its ``to_world`` is the capture's ``worldtogt``).
     capture : Capture
-        The loaded capture (:func:`synthetic.sdfstudio_format.load_capture`).
+        The loaded capture (:func:`regnf.synthetic.sdfstudio_format.load_capture`).
     out_path : str or PathLike, optional
         Where to write the result; default: replace ``checkpoint_path``.
     resolution, margin, pixel_stride, device, indices
-        As for :func:`neural_fields.visibility.build_visibility` (defaults: training's).
+        As for :func:`regnf.neural_fields.visibility.build_visibility` (defaults: training's).
     limits : ArchitectureLimits, optional
         For loading and saving (default: the MAX_* constants).
 

@@ -1,19 +1,19 @@
 """Distil a neural SDF from a mesh as users have it (CAD models, scans, triangle soups).
 
 The mesh need not be watertight. It is first turned to +Z up (:attr:`DistillConfig.up`) and
-repaired (:func:`neural_fields.mesh_repair.repair_mesh`: close vertices merged, degenerate
+repaired (:func:`regnf.neural_fields.mesh_repair.repair_mesh`: close vertices merged, degenerate
 and duplicate faces dropped, winding made consistent and outward per connected piece). The
 targets are then:
 
 - signed distances at points near the surface and throughout the bounds: the distance to
   the solid's surface (Open3D ``compute_distance``, the mesh without the faces that lie
   inside another part), negative where the generalised winding number is above 0.5
-  (:mod:`neural_fields.winding`), which needs neither closed nor consistently sampled
+  (:mod:`regnf.neural_fields.winding`), which needs neither closed nor consistently sampled
   surfaces: a hole is spanned by the winding number's 0.5 level, overlapping parts add up;
 - normals and colours of the repaired mesh at points sampled on that surface.
 
 A mesh that cannot be signed (no triangles, no area, a flat sheet, a winding number above 0.5
-nowhere or everywhere) raises :class:`~neural_fields.mesh_repair.MeshError` naming the file.
+nowhere or everywhere) raises :class:`~regnf.neural_fields.mesh_repair.MeshError` naming the file.
 
 Preparing the targets (:func:`distillation_targets`: repair, winding numbers, distances)
 takes 5.0 s for a 300 000-face mesh (the ``dense`` chair of ``benchmarks/defective_meshes.py``)
@@ -32,16 +32,16 @@ import torch.nn.functional as F
 import trimesh
 from tqdm import tqdm
 
-from neural_fields.field import FieldInfo
-from neural_fields.mesh_repair import UP_AXES, RepairReport, repair_mesh, up_rotation
-from neural_fields.mesh_sign import MeshSignConfig, SignedMesh, check_signable
-from neural_fields.neural_sdf import (
+from regnf.neural_fields.field import FieldInfo
+from regnf.neural_fields.mesh_repair import UP_AXES, RepairReport, repair_mesh, up_rotation
+from regnf.neural_fields.mesh_sign import MeshSignConfig, SignedMesh, check_signable
+from regnf.neural_fields.neural_sdf import (
     NeuralSDF,
     NeuralSDFConfig,
     tetrahedral_combine,
     tetrahedral_points,
 )
-from neural_fields.optim import finest_voxel, lr_factor, make_optimizer
+from regnf.neural_fields.optim import finest_voxel, lr_factor, make_optimizer
 
 DISTILL_VERSION = 2
 """Version of what a distilled field is for a given mesh and config (part of cache keys).

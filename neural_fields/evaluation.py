@@ -15,9 +15,9 @@ import torch
 import trimesh
 from scipy.spatial import cKDTree
 
-from neural_fields.field import Field
-from neural_fields.meshing import extract_mesh
-from neural_fields.raycast import render_field
+from regnf.neural_fields.field import Field
+from regnf.neural_fields.meshing import extract_mesh
+from regnf.neural_fields.raycast import render_field
 
 
 class SurfaceError(NamedTuple):

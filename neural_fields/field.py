@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING
 import torch
 
 if TYPE_CHECKING:
-    from neural_fields.visibility import VisibilityGrid
+    from regnf.neural_fields.visibility import VisibilityGrid
 
 DEFAULT_CHUNK = 65536
 """Points evaluated per batch by the chunked helpers (bounded memory, still vectorised)."""
@@ -70,7 +70,7 @@ class Field(torch.nn.Module, metaclass=abc.ABCMeta):
     chunked evaluation, devices) is shared.
 
     ``visibility`` is where the field's training views observed space
-    (:class:`neural_fields.visibility.VisibilityGrid`, in the field frame), or None: nothing
+    (:class:`regnf.neural_fields.visibility.VisibilityGrid`, in the field frame), or None: nothing
     recorded, every point counts as observed (analytic fields, fields distilled from a mesh,
     checkpoints saved before fields recorded it). A grid assigned to it becomes a submodule:
     ``to(device)`` moves it and ``state_dict()`` holds its counts.

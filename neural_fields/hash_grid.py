@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import torch
 
-from neural_fields.dense_grid import grid_shape, level_resolutions
+from regnf.neural_fields.dense_grid import grid_shape, level_resolutions
 
 _PRIMES = (1, 2654435761, 805459861)
 _CORNERS = torch.tensor([[(i >> 2) & 1, (i >> 1) & 1, i & 1] for i in range(8)])

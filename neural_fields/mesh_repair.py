@@ -5,7 +5,7 @@ triangles, makes the winding consistent within each connected piece of surface a
 every piece outward (positive enclosed volume) unless it is a void inside another piece. It
 keeps the order of the surviving faces and the index of the input face each came from (so
 per-face colours still line up). It does not fill holes or remove parts: the winding number
-(:mod:`neural_fields.winding`) copes with those. A mesh that cannot describe a solid at all
+(:mod:`regnf.neural_fields.winding`) copes with those. A mesh that cannot describe a solid at all
 raises :class:`MeshError`.
 
 :func:`up_rotation` turns a file's up axis into the library's +Z.
@@ -20,7 +20,7 @@ import scipy.sparse
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from neural_fields.winding import RayWinding, winding_numbers
+from regnf.neural_fields.winding import RayWinding, winding_numbers
 
 MERGE_TOL = 1e-6
 """Vertices closer than this fraction of the bounding-box diagonal are merged. Exporters that

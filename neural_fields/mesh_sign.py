@@ -3,7 +3,7 @@
 Distance and sign come from two surfaces:
 
 - the sign from the generalised winding number of the whole repaired mesh (inside where it
-  is above 0.5; :mod:`neural_fields.winding`), which is right across holes (the 0.5 level
+  is above 0.5; :mod:`regnf.neural_fields.winding`), which is right across holes (the 0.5 level
   spans them like a soap film), inside overlapping parts (2 > 0.5) and for open pieces;
 - the unsigned distance (Open3D ``compute_distance``, any triangle soup) from the mesh
   without its internal faces: where parts overlap, as CAD assemblies and scans stitched
@@ -23,8 +23,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import open3d as o3d
 
-from neural_fields.mesh_repair import MeshError, overlapping_pieces, piece_boxes, piece_groups
-from neural_fields.winding import RayWinding, WindingConfig, winding_numbers
+from regnf.neural_fields.mesh_repair import MeshError, overlapping_pieces, piece_boxes, piece_groups
+from regnf.neural_fields.winding import RayWinding, WindingConfig, winding_numbers
 
 
 @dataclass
@@ -133,7 +133,7 @@ def solid_surface(
     ----------
     vertices : (v, 3) float
     faces : (f, 3) int
-        Consistently oriented, outward (:func:`neural_fields.mesh_repair.repair_mesh`).
+        Consistently oriented, outward (:func:`regnf.neural_fields.mesh_repair.repair_mesh`).
     piece : (f,) int
         Connected piece of each face.
     winding : RayWinding
@@ -199,7 +199,7 @@ class SignedMesh:
     vertices : (v, 3) float
         Units of order 1 (Open3D traces float32).
     faces : (f, 3) int
-        Consistently oriented and outward (:func:`neural_fields.mesh_repair.repair_mesh`).
+        Consistently oriented and outward (:func:`regnf.neural_fields.mesh_repair.repair_mesh`).
     piece : (f,) int
         Connected piece of each face.
     config : MeshSignConfig, optional

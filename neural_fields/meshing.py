@@ -16,7 +16,7 @@ import torch
 import trimesh
 from skimage.measure import marching_cubes
 
-from synthetic.atomic_io import atomic_path
+from regnf.core.atomic_io import atomic_path
 
 from .field import DEFAULT_CHUNK, Field
 

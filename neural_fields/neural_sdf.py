@@ -9,9 +9,9 @@ from dataclasses import asdict, dataclass, fields
 import torch
 import torch.nn.functional as F
 
-from neural_fields.dense_grid import DenseGridEncoding, grid_shape, level_resolutions
-from neural_fields.field import Field, FieldInfo
-from neural_fields.hash_grid import HashGridEncoding
+from regnf.neural_fields.dense_grid import DenseGridEncoding, grid_shape, level_resolutions
+from regnf.neural_fields.field import Field, FieldInfo
+from regnf.neural_fields.hash_grid import HashGridEncoding
 
 ARCHITECTURE = "regnf.neural_sdf.v1"
 """Name written into checkpoints; loading refuses any other architecture."""
@@ -63,7 +63,7 @@ class NeuralSDFConfig:
             Unknown keys, a value of the wrong type (``"3"`` or ``16.5`` for an
             integer, ``1`` for a flag), a non-finite float, or a value out of its range (see
             :meth:`validate`). Size LIMITS are the checkpoint reader's business
-            (:class:`neural_fields.checkpoint.ArchitectureLimits`).
+            (:class:`regnf.neural_fields.checkpoint.ArchitectureLimits`).
         """
         if not isinstance(data, dict):
             raise TypeError(f"the architecture config must be an object, got {type(data).__name__}")
@@ -83,7 +83,7 @@ class NeuralSDFConfig:
         """Refuse values no network can have (ValueError naming the key).
 
         The grid pyramid itself (``levels >= 1``, ``2 <= base <= finest``) is checked where
-        it is built, by :func:`neural_fields.dense_grid.level_resolutions`.
+        it is built, by :func:`regnf.neural_fields.dense_grid.level_resolutions`.
         """
         if self.encoding not in ("dense", "hash"):
             raise ValueError(f"unknown encoding {self.encoding!r} (expected 'dense' or 'hash')")

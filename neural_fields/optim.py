@@ -6,7 +6,7 @@ import math
 
 import torch
 
-from neural_fields.neural_sdf import NeuralSDF
+from regnf.neural_fields.neural_sdf import NeuralSDF
 
 
 def make_optimizer(

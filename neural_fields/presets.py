@@ -6,9 +6,9 @@ on 2 CPU cores, a room in about 5.
 
 from __future__ import annotations
 
-from neural_fields.distill import DistillConfig
-from neural_fields.neural_sdf import NeuralSDFConfig
-from neural_fields.training import RGBDTrainConfig
+from regnf.neural_fields.distill import DistillConfig
+from regnf.neural_fields.neural_sdf import NeuralSDFConfig
+from regnf.neural_fields.training import RGBDTrainConfig
 
 
 def object_rgbd_preset(device: str = "cpu", seed: int = 0) -> RGBDTrainConfig:

@@ -15,11 +15,11 @@ from typing import NamedTuple, Protocol
 import numpy as np
 import torch
 
-from synthetic.sdfstudio_format import META_NAME, CaptureError
+from regnf.synthetic.sdfstudio_format import META_NAME, CaptureError
 
 
 class CaptureLike(Protocol):
-    """What the sample builder needs from a capture (``synthetic.sdfstudio_format.Capture``)."""
+    """What the sample builder needs from a capture (``regnf.synthetic.sdfstudio_format.Capture``)."""
 
     width: int
     height: int
@@ -131,7 +131,7 @@ def build_samples(capture: CaptureLike, indices: Sequence[int]) -> RGBDSamples:
     ------
     CaptureError
         A frame without depth, or the capture's own error for an invalid image or depth
-        (:meth:`synthetic.sdfstudio_format.Capture.depth` names the file and the frame).
+        (:meth:`regnf.synthetic.sdfstudio_format.Capture.depth` names the file and the frame).
     """
     pts, cols, nrm, nok, org, tt, forg, fdir = [], [], [], [], [], [], [], []
     for i in indices:

@@ -19,8 +19,8 @@ every scale:
   volume-rendered along a training ray (near its observed depth) and the pixel.
 
 The trained field records where its training views observed space: ``field.visibility``,
-a :class:`neural_fields.visibility.VisibilityGrid` over its bounds (see
-``RGBDTrainConfig.visibility_resolution``), saved with it by :mod:`neural_fields.checkpoint`.
+a :class:`regnf.neural_fields.visibility.VisibilityGrid` over its bounds (see
+``RGBDTrainConfig.visibility_resolution``), saved with it by :mod:`regnf.neural_fields.checkpoint`.
 """
 
 from __future__ import annotations
@@ -38,24 +38,24 @@ import torch
 import torch.nn.functional as F
 from tqdm import tqdm
 
-from neural_fields.field import FieldInfo
-from neural_fields.neural_sdf import (
+from regnf.neural_fields.field import FieldInfo
+from regnf.neural_fields.neural_sdf import (
     NeuralSDF,
     NeuralSDFConfig,
     tetrahedral_combine,
     tetrahedral_points,
 )
-from neural_fields.optim import finest_voxel, lr_factor, make_optimizer
-from neural_fields.rgbd_samples import (
+from regnf.neural_fields.optim import finest_voxel, lr_factor, make_optimizer
+from regnf.neural_fields.rgbd_samples import (
     CaptureLike,
     RGBDSamples,
     build_samples,
     capture_where,
     ray_box_interval,
 )
-from neural_fields.visibility import DEFAULT_MARGIN, DEFAULT_RESOLUTION, build_visibility
-from neural_fields.volume_render import render_rays_neus
-from synthetic.sdfstudio_format import META_NAME, CaptureError, capture_file
+from regnf.neural_fields.visibility import DEFAULT_MARGIN, DEFAULT_RESOLUTION, build_visibility
+from regnf.neural_fields.volume_render import render_rays_neus
+from regnf.synthetic.sdfstudio_format import META_NAME, CaptureError, capture_file
 
 
 @dataclass
@@ -114,7 +114,7 @@ class RGBDTrainConfig:
     """Torch device to train on."""
     visibility_resolution: int = DEFAULT_RESOLUTION
     """Voxels along the longest bounds axis of the visibility grid attached to the trained field
-    (:func:`neural_fields.visibility.build_visibility`, over the training frames; about 0.3 s for a
+    (:func:`regnf.neural_fields.visibility.build_visibility`, over the training frames; about 0.3 s for a
     room of 27 frames, single-threaded); 0: attach none (``field.visibility = None``: nothing
     recorded, everything counts as observed).
     Training needs depth in every training frame, so every trained field can have one."""

@@ -23,7 +23,7 @@ between diverging rays far from the camera): the centre ``c`` of a voxel, at z-d
 in the camera of view ``k`` and projecting into pixel ``p`` of its image, is observed by
 ``k`` iff ``z <= d_p + m``, with ``d_p`` the depth of ``p`` (``inf`` for no hit) and ``m``
 the margin in field units. It is the rule training's free-space term applies (see
-``_ViewStack.seen_free`` in :mod:`neural_fields.training`), with the margin behind rather
+``_ViewStack.seen_free`` in :mod:`regnf.neural_fields.training`), with the margin behind rather
 than in front of the surface. Everything is vectorised over voxels; the only Python loops
 are over frames and over slabs of voxels (:data:`_SLAB_VOXELS`).
 
@@ -34,12 +34,12 @@ voxels), on 2 CPU cores that a training job kept busy. With torch's default two 
 threads on those busy cores it took 1.5 to 8 s (up to 30 s at times): there any torch
 workload ran 12 to 20 times slower with two threads than with one, training included.
 
-Storage: :func:`neural_fields.training.train_rgbd` attaches the grid of the capture it
+Storage: :func:`regnf.neural_fields.training.train_rgbd` attaches the grid of the capture it
 trained on to the field (``field.visibility``; None for analytic and mesh-distilled fields,
 meaning "everything observed"); checkpoints store it (``visibility.counts`` plus the
-``visibility`` header block, see :mod:`neural_fields.checkpoint`); a checkpoint trained
+``visibility`` header block, see :mod:`regnf.neural_fields.checkpoint`); a checkpoint trained
 elsewhere or before grids existed gets one from its capture, without retraining, with
-:func:`neural_fields.checkpoint.attach_visibility`.
+:func:`regnf.neural_fields.checkpoint.attach_visibility`.
 """
 
 from __future__ import annotations
@@ -51,9 +51,9 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from neural_fields.dense_grid import grid_shape
-from neural_fields.rgbd_samples import CaptureLike, capture_where
-from synthetic.sdfstudio_format import CaptureError
+from regnf.neural_fields.dense_grid import grid_shape
+from regnf.neural_fields.rgbd_samples import CaptureLike, capture_where
+from regnf.synthetic.sdfstudio_format import CaptureError
 
 DEFAULT_RESOLUTION = 128
 """Voxels along the longest axis of the bounds (shorter axes get proportionally fewer)."""
@@ -367,9 +367,9 @@ def build_visibility(
     Parameters
     ----------
     capture : Capture
-        A loaded capture (:func:`synthetic.sdfstudio_format.load_capture`): per frame ``K``,
+        A loaded capture (:func:`regnf.synthetic.sdfstudio_format.load_capture`): per frame ``K``,
         an OpenCV ``camtoworld`` and a z-depth in the capture's normalised frame, the frame a
-        field trained on it by :func:`neural_fields.training.train_rgbd` lives in.
+        field trained on it by :func:`regnf.neural_fields.training.train_rgbd` lives in.
     bounds : (2, 3) float
         The grid's box in that frame (a trained field's ``bounds``).
     resolution : int
@@ -392,7 +392,7 @@ def build_visibility(
     Returns
     -------
     VisibilityGrid
-        uint8 counts (saturating at 255) of shape :func:`neural_fields.dense_grid.grid_shape`.
+        uint8 counts (saturating at 255) of shape :func:`regnf.neural_fields.dense_grid.grid_shape`.
 
     Raises
     ------

@@ -12,7 +12,7 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-from neural_fields.neural_sdf import NeuralSDF
+from regnf.neural_fields.neural_sdf import NeuralSDF
 
 
 def render_rays_neus(

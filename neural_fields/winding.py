@@ -137,7 +137,7 @@ class RayWinding:
     distance (so that a ray through a shared edge counts once), which also merges the
     coincident faces of two overlapping parts (CAD parts often share a face plane) into one
     crossing. Faces are therefore split into ``group`` s, one geometry each, such that
-    no two overlapping parts share a group (:func:`neural_fields.mesh_repair.piece_groups`).
+    no two overlapping parts share a group (:func:`regnf.neural_fields.mesh_repair.piece_groups`).
 
     Parameters
     ----------

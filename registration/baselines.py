@@ -11,7 +11,7 @@
 
 Each returns a :class:`RegistrationResult` whose confidence is measured the same way as
 Reg-NF's: the fraction of SDF residuals under the inlier threshold at the returned transform,
-times the fraction of the library object inside the proposal (:func:`registration.register.scored`).
+times the fraction of the library object inside the proposal (:func:`regnf.registration.register.scored`).
 """
 
 from __future__ import annotations
@@ -22,11 +22,11 @@ from collections.abc import Callable
 
 import numpy as np
 
-from neural_fields.field import Field
-from registration.initialisation import Hypothesis, fgr_baseline
-from registration.proposal import ProposalBox
-from registration.refinement import RefineResult, refine, without_steps
-from registration.register import (
+from regnf.neural_fields.field import Field
+from regnf.registration.initialisation import Hypothesis, fgr_baseline
+from regnf.registration.proposal import ProposalBox
+from regnf.registration.refinement import RefineResult, refine, without_steps
+from regnf.registration.register import (
     RegistrationConfig,
     check_fields,
     initialise,
@@ -34,9 +34,9 @@ from registration.register import (
     sample_tensors,
     scored,
 )
-from registration.result import HypothesisReport, RegistrationResult
-from registration.sampling import SurfaceSamples
-from registration.transform import SimilarityTransform
+from regnf.registration.result import HypothesisReport, RegistrationResult
+from regnf.registration.sampling import SurfaceSamples
+from regnf.registration.transform import SimilarityTransform
 
 
 def _result(method: str, T: SimilarityTransform, evaluated: RefineResult, cfg: RegistrationConfig,

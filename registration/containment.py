@@ -17,8 +17,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from registration.proposal import ProposalBox
-from registration.transform import SimilarityTransform
+from regnf.registration.proposal import ProposalBox
+from regnf.registration.transform import SimilarityTransform
 
 
 def containment(library_points: np.ndarray, transform: SimilarityTransform, region: ProposalBox) -> float:

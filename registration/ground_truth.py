@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from registration.proposal import ProposalBox
-from registration.transform import SimilarityTransform
-from synthetic.instance import Instance
+from regnf.registration.proposal import ProposalBox
+from regnf.registration.transform import SimilarityTransform
+from regnf.synthetic.instance import Instance
 
 
 def true_scene_to_library(

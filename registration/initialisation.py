@@ -21,14 +21,14 @@ Procedure:
    ``registration_ransac_based_on_feature_matching``; each later run drops the matches that
    an earlier hypothesis explains, so that it finds the next-best mode (a symmetric object's
    other poses), with its own seed.
-4. With an upright prior (:mod:`registration.upright`), ``upright_yaws`` evenly spaced yaw
+4. With an upright prior (:mod:`regnf.registration.upright`), ``upright_yaws`` evenly spaced yaw
    starts join RANSAC's results: they need no features, so an object seen from one side,
    whose features match poorly, still gets a start near its true pose.
 5. ICP refinement of every start on the full (normalised) clouds, point-to-point with
    scaling or point-to-plane; rank by fitness then inlier RMSE; keep hypotheses at least
    ``min_rotation_deg`` apart (modulo the object's symmetry); undo the normalisation.
-   :func:`registration.register.initialise` then screens them by SDF evidence
-   (:mod:`registration.screening`).
+   :func:`regnf.registration.register.initialise` then screens them by SDF evidence
+   (:mod:`regnf.registration.screening`).
 
 Determinism: every RANSAC run seeds Open3D's global generator (``o3d.utility.random.seed``).
 Open3D's RANSAC is parallel (OpenMP); results are bit-reproducible for a seed with one thread
@@ -113,11 +113,11 @@ class InitConfig:
     """Kept hypotheses differ pairwise by at least this geodesic angle."""
     upright_yaws: int = 24
     """With an upright prior (the object stands as its library model does,
-    :mod:`registration.upright`), this many evenly spaced yaws also start ICP; 0: RANSAC's
+    :mod:`regnf.registration.upright`), this many evenly spaced yaws also start ICP; 0: RANSAC's
     starts only (*paper*: RANSAC only). (Measured on the low-coverage ``ac-room``: RANSAC
     gave chair ``c`` no start within 120 degrees of the truth.)"""
     candidates: int = 12
-    """Distinct ICP results handed to the SDF screening (:mod:`registration.screening`), which
+    """Distinct ICP results handed to the SDF screening (:mod:`regnf.registration.screening`), which
     keeps the ``top_k`` with the most observed-evidence inliers for refinement."""
     fgr_distance_voxels: float = 0.5
     """FGR's maximum correspondence distance (Open3D's example: 0.5 voxel)."""
@@ -366,7 +366,7 @@ class ObjectSymmetry(NamedTuple):
     """The library object's declared symmetry, in the library field frame."""
 
     order: int
-    """1: none; k > 1: k-fold; 0: continuous (``neural_fields.field.Symmetry.order``)."""
+    """1: none; k > 1: k-fold; 0: continuous (``regnf.neural_fields.field.Symmetry.order``)."""
     axis: np.ndarray
     """(3,) unit axis in the library field frame (``metrics.symmetry_axis`` of its to_world)."""
 
@@ -407,7 +407,7 @@ def initial_hypotheses(
         The library object's symmetry: hypotheses it maps onto each other count as one.
     upright : UprightPrior, optional
         The object stands as its library model does: ``config.upright_yaws`` yaw starts join
-        RANSAC's (:func:`registration.upright.yaw_starts`).
+        RANSAC's (:func:`regnf.registration.upright.yaw_starts`).
     limit : int, optional
         Hypotheses returned at most (default ``config.top_k``).
 

@@ -15,7 +15,7 @@ safe steps, but only linear convergence. The loss's own curvature ``max(rho''(x)
 majoriser after a step that failed. Either way one step solves a damped 8 x 8 system.
 
 The kernel's (alpha, c) minimise the negative log-likelihood of the residuals (the adaptive
-loss, :mod:`registration.robust_loss`). With the residuals fixed that is a two-parameter
+loss, :mod:`regnf.registration.robust_loss`). With the residuals fixed that is a two-parameter
 problem; it is solved exactly on a grid, evaluated on a log-spaced histogram of the residuals
 (so its cost does not grow with the number of samples).
 """
@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import torch
 
-from registration.robust_loss import general_rho, log_partition
+from regnf.registration.robust_loss import general_rho, log_partition
 
 HISTOGRAM_DECADES = (-8.0, 1.0)
 """log10 range of |residual| (reference lengths) of the kernel fit's histogram; smaller values

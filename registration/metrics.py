@@ -24,8 +24,8 @@ import numpy as np
 from scipy.optimize import minimize_scalar
 from scipy.spatial.transform import Rotation
 
-from neural_fields.field import Symmetry
-from neural_fields.similarity import decompose_similarity
+from regnf.neural_fields.field import Symmetry
+from regnf.neural_fields.similarity import decompose_similarity
 
 from .transform import SimilarityTransform
 

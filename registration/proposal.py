@@ -12,7 +12,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from neural_fields.similarity import decompose_similarity
+from regnf.neural_fields.similarity import decompose_similarity
 
 CORNER_RTOL = 1e-6
 """Corners must match a box to this fraction of its diagonal (float32 input passes)."""

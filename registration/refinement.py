@@ -8,7 +8,7 @@ minimises
         + w L_reg
 
 over ``T(x) = s R x + t`` and the kernel's (alpha, c), where ``k`` is Barron's adaptive robust
-NLL (:mod:`registration.robust_loss`, one (alpha, c) pair shared by both terms) and ``L_reg`` the
+NLL (:mod:`regnf.registration.robust_loss`, one (alpha, c) pair shared by both terms) and ``L_reg`` the
 trimmed mean of the squared distances from every mapped SCENE sample ``T x`` to its nearest
 LIBRARY sample (pulling the library to the scene would punish library surface the scene never
 saw). Both residuals are library distances: an SDF scales with its geometry, so the scene's is
@@ -44,7 +44,7 @@ Two optimisers (``RefineConfig.optimizer``):
   residuals' Jacobians from the fields' spatial gradients (:meth:`_Batch.linearise`), fits each
   hypothesis's kernel (alpha, c) to its residuals by minimising their NLL (what Adam does by
   gradient steps), and solves a damped 8 x 8 system whose curvature is the loss's own (clamped
-  at 0 where a term is not convex; :mod:`registration.irls`). 5-15 iterations instead of 80-200
+  at 0 where a term is not convex; :mod:`regnf.registration.irls`). 5-15 iterations instead of 80-200
   Adam steps, to the same or a tighter optimum (``docs/benchmarks.md``).
 - ``adam``: the paper's, as published: Adam on all parameters and the kernel together.
 
@@ -67,8 +67,8 @@ from typing import Literal, NamedTuple
 import numpy as np
 import torch
 
-from neural_fields.field import Field
-from registration.irls import (
+from regnf.neural_fields.field import Field
+from regnf.registration.irls import (
     barron_curvature,
     barron_weight,
     damped_step,
@@ -76,8 +76,8 @@ from registration.irls import (
     segment_gram,
     segment_normal_equations,
 )
-from registration.robust_loss import AdaptiveRobustLoss, general_rho, log_partition
-from registration.transform import SimilarityTransform
+from regnf.registration.robust_loss import AdaptiveRobustLoss, general_rho, log_partition
+from regnf.registration.transform import SimilarityTransform
 
 
 @dataclass(frozen=True)
@@ -189,7 +189,7 @@ class RefineConfig:
 
     optimizer: Literal["lm", "adam"] = "lm"
     """``lm``: Levenberg-Marquardt, the kernel's (alpha, c) fitted to the residuals at every
-    iterate (:mod:`registration.irls`); ``adam``: the paper's Adam on all parameters at once.
+    iterate (:mod:`regnf.registration.irls`); ``adam``: the paper's Adam on all parameters at once.
     (Not in the paper. The objective is a robust least-squares problem in 8 parameters: a
     damped Newton step converges in 5-15 iterations where Adam at the paper's rates takes
     80-200 steps; measured in ``docs/benchmarks.md``.)"""
@@ -806,7 +806,7 @@ class _Batch:
                          ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """(k, 8, 8) H with the loss's own curvature ``max(rho'', 0)``, (k, 8, 8) H of the
         reweighting (``rho'/x``, a majoriser: never a smaller curvature) and the (k, 8) gradient
-        g (:mod:`registration.irls`)."""
+        g (:mod:`regnf.registration.irls`)."""
         k = lin.stats.shape[0]
         a, c = alpha[lin.group], scale[lin.group]
         W = barron_weight(lin.x, a, c)
@@ -1051,7 +1051,7 @@ def _trailing(batch: _Batch, stats: torch.Tensor) -> list[int]:
 
 
 def _run_lm(batch: _Batch, histories: list[list[dict]], steps: list[int]) -> None:
-    """Levenberg-Marquardt on the iteratively reweighted problem (:mod:`registration.irls`).
+    """Levenberg-Marquardt on the iteratively reweighted problem (:mod:`regnf.registration.irls`).
 
     Each iteration fits every active hypothesis's kernel (alpha, c) to its residuals, solves the
     damped normal equations for a local update, and keeps the update where it lowers that

@@ -3,18 +3,18 @@
 Stages (METHOD.md sections 3-5), each a function with its own config:
 
 1. multi-view surface sampling of the scene inside the proposal box and of the whole
-   library object (:mod:`registration.sampling`);
+   library object (:mod:`regnf.registration.sampling`);
 2. scale-aware FPFH + RANSAC + ICP, joined by ICP from a sweep of upright yaws when the
-   object stands as its library model does (:mod:`registration.initialisation`,
-   :mod:`registration.upright`); the distinct results are screened by their SDF evidence at
-   the pose and the best K kept (:mod:`registration.screening`);
+   object stands as its library model does (:mod:`regnf.registration.initialisation`,
+   :mod:`regnf.registration.upright`); the distinct results are screened by their SDF evidence at
+   the pose and the best K kept (:mod:`regnf.registration.screening`);
 3. bidirectional SDF refinement of every hypothesis with the adaptive robust loss
-   (:mod:`registration.refinement`); the one with the most inlier residuals wins (the final
+   (:mod:`regnf.registration.refinement`); the one with the most inlier residuals wins (the final
    NLLs are not comparable: each hypothesis learns its own kernel shape and scale).
 
 The result carries a confidence (the fraction of SDF residuals under a threshold, both
 directions, times the fraction of the library object that lies in the proposal box,
-:mod:`registration.containment`) so that a failed registration, or the wrong object, is
+:mod:`regnf.registration.containment`) so that a failed registration, or the wrong object, is
 reported, not silently written.
 """
 
@@ -27,9 +27,9 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from neural_fields.field import Field
-from registration.containment import containment
-from registration.initialisation import (
+from regnf.neural_fields.field import Field
+from regnf.registration.containment import containment
+from regnf.registration.initialisation import (
     Hypothesis,
     InitConfig,
     NoHypothesisError,
@@ -37,13 +37,13 @@ from registration.initialisation import (
     centroid_hypothesis,
     initial_hypotheses,
 )
-from registration.metrics import symmetry_axis
-from registration.proposal import ProposalBox
-from registration.refinement import RefineConfig, RefineResult, refine_many
-from registration.result import HypothesisReport, RegistrationResult
-from registration.sampling import SamplingConfig, SurfaceSamples, sample_surface
-from registration.screening import screen_hypotheses
-from registration.upright import UprightPrior
+from regnf.registration.metrics import symmetry_axis
+from regnf.registration.proposal import ProposalBox
+from regnf.registration.refinement import RefineConfig, RefineResult, refine_many
+from regnf.registration.result import HypothesisReport, RegistrationResult
+from regnf.registration.sampling import SamplingConfig, SurfaceSamples, sample_surface
+from regnf.registration.screening import screen_hypotheses
+from regnf.registration.upright import UprightPrior
 
 
 @dataclass
@@ -61,7 +61,7 @@ class RegistrationConfig:
     upright: bool = True
     """The object stands as its library model does (the scene's and the library's up axes,
     ``scene_sampling.up`` and the library's canonical +Z, correspond): a sweep of yaws adds
-    starts that do not depend on features (:mod:`registration.upright`). False: RANSAC's
+    starts that do not depend on features (:mod:`regnf.registration.upright`). False: RANSAC's
     starts only, for objects in any orientation."""
     acceptance_threshold: float = 0.6
     """A result whose confidence is below this is reported as a failed registration."""

@@ -6,8 +6,8 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from registration.proposal import ProposalBox
-from registration.transform import SimilarityTransform
+from regnf.registration.proposal import ProposalBox
+from regnf.registration.transform import SimilarityTransform
 
 
 @dataclass

@@ -20,8 +20,8 @@ from typing import Literal, NamedTuple
 import numpy as np
 import torch
 
-from neural_fields.field import DEFAULT_CHUNK, Field
-from neural_fields.raycast import SphereTraceConfig, pinhole_rays, ray_aabb, sphere_trace
+from regnf.neural_fields.field import DEFAULT_CHUNK, Field
+from regnf.neural_fields.raycast import SphereTraceConfig, pinhole_rays, ray_aabb, sphere_trace
 
 from .proposal import ProposalBox
 

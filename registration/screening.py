@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import torch
 
-from neural_fields.field import Field
+from regnf.neural_fields.field import Field
 
 from .initialisation import Hypothesis
 from .refinement import RefineConfig, refine_many, without_steps
@@ -41,7 +41,7 @@ def screen_hypotheses(
     B : (m, 3) float
         Library surface samples, library field frame.
     hypotheses : list of Hypothesis
-        Candidates (from :func:`registration.initialisation.initial_hypotheses`).
+        Candidates (from :func:`regnf.registration.initialisation.initial_hypotheses`).
     config : RefineConfig
         The refinement's settings (inlier threshold, visibility weighting); no step is taken.
     keep : int

@@ -10,7 +10,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from neural_fields.similarity import decompose_similarity, similarity_matrix
+from regnf.neural_fields.similarity import decompose_similarity, similarity_matrix
 
 
 class SimilarityTransform(NamedTuple):

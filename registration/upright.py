@@ -11,7 +11,7 @@ one of them is always within half the spacing of the truth, inside ICP's basin.
 Each start: the library's up axis aligned with the scene's, the yaw, the scale from the ratio
 of the two clouds' vertical extents (an object seen from one side still shows its top and its
 base), the bases at the same height and the proposal box's centre on the library object's
-centre. :func:`registration.initialisation.initial_hypotheses` refines each start with ICP.
+centre. :func:`regnf.registration.initialisation.initial_hypotheses` refines each start with ICP.
 """
 
 from __future__ import annotations

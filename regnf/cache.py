@@ -11,13 +11,13 @@ field the SHA-256 of the bytes of its training data, whatever the spelling of th
 path), so a changed input never reuses a stale result. Every entry is written atomically: a
 half-made capture has no meta_data.json, a half-written checkpoint never replaces a good one.
 
-A cached field is verified before it is reused (:func:`neural_fields.checkpoint.verify_checkpoint`:
+A cached field is verified before it is reused (:func:`regnf.neural_fields.checkpoint.verify_checkpoint`:
 its content digest, and the provenance naming the data it was made from); one that fails
 (truncated, flipped bits, an older checkpoint format, another field under its name) is ours,
 so it is remade and replaced atomically.
 
 A cached RGB-D field saved before fields recorded where their training views observed space
-(no visibility grid, see :mod:`neural_fields.visibility`) is kept: :meth:`Cache.rgbd_field`
+(no visibility grid, see :mod:`regnf.neural_fields.visibility`) is kept: :meth:`Cache.rgbd_field`
 builds the grid from the entry's capture (the one its key and provenance name), attaches it
 and re-saves the entry atomically, without retraining. Only the header's ``visibility`` block,
 the counts tensor and the digest change; the provenance stays, so the entry is reused.
@@ -35,7 +35,7 @@ from pathlib import Path
 
 import trimesh
 
-from neural_fields.checkpoint import (
+from regnf.neural_fields.checkpoint import (
     VISIBILITY_KEY,
     CheckpointError,
     attach_visibility,
@@ -43,14 +43,19 @@ from neural_fields.checkpoint import (
     save_field,
     verify_checkpoint,
 )
-from neural_fields.distill import DISTILL_VERSION, DistillConfig, distill_mesh
-from neural_fields.field import FieldInfo, Symmetry
-from neural_fields.presets import object_mesh_preset, object_rgbd_preset, scene_rgbd_preset
-from neural_fields.training import RGBDTrainConfig, capture_fingerprint, train_rgbd
-from synthetic.capture import ObjectCaptureConfig, RoomCaptureConfig, capture_object, capture_room
-from synthetic.library import make_library_object
-from synthetic.sdfstudio_format import Capture, load_capture
-from synthetic.shading import shaded_copy
+from regnf.neural_fields.distill import DISTILL_VERSION, DistillConfig, distill_mesh
+from regnf.neural_fields.field import FieldInfo, Symmetry
+from regnf.neural_fields.presets import object_mesh_preset, object_rgbd_preset, scene_rgbd_preset
+from regnf.neural_fields.training import RGBDTrainConfig, capture_fingerprint, train_rgbd
+from regnf.synthetic.capture import (
+    ObjectCaptureConfig,
+    RoomCaptureConfig,
+    capture_object,
+    capture_room,
+)
+from regnf.synthetic.library import make_library_object
+from regnf.synthetic.sdfstudio_format import Capture, load_capture
+from regnf.synthetic.shading import shaded_copy
 
 CACHE_VERSION = 3
 """Bump when the meaning of cached data changes (including a changed default setting).
@@ -191,7 +196,7 @@ class Cache:
         """The cache file of the field trained on ``capture`` with ``config``, and the data hash.
 
         The key hashes the bytes of ``meta_data.json`` and of every image and depth (see
-        :func:`neural_fields.training.capture_fingerprint`), so it is the same for any
+        :func:`regnf.neural_fields.training.capture_fingerprint`), so it is the same for any
         spelling of the capture's path and differs as soon as one input file does.
         """
         fingerprint = capture_fingerprint(capture.root, capture_files(capture))

@@ -41,7 +41,7 @@ EXIT_INTERRUPTED = 130
 
 def _commands() -> dict[str, type]:
     # Imported lazily so that `regnf --help` answers at once.
-    from benchmarks.cli import (
+    from regnf.benchmarks.cli import (
         BenchDistill,
         BenchEncodings,
         BenchFields,
@@ -102,7 +102,7 @@ def _one_line(exc: BaseException) -> str:
 
 def _is_project_error(exc: BaseException) -> bool:
     """Errors regnf raises on bad input: each names the file or option and the problem."""
-    from synthetic.file_lock import LockUnavailable
+    from regnf.core.file_lock import LockUnavailable
 
     if isinstance(exc, ImportError):
         # A missing optional package (ray), or our own message saying which to install; an
@@ -113,7 +113,7 @@ def _is_project_error(exc: BaseException) -> bool:
 
 def exit_status(exc: BaseException) -> int:
     """The documented exit status for an exception that ended a command (see the module)."""
-    from synthetic.file_lock import LockBusy
+    from regnf.core.file_lock import LockBusy
 
     if isinstance(exc, KeyboardInterrupt):
         return EXIT_INTERRUPTED

@@ -27,8 +27,8 @@ class Demo:
 
     def run(self) -> None:
         from regnf.cache import Cache
+        from regnf.core.preflight import check_output_dir
         from regnf.demo import run_demo
-        from regnf.preflight import check_output_dir
 
         check_output_dir(self.out)
         run_demo(self.out, self.demo, Cache(self.cache_dir))

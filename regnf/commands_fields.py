@@ -10,22 +10,27 @@ from typing import Literal
 import torch
 from rich.console import Console
 
-from neural_fields.checkpoint import load_field
-from neural_fields.field import FieldInfo, Symmetry
-from neural_fields.meshing import MESH_FORMATS, extract_mesh, save_mesh
-from neural_fields.presets import object_mesh_preset, object_rgbd_preset, scene_rgbd_preset
 from regnf.cache import Cache, capture_info, default_cache_dir
-from regnf.preflight import (
+from regnf.core.atomic_io import write_bytes
+from regnf.core.preflight import (
     check_input_file,
     check_mesh_resolution,
     check_output_dir,
     check_output_file,
 )
-from synthetic.atomic_io import write_bytes
-from synthetic.capture import ObjectCaptureConfig, RoomCaptureConfig, capture_object, capture_room
-from synthetic.library import LIBRARY_NAMES
-from synthetic.rooms import ROOM_NAMES
-from synthetic.sdfstudio_format import load_capture
+from regnf.neural_fields.checkpoint import load_field
+from regnf.neural_fields.field import FieldInfo, Symmetry
+from regnf.neural_fields.meshing import MESH_FORMATS, extract_mesh, save_mesh
+from regnf.neural_fields.presets import object_mesh_preset, object_rgbd_preset, scene_rgbd_preset
+from regnf.synthetic.capture import (
+    ObjectCaptureConfig,
+    RoomCaptureConfig,
+    capture_object,
+    capture_room,
+)
+from regnf.synthetic.library import LIBRARY_NAMES
+from regnf.synthetic.rooms import ROOM_NAMES
+from regnf.synthetic.sdfstudio_format import load_capture
 
 console = Console(stderr=True)
 
@@ -147,7 +152,7 @@ class Distill:
     def run(self) -> None:
         import trimesh
 
-        from neural_fields.mesh_repair import MeshError
+        from regnf.neural_fields.mesh_repair import MeshError
 
         check_input_file(self.mesh, "--mesh", "mesh file")
         check_checkpoint_out(self.out)

@@ -64,9 +64,9 @@ class Generate:
 
     def config(self):  # -> GenerateConfig (imported lazily: `regnf --help` stays fast)
         """The :class:`regnf.generate.GenerateConfig` these options describe."""
-        from compositor.cameras_io import OrbitConfig
-        from compositor.stage_config import StageCompositeConfig
-        from regnf.executors import ExecutorConfig
+        from regnf.compositor.cameras_io import OrbitConfig
+        from regnf.compositor.stage_config import StageCompositeConfig
+        from regnf.core.executors import ExecutorConfig
         from regnf.generate import GenerateConfig
 
         try:

@@ -10,13 +10,13 @@ from typing import TYPE_CHECKING, Literal
 import numpy as np
 from rich.console import Console
 
-from neural_fields.checkpoint import load_field
-from regnf.preflight import check_output_file
-from synthetic.atomic_io import write_json
+from regnf.core.atomic_io import write_json
+from regnf.core.preflight import check_output_file
+from regnf.neural_fields.checkpoint import load_field
 
 if TYPE_CHECKING:
-    from neural_fields.field import Field
-    from registration.result import RegistrationResult
+    from regnf.neural_fields.field import Field
+    from regnf.registration.result import RegistrationResult
 
 console = Console(stderr=True)
 
@@ -28,7 +28,7 @@ def load_box_metres(path: Path) -> np.ndarray:
     A box of zero or negative size, a mirrored one or corners that form no box are refused
     with a message naming the file (``SystemExit``, before anything is loaded).
     """
-    from registration.proposal import ProposalBox
+    from regnf.registration.proposal import ProposalBox
 
     try:
         data = json.loads(path.read_text())
@@ -92,7 +92,7 @@ class Register:
     """Instead of --box: a capture whose `instances` give the box (with --instance)."""
     instance: str | None = None
     """Instance id (or library name) in --capture to take the box from."""
-    out: Path = Path("registration.json")
+    out: Path = Path("regnf.registration.json")
     """Where to write the result (JSON)."""
     stage: Path | None = None
     """Also write the result as an instance into this USD stage (made by `regnf stage new`)."""
@@ -113,8 +113,8 @@ class Register:
 
     def proposal_corners(self) -> np.ndarray:
         """(8, 3) corners of the proposal box in scene metres, from --box or --capture/--instance."""
-        from registration.ground_truth import find_instance
-        from synthetic.sdfstudio_format import load_capture
+        from regnf.registration.ground_truth import find_instance
+        from regnf.synthetic.sdfstudio_format import load_capture
 
         if self.box is not None:
             return load_box_metres(self.box)
@@ -131,13 +131,13 @@ class Register:
         return np.asarray(inst.box_corners, dtype=np.float64)
 
     def run(self) -> None:
-        from registration.proposal import ProposalBox
-        from registration.register import RegistrationConfig, register
+        from regnf.registration.proposal import ProposalBox
+        from regnf.registration.register import RegistrationConfig, register
 
         # Everything that can be checked is checked before the registration's seconds of work.
         check_output_file(self.out, "--out")
         if self.stage is not None:
-            from scene_graph import check_writable
+            from regnf.scene_graph import check_writable
 
             check_writable(self.stage, allow_outside=self.allow_outside)
         if self.top_k is not None and self.top_k < 1:
@@ -165,7 +165,7 @@ class Register:
                    f"{result.timings.get('total', float('nan')):.1f} s -> {self.out}")
         written = None
         if self.stage is not None and (result.accepted or self.force):
-            from scene_graph import add_instance_from_registration
+            from regnf.scene_graph import add_instance_from_registration
 
             written = add_instance_from_registration(self.stage, payload, force=self.force,
                                                     allow_outside=self.allow_outside)

@@ -11,12 +11,12 @@ from typing import TYPE_CHECKING, Annotated, Literal
 from rich.console import Console
 from tyro.conf import Positional, arg
 
-from regnf.preflight import check_image_size, check_output_dir
+from regnf.core.preflight import check_image_size, check_output_dir
 
 if TYPE_CHECKING:
-    from compositor import Camera, CompositeField
-    from compositor.render_folder import RenderConfig
-    from compositor.stage_config import StageCompositeConfig
+    from regnf.compositor import Camera, CompositeField
+    from regnf.compositor.render_folder import RenderConfig
+    from regnf.compositor.stage_config import StageCompositeConfig
 
 console = Console(stderr=True)
 
@@ -80,7 +80,7 @@ class _Views:
 
     def check_options(self) -> None:
         """Refuse, before loading anything, no or several camera sources and an MP4 without its package."""
-        from compositor.sequence_io import SequenceBackendError, require_mp4
+        from regnf.compositor.sequence_io import SequenceBackendError, require_mp4
 
         sources = [self.capture is not None, self.orbit is not None, bool(self.usd_camera)]
         if sum(sources) != 1:
@@ -105,13 +105,13 @@ class _Views:
         check_output_dir(self.out)
 
     def cameras(self, field: CompositeField) -> list[Camera]:
-        from compositor.cameras_io import (
+        from regnf.compositor.cameras_io import (
             OrbitConfig,
             cameras_from_capture,
             field_bounds_metres,
             orbit_around_bounds,
         )
-        from compositor.usd_cameras import cameras_from_usd
+        from regnf.compositor.usd_cameras import cameras_from_usd
 
         self.check_options()
         try:
@@ -132,8 +132,8 @@ class _Views:
         return cams
 
     def render_config(self) -> RenderConfig:
-        from compositor.render_folder import RenderConfig
-        from compositor.volume_renderer import VolumeRendererConfig
+        from regnf.compositor.render_folder import RenderConfig
+        from regnf.compositor.volume_renderer import VolumeRendererConfig
 
         sphere = dataclasses.replace(RenderConfig().sphere, grid_lipschitz=self.lipschitz)
         return RenderConfig(renderer=self.renderer, sphere=sphere,
@@ -141,7 +141,7 @@ class _Views:
                             sequence_fps=self.fps, overwrite=self.overwrite)
 
     def composite_config(self, mode: str) -> StageCompositeConfig:
-        from compositor.stage_config import StageCompositeConfig
+        from regnf.compositor.stage_config import StageCompositeConfig
 
         return StageCompositeConfig(mode=mode, removal=self.removal, box_pad=self.box_pad,
                                     shell_dilation=self.shell_dilation, tint=self.tint)
@@ -155,9 +155,9 @@ class RenderStage(_Views):
     """scene: the scene field alone; substitute: instances removed and their library fields placed."""
 
     def run(self) -> None:
-        from compositor.from_stage import composite_from_stage
-        from compositor.render_folder import render_views
-        from scene_graph import StageError
+        from regnf.compositor.from_stage import composite_from_stage
+        from regnf.compositor.render_folder import render_views
+        from regnf.scene_graph import StageError
 
         self.check_options()
         t0 = time.perf_counter()
@@ -182,9 +182,9 @@ class ReplaceInstances(_Views):
     """Seed of the random choices (the same seed gives the same outputs)."""
 
     def run(self) -> None:
-        from compositor.from_stage import composite_from_stage
-        from compositor.replace import ReplaceConfig, replace_and_render
-        from scene_graph import StageError
+        from regnf.compositor.from_stage import composite_from_stage
+        from regnf.compositor.replace import ReplaceConfig, replace_and_render
+        from regnf.scene_graph import StageError
 
         self.check_options()
         try:

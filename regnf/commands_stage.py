@@ -8,7 +8,7 @@ from pathlib import Path
 
 from rich.console import Console
 
-from regnf.preflight import check_mesh_resolution, check_output_file
+from regnf.core.preflight import check_mesh_resolution, check_output_file
 
 console = Console(stderr=True)
 
@@ -35,7 +35,7 @@ class StageNew:
     """Torch device used to mesh the proxies."""
 
     def run(self) -> None:
-        from scene_graph import ProxyConfig, StageError, new_stage
+        from regnf.scene_graph import ProxyConfig, StageError, new_stage
 
         if self.out.suffix not in (".usda", ".usdc"):
             raise SystemExit(f"regnf stage new: {self.out} must end in .usda or .usdc")
@@ -70,7 +70,7 @@ class StageAddInstance:
     a self-contained folder, and a path out of it may name anybody's file)."""
 
     def run(self) -> None:
-        from scene_graph import StageError, add_instance_from_registration
+        from regnf.scene_graph import StageError, add_instance_from_registration
 
         try:
             data = json.loads(self.result.read_text())
@@ -97,7 +97,7 @@ class StageShow:
     a self-contained folder, and a path out of it may name anybody's file)."""
 
     def run(self) -> None:
-        from scene_graph import StageError, read_stage, summarize
+        from regnf.scene_graph import StageError, read_stage, summarize
 
         try:
             scene = read_stage(self.stage, allow_outside=self.allow_outside)
@@ -123,7 +123,7 @@ class StageExport:
     a self-contained folder, and a path out of it may name anybody's file)."""
 
     def run(self) -> None:
-        from scene_graph import StageError, export_stage
+        from regnf.scene_graph import StageError, export_stage
 
         targets = [p for p in (self.usdz, self.usdc, self.usda) if p is not None]
         if not targets:

@@ -24,7 +24,7 @@ Layout of ``out``::
     renders/scene/, renders/substitute/   orbit views (contact_sheet.png, sequence.gif, ...)
     renders/completion.png         per object: ground truth | scene field | substituted
     replacements/seed_1/, seed_2/  random replacements (replacement.usda, views, transforms.json)
-    .regnf-output.json, .regnf.lock   the marker of a demo folder and its lock (synthetic.output_dir)
+    .regnf-output.json, .regnf.lock   the marker of a demo folder and its lock (regnf.core.output_dir)
 
 The folder is the demo's own: a new or empty one, or one an earlier demo made (the marker
 lists what it made). Anything else is refused before any work, unless ``reuse`` is set; even
@@ -51,16 +51,16 @@ import numpy as np
 import torch
 from rich.console import Console
 
-from benchmarks.registration_report import BARS
+from regnf.benchmarks.registration_report import BARS
 
 from .cache import Cache, default_cache_dir
 
 if TYPE_CHECKING:
-    from compositor.camera import Camera
-    from scene_graph.validation import ValidationReport
-    from synthetic.output_dir import OutputFolder
-    from synthetic.rooms import Room
-    from synthetic.sdfstudio_format import Capture
+    from regnf.compositor.camera import Camera
+    from regnf.core.output_dir import OutputFolder
+    from regnf.scene_graph.validation import ValidationReport
+    from regnf.synthetic.rooms import Room
+    from regnf.synthetic.sdfstudio_format import Capture
 
 console = Console(stderr=True)
 
@@ -135,13 +135,13 @@ def demo_folder(out: str | Path, config: DemoConfig) -> Iterator[OutputFolder]:
 
     Raises
     ------
-    synthetic.output_dir.OutputFolderError
+    regnf.core.output_dir.OutputFolderError
         ``out`` holds files the demo did not make (and ``config.reuse`` is off), or an entry
         of the demo's names that it did not make; nothing is written then.
-    synthetic.file_lock.LockBusy
+    regnf.core.file_lock.LockBusy
         Another demo is running into ``out``.
     """
-    from synthetic.output_dir import inspect_output_dir, owned_output_dir
+    from regnf.core.output_dir import inspect_output_dir, owned_output_dir
 
     path = Path(out).absolute()
     # Everything is checked before anything is written: a refused folder gets no marker and no lock file.
@@ -183,12 +183,12 @@ def machine() -> dict[str, Any]:
 def _register_all(stage: Path, out: Path, scene_path: Path, library_paths: dict[str, Path],
                    capture: Capture, device: str) -> list[dict[str, Any]]:
     """Register every capture instance with its library object; accepted ones go into the stage."""
-    from benchmarks.registration import evaluate, pair_truth
-    from benchmarks.registration_report import within_bars
-    from neural_fields.checkpoint import load_field
-    from registration.register import register
-    from scene_graph import add_instance_from_registration
-    from synthetic.atomic_io import write_json
+    from regnf.benchmarks.registration import evaluate, pair_truth
+    from regnf.benchmarks.registration_report import within_bars
+    from regnf.core.atomic_io import write_json
+    from regnf.neural_fields.checkpoint import load_field
+    from regnf.registration.register import register
+    from regnf.scene_graph import add_instance_from_registration
 
     from .commands_registration import registration_payload
 
@@ -220,14 +220,14 @@ def _register_all(stage: Path, out: Path, scene_path: Path, library_paths: dict[
 
 def _completion(stage: Path, room: Room, config: DemoConfig, out: Path) -> dict[str, Any]:
     """Per object, one view from a side the capture never saw: truth | scene field | substituted."""
-    from benchmarks.render import RenderBenchConfig, reference_renderer, unseen_cameras
-    from compositor.distance_grid import DistanceGrid
-    from compositor.from_stage import composite_from_stage
-    from compositor.image_io import rgb_to_uint8, write_rgb_png
-    from compositor.render_folder import RenderConfig
-    from compositor.sphere_tracer import render
-    from compositor.stage_config import StageCompositeConfig
-    from neural_fields.evaluation import psnr
+    from regnf.benchmarks.render import RenderBenchConfig, reference_renderer, unseen_cameras
+    from regnf.compositor.distance_grid import DistanceGrid
+    from regnf.compositor.from_stage import composite_from_stage
+    from regnf.compositor.image_io import rgb_to_uint8, write_rgb_png
+    from regnf.compositor.render_folder import RenderConfig
+    from regnf.compositor.sphere_tracer import render
+    from regnf.compositor.stage_config import StageCompositeConfig
+    from regnf.neural_fields.evaluation import psnr
 
     sphere = RenderConfig().sphere
     fields = {mode: composite_from_stage(stage, StageCompositeConfig(mode=mode, box_pad=config.completion_box_pad),
@@ -260,9 +260,9 @@ def _completion(stage: Path, room: Room, config: DemoConfig, out: Path) -> dict[
 
 def _orbit_cameras(stage: Path, config: DemoConfig) -> list[Camera]:
     """The orbit around the scene field's bounds that the scene, substitution and replacements share."""
-    from compositor.cameras_io import OrbitConfig, field_bounds_metres, orbit_around_bounds
-    from compositor.from_stage import composite_from_stage
-    from compositor.stage_config import StageCompositeConfig
+    from regnf.compositor.cameras_io import OrbitConfig, field_bounds_metres, orbit_around_bounds
+    from regnf.compositor.from_stage import composite_from_stage
+    from regnf.compositor.stage_config import StageCompositeConfig
 
     scene = composite_from_stage(stage, StageCompositeConfig(mode="scene"), config.device).field.scene
     orbit = OrbitConfig(n=config.orbit_views, width=config.width, height=config.height)
@@ -272,9 +272,9 @@ def _orbit_cameras(stage: Path, config: DemoConfig) -> list[Camera]:
 def _render_mode(stage: Path, mode: str, cameras: list[Camera], out: Path,
                  config: DemoConfig) -> dict[str, Any]:
     """Render the stage's composite in ``mode`` into ``out``; its speed."""
-    from compositor.from_stage import composite_from_stage
-    from compositor.render_folder import RenderConfig, render_views
-    from compositor.stage_config import StageCompositeConfig
+    from regnf.compositor.from_stage import composite_from_stage
+    from regnf.compositor.render_folder import RenderConfig, render_views
+    from regnf.compositor.stage_config import StageCompositeConfig
 
     comp = composite_from_stage(stage, StageCompositeConfig(mode=mode, box_pad=config.completion_box_pad),
                                 config.device)
@@ -296,12 +296,12 @@ def run_demo(out: str | Path = Path("out/demo"), config: DemoConfig = DemoConfig
 
 def _run_demo(folder: OutputFolder, config: DemoConfig, cache: Cache | None) -> Path:
     """The demo's steps, into the claimed and locked ``folder``."""
-    from compositor.replace import ReplaceConfig, replace_and_render
-    from compositor.stage_config import StageCompositeConfig
-    from scene_graph import export_stage, new_stage, validate_stage
-    from synthetic.atomic_io import write_json
-    from synthetic.capture import RoomCaptureConfig
-    from synthetic.rooms import ROOM_CONTENTS, make_room
+    from regnf.compositor.replace import ReplaceConfig, replace_and_render
+    from regnf.compositor.stage_config import StageCompositeConfig
+    from regnf.core.atomic_io import write_json
+    from regnf.scene_graph import export_stage, new_stage, validate_stage
+    from regnf.synthetic.capture import RoomCaptureConfig
+    from regnf.synthetic.rooms import ROOM_CONTENTS, make_room
 
     from .report import write_report
 

@@ -1,13 +1,13 @@
 """Scripted synthetic scene generation: many random instance replacements of one stage.
 
 Each variant is one seed. Its instances are swapped for random library objects of their
-class (:func:`compositor.replace.pick_replacements`), the composite is rendered from ``K``
+class (:func:`regnf.compositor.replace.pick_replacements`), the composite is rendered from ``K``
 orbit cameras (RGB, depth, instance masks, a contact sheet, ``render.json``) and described
 by a nerfstudio ``transforms.json``; its replacement layer goes beside the base stage, and
 a row of ``manifest.jsonl`` records it (:mod:`regnf.manifest`). Layout of ``out``::
 
-    .regnf-output.json               marker: a folder made by regnf generate (synthetic.output_dir)
-    .regnf.lock                      the lock a run holds (synthetic.file_lock)
+    .regnf-output.json               marker: a folder made by regnf generate (regnf.core.output_dir)
+    .regnf.lock                      the lock a run holds (regnf.core.file_lock)
     generation.json                  settings, source stage, config_key
     manifest.jsonl                   one row per variant, sorted by seed
     stage/<name>.usda + assets       the base stage, exported once
@@ -15,7 +15,7 @@ a row of ``manifest.jsonl`` records it (:mod:`regnf.manifest`). Layout of ``out`
     variants/000007/                 seed 7's views, contact_sheet.png, render.json, transforms.json
     errors/000007.txt                the traceback of a variant that failed
 
-The output folder is the run's own (:func:`synthetic.output_dir.claim_output_dir`): a new
+The output folder is the run's own (:func:`regnf.core.output_dir.claim_output_dir`): a new
 or empty folder, or one an earlier ``generate`` made. A folder that holds anything else
 (the user's files, a source stage, another command's output) is refused before anything is
 written, unless ``reuse`` says to write into it anyway; even then nothing there is removed
@@ -24,12 +24,12 @@ or written over but the names above. The source stage may not lie in ``out/stage
 
 A run holds the folder's lock from start to end: a second run into the same folder (from
 this machine or another one sharing the folder) fails at once with
-:class:`synthetic.file_lock.LockBusy`. The lock is a POSIX record lock: it works on local
+:class:`regnf.core.file_lock.LockBusy`. The lock is a POSIX record lock: it works on local
 disks and on NFS with locking (NFSv4, or NFSv3 with ``lockd``); where the file system has no
-locks, the run fails with :class:`synthetic.file_lock.LockUnavailable` instead of going on
+locks, the run fails with :class:`regnf.core.file_lock.LockUnavailable` instead of going on
 unprotected.
 
-Variants run as independent tasks on an executor (:mod:`regnf.executors`): a local process
+Variants run as independent tasks on an executor (:mod:`regnf.core.executors`): a local process
 pool or a Ray cluster, each task with the same pinned thread count, so both give the same
 files. A worker renders into a private folder under the run's scratch folder
 (``out/.regnf-tmp-work-*``) and returns the files' bytes; only this process writes the data
@@ -60,13 +60,14 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from compositor.camera import Camera
-from compositor.cameras_io import OrbitConfig, orbit_around_bounds
-from compositor.render_folder import RENDER_JSON, RenderConfig, check_image_size
-from compositor.stage_config import StageCompositeConfig
-from synthetic.atomic_io import write_json, write_text
-from synthetic.file_lock import folder_lock
-from synthetic.output_dir import (
+from regnf.compositor.camera import Camera
+from regnf.compositor.cameras_io import OrbitConfig, orbit_around_bounds
+from regnf.compositor.render_folder import RENDER_JSON, RenderConfig, check_image_size
+from regnf.compositor.stage_config import StageCompositeConfig
+from regnf.core.atomic_io import write_json, write_text
+from regnf.core.executors import ExecutorConfig, run_tasks
+from regnf.core.file_lock import folder_lock
+from regnf.core.output_dir import (
     claim_output_dir,
     owned_output_dir,
     remove_leftovers,
@@ -74,7 +75,6 @@ from synthetic.output_dir import (
     staging_dir,
 )
 
-from .executors import ExecutorConfig, run_tasks
 from .manifest import MANIFEST_NAME, append_row, read_manifest, sealed, sha256_file, write_manifest
 
 GENERATION_JSON = "generation.json"
@@ -129,7 +129,7 @@ class GenerateConfig:
     cameras: OrbitConfig = field(default_factory=lambda: OrbitConfig(n=8, width=256, height=192))
     """Orbit of cameras inside the scene's bounds; n is the number of views per variant (at most
     :data:`MAX_VIEWS`), and a view has at most width * height = 4096 * 4096 pixels
-    (:data:`compositor.render_folder.MAX_PIXELS`: a view is rendered whole in memory)."""
+    (:data:`regnf.compositor.render_folder.MAX_PIXELS`: a view is rendered whole in memory)."""
     jitter_cameras: bool = True
     """Turn each variant's orbit by a random azimuth (from its seed) so the variants see the room from
     different places."""
@@ -262,11 +262,11 @@ _WORKER_CACHE: dict[str, Any] = {}
 
 def render_variant(task: VariantTask) -> VariantOutput:
     """Make one variant in a private temporary folder and return its files (runs in a worker)."""
-    from compositor.from_stage import composite_from_scene, original_selections
-    from compositor.nerfstudio import transforms_json
-    from compositor.render_folder import render_views
-    from compositor.replace import pick_replacements, swapped
-    from scene_graph import read_stage
+    from regnf.compositor.from_stage import composite_from_scene, original_selections
+    from regnf.compositor.nerfstudio import transforms_json
+    from regnf.compositor.render_folder import render_views
+    from regnf.compositor.replace import pick_replacements, swapped
+    from regnf.scene_graph import read_stage
 
     t0 = time.perf_counter()
     base = Path(task.base_stage)
@@ -305,7 +305,7 @@ def _settings_key(settings: dict[str, Any]) -> str:
 
 def source_summary(stage: Path) -> dict[str, Any]:
     """What of the source stage the variants depend on: its instances, library and scene field."""
-    from scene_graph import read_stage
+    from regnf.scene_graph import read_stage
 
     scene = read_stage(stage)
     return {
@@ -374,10 +374,10 @@ def prepare_output(stage: str | os.PathLike, out: str | os.PathLike, config: Gen
     ------
     ValueError
         The source stage is inside ``out/stage/``; ``out`` is refused
-        (:class:`synthetic.output_dir.OutputFolderError`); ``out`` holds a data set of another
+        (:class:`regnf.core.output_dir.OutputFolderError`); ``out`` holds a data set of another
         stage or other settings (naming the file); the stage cannot be read.
     """
-    from scene_graph import export_stage
+    from regnf.scene_graph import export_stage
 
     src = Path(stage).absolute()
     out = Path(out).absolute()
@@ -438,7 +438,7 @@ def commit_variant(out: Path, base: Path, output: VariantOutput, key: str) -> di
 
     An earlier ``variants/<seed>`` is replaced: it is this data set's (the seed is made again).
     """
-    from scene_graph import make_replacement_layer
+    from regnf.scene_graph import make_replacement_layer
 
     name = variant_name(output.seed)
     folder = out / VARIANTS_DIR
@@ -494,12 +494,12 @@ def generate(
     ------
     ValueError
         The source stage is inside ``out/stage/``; ``out`` holds files regnf generate did
-        not make and ``config.reuse`` is off (:class:`synthetic.output_dir.OutputFolderError`);
+        not make and ``config.reuse`` is off (:class:`regnf.core.output_dir.OutputFolderError`);
         ``out`` holds a data set of other settings; the stage cannot be read (a
         ``scene_graph.StageError`` naming the file). Nothing is written then.
-    synthetic.file_lock.LockBusy
+    regnf.core.file_lock.LockBusy
         Another run is writing into ``out`` (a ``RuntimeError``); nothing is written.
-    synthetic.file_lock.LockUnavailable
+    regnf.core.file_lock.LockUnavailable
         ``out``'s file system cannot take locks (an ``OSError``).
     """
     t0 = time.perf_counter()
@@ -533,8 +533,8 @@ def _make_variants(out: Path, base: Path, key: str, config: GenerateConfig, todo
     """Run the variants of ``todo`` and commit each as it finishes (``rows``, ``made``, ``failed`` are updated)."""
     from tqdm import tqdm
 
-    from compositor.cameras_io import field_bounds_metres
-    from compositor.from_stage import composite_from_stage
+    from regnf.compositor.cameras_io import field_bounds_metres
+    from regnf.compositor.from_stage import composite_from_stage
 
     scene_only = composite_from_stage(base, dataclasses.replace(config.composite, mode="scene"), "cpu")
     bounds = field_bounds_metres(scene_only.field.scene)
@@ -598,11 +598,11 @@ def tile_sheet(out: str | os.PathLike, seeds: Sequence[int] | None = None, colum
     ------
     ValueError
         No finished variant (among ``seeds``, if given).
-    synthetic.file_lock.LockBusy
+    regnf.core.file_lock.LockBusy
         A run is writing into ``out`` now.
     """
-    from compositor.contact_sheets import contact_sheet
-    from compositor.image_io import read_rgb_png, write_rgb_png
+    from regnf.compositor.contact_sheets import contact_sheet
+    from regnf.compositor.image_io import read_rgb_png, write_rgb_png
 
     out = Path(out)
     wanted = None if seeds is None else set(seeds)

@@ -27,7 +27,7 @@ from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any, NamedTuple
 
-from synthetic.atomic_io import write_text
+from regnf.core.atomic_io import write_text
 
 MANIFEST_NAME = "manifest.jsonl"
 """The manifest's file name in the output folder."""

@@ -51,7 +51,7 @@ from pathlib import Path, PurePath
 from typing import TYPE_CHECKING, Any, NamedTuple
 from urllib.parse import quote
 
-from synthetic.atomic_io import atomic_path, write_text
+from regnf.core.atomic_io import atomic_path, write_text
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure

@@ -8,7 +8,7 @@ per instance by a layer of variant selections (``make_replacement_layer``), expo
 Writers of one stage folder exclude each other (``stage_lock``, waiting up to
 ``STAGE_LOCK_TIMEOUT_S``); ``check_writable`` tells early whether an edit could be written.
 Every asset path a stage names must lie inside its folder (or package) unless the caller
-passes ``allow_outside=True`` (:mod:`scene_graph.boundary`).
+passes ``allow_outside=True`` (:mod:`regnf.scene_graph.boundary`).
 """
 
 from .edit import (

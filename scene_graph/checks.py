@@ -1,9 +1,9 @@
 """The numeric rules a stage's transforms and registration records obey, in one place.
 
-The writer (:func:`scene_graph.write_stage`, and through it every edit) and the reader
-(:func:`scene_graph.read_stage`) apply the same functions, so that whatever is written can be
+The writer (:func:`regnf.scene_graph.write_stage`, and through it every edit) and the reader
+(:func:`regnf.scene_graph.read_stage`) apply the same functions, so that whatever is written can be
 read back, and whatever is read can be rendered: the compositor builds each instance's
-removal box from the recorded proposal box (``compositor.oriented_box.OrientedBox``) and maps
+removal box from the recorded proposal box (``regnf.compositor.oriented_box.OrientedBox``) and maps
 each library field by ``object_to_scene``. Each check raises ``ValueError`` with a one-line
 message; callers turn it into a :class:`~scene_graph.StageError` naming the file and prim.
 """
@@ -14,14 +14,14 @@ import math
 
 import numpy as np
 
-from neural_fields.similarity import decompose_similarity
+from regnf.neural_fields.similarity import decompose_similarity
 
 from . import layout as L
 from .model import RegistrationProvenance
 
 BOX_ROTATION_ATOL = 1e-6
 """Largest ``|R^T R - I|`` entry of a proposal box's axes. Stricter than the 1e-5 of
-``compositor.oriented_box.OrientedBox`` (and ``registration.proposal.ProposalBox``), so that a
+``regnf.compositor.oriented_box.OrientedBox`` (and ``regnf.registration.proposal.ProposalBox``), so that a
 box that passes here passes there too, whatever rounding either computation makes."""
 
 

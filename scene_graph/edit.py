@@ -1,6 +1,6 @@
 """Make and change stages: a new stage from fields, instances by hand or from registrations.
 
-Each operation holds the lock of the stage's folder (:func:`scene_graph.locking.stage_lock`)
+Each operation holds the lock of the stage's folder (:func:`regnf.scene_graph.locking.stage_lock`)
 from before it reads the stage until after it has written it, so that two processes editing
 one stage at once (two ``regnf register --stage`` runs) both get their change in, one after
 the other. It reads the stage, changes the model, checks it and writes every file in one
@@ -74,8 +74,8 @@ def new_stage(
     ------
     StageError
         The stage exists (and not ``overwrite``), a bad checkpoint, a duplicate library name.
-    synthetic.file_lock.LockBusy
-        Another process kept the folder locked for :data:`~scene_graph.locking.STAGE_LOCK_TIMEOUT_S`.
+    regnf.core.file_lock.LockBusy
+        Another process kept the folder locked for :data:`~regnf.scene_graph.locking.STAGE_LOCK_TIMEOUT_S`.
     """
     stage_path = Path(stage_path).absolute()
     if stage_path.exists() and not overwrite:  # before meshing proxies, which takes a while
@@ -182,7 +182,7 @@ def _numbers(value: object, shape: tuple[int, ...], key: str, fail: Callable[[st
 
     Strings are refused although numpy would parse ``"1.0"``: a result that holds them was
     not written by ``regnf register``. Finiteness and the geometry are checked afterwards, by
-    :mod:`scene_graph.checks`.
+    :mod:`regnf.scene_graph.checks`.
     """
     try:
         a = np.asarray(value, dtype=object)
@@ -219,7 +219,7 @@ def parse_registration(
     """Check a registration result (``regnf register``'s JSON) completely and take it apart.
 
     Every field the stage records is checked for type, shape and finiteness, and the numbers
-    then against :func:`scene_graph.checks.check_registration`, the rules the stage's reader
+    then against :func:`regnf.scene_graph.checks.check_registration`, the rules the stage's reader
     applies, so that a result that passes here can be written, read back and rendered.
 
     Parameters
@@ -346,8 +346,8 @@ def add_instance_from_registration(
         Not accepted (and not forced), a malformed result (missing keys, wrong types or
         shapes, non-finite numbers, a transform that is not a similarity, a box of zero size
         or a reflected one), a bad checkpoint. Nothing is written then.
-    synthetic.file_lock.LockBusy
-        Another process kept the stage locked for :data:`~scene_graph.locking.STAGE_LOCK_TIMEOUT_S`.
+    regnf.core.file_lock.LockBusy
+        Another process kept the stage locked for :data:`~regnf.scene_graph.locking.STAGE_LOCK_TIMEOUT_S`.
     """
     stage_path = Path(stage_path).absolute()
     raw_name = result_json.get("library_name") if isinstance(result_json, Mapping) else None

@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from neural_fields.checkpoint import CheckpointError, load_field, read_header
-from neural_fields.field import Symmetry
-from neural_fields.meshing import extract_mesh
+from regnf.neural_fields.checkpoint import CheckpointError, load_field, read_header
+from regnf.neural_fields.field import Symmetry
+from regnf.neural_fields.meshing import extract_mesh
 
 from .errors import StageError
 from .model import FieldRecord, ProxyMesh

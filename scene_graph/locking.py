@@ -3,7 +3,7 @@
 Every change to a stage is a read-modify-write (read the stage, add to it, write every file).
 Two processes doing it at once would both read the old stage and the second write would
 drop the first one's change, so every writer in :mod:`scene_graph` holds :func:`stage_lock`
-(the POSIX lock of :mod:`synthetic.file_lock` on ``.regnf.lock`` in the stage's folder) from
+(the POSIX lock of :mod:`regnf.core.file_lock` on ``.regnf.lock`` in the stage's folder) from
 before the read until after the write. Readers take no lock: files are replaced atomically
 and the root layer last, and a reader may have no right to write the folder at all.
 
@@ -19,7 +19,7 @@ import os
 from collections.abc import Iterator
 from pathlib import Path
 
-from synthetic.file_lock import LOCK_NAME, folder_lock
+from regnf.core.file_lock import LOCK_NAME, folder_lock
 
 from . import layout as L
 from .errors import StageError
@@ -27,7 +27,7 @@ from .usd_read import read_stage
 
 STAGE_LOCK_TIMEOUT_S = 60.0
 """Seconds a writer waits for another writer of the same stage folder before it raises
-``synthetic.file_lock.LockBusy``. An edit holds the lock well under a second (an export of a
+``regnf.core.file_lock.LockBusy``. An edit holds the lock well under a second (an export of a
 large stage a few seconds), so a full minute only runs out when something is stuck."""
 
 def _make_folders(folder: Path) -> list[Path]:
@@ -72,9 +72,9 @@ def stage_lock(stage_path: str | os.PathLike, create: bool = False) -> Iterator[
     StageError
         The stage is missing (and not ``create``), or the lock file cannot be created or
         opened (a folder the user cannot write).
-    synthetic.file_lock.LockBusy
+    regnf.core.file_lock.LockBusy
         Another process still holds the lock after :data:`STAGE_LOCK_TIMEOUT_S` seconds.
-    synthetic.file_lock.LockUnavailable
+    regnf.core.file_lock.LockUnavailable
         The file system cannot lock (some SMB and FUSE mounts).
     """
     stage_path = Path(stage_path).absolute()
@@ -110,7 +110,7 @@ def check_writable(stage_path: str | os.PathLike, allow_outside: bool = False) -
     stage_path : str or PathLike
         A regnf stage (.usda or .usdc) to add to.
     allow_outside : bool
-        As for :func:`scene_graph.read_stage`.
+        As for :func:`regnf.scene_graph.read_stage`.
 
     Returns
     -------

@@ -1,6 +1,6 @@
 """A composed scene in plain Python: the scene field, the library and the registered instances.
 
-This is what a stage records and what :func:`scene_graph.read_stage` gives back; USD is only
+This is what a stage records and what :func:`regnf.scene_graph.read_stage` gives back; USD is only
 its storage. Matrices act on column vectors (``y = M x``) and are float64.
 """
 

@@ -3,7 +3,7 @@
 The package holds the root layer first (as USD requires), then every asset layer and slot at
 the same relative paths as on disk, so the layers' relative asset paths work unchanged inside
 it (and the regnf tables in ``customLayerData`` still point at the files). Checkpoints go in as
-USD layers carrying their bytes (:mod:`scene_graph.embedded_checkpoint`): the usdz
+USD layers carrying their bytes (:mod:`regnf.scene_graph.embedded_checkpoint`): the usdz
 specification admits no other file types.
 
 Both kinds of export are made from the stage as read (:func:`read_stage`, which keeps every
@@ -22,7 +22,7 @@ from pathlib import Path
 
 from pxr import Sdf, UsdUtils
 
-from synthetic.atomic_io import TEMP_PREFIX
+from regnf.core.atomic_io import TEMP_PREFIX
 
 from . import layout as L
 from .embedded_checkpoint import (
@@ -65,7 +65,7 @@ def export_stage(stage_path: str | os.PathLike, out_path: str | os.PathLike, all
     StageError
         Anything :func:`read_stage` refuses (an asset path outside the stage's folder among
         them), another suffix.
-    synthetic.file_lock.LockBusy
+    regnf.core.file_lock.LockBusy
         Another process kept the output folder locked for too long.
     """
     src = Path(stage_path).absolute()

@@ -50,14 +50,14 @@ def make_replacement_layer(
     Returns
     -------
     Path
-        ``out_path``, readable by :func:`scene_graph.read_stage`.
+        ``out_path``, readable by :func:`regnf.scene_graph.read_stage`.
 
     Raises
     ------
     StageError
         Unknown instance or library object, a swap across classes (unless forced), an output
         outside the base stage's folder; nothing is written then.
-    synthetic.file_lock.LockBusy
+    regnf.core.file_lock.LockBusy
         Another process kept the stage's folder locked for too long.
 
     Notes

@@ -7,7 +7,7 @@ are removed and the disk is as it was. During the commit each file is replaced w
 way restores them. Callers stage the root layer last, so a reader opening it meanwhile finds
 either the old stage or the new one with all its assets.
 
-Temporaries are named ``.regnf-tmp-<name>.*`` (:data:`synthetic.atomic_io.TEMP_PREFIX`, which
+Temporaries are named ``.regnf-tmp-<name>.*`` (:data:`regnf.core.atomic_io.TEMP_PREFIX`, which
 marks what a killed run left as ours to remove) and every file put in place gets the mode a
 plain ``open`` would give under the user's umask: ``mkstemp`` makes files 0600, and USD's
 writers keep the mode of the file they overwrite, which would leave a stage in a shared
@@ -24,7 +24,7 @@ import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
-from synthetic.atomic_io import TEMP_PREFIX, user_mode
+from regnf.core.atomic_io import TEMP_PREFIX, user_mode
 
 
 class FileTransaction:

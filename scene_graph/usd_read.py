@@ -1,10 +1,10 @@
-"""Read a stage written by :func:`scene_graph.write_stage` back into a :class:`ComposedScene`.
+"""Read a stage written by :func:`regnf.scene_graph.write_stage` back into a :class:`ComposedScene`.
 
 Everything is checked against our layout, so that a stage written by something else, or
 edited by hand into something inconsistent, is reported with the prim and the file at fault:
 the ``regnf`` layer data, Z up and metres, every field attribute, asset paths that stay inside
-the stage's folder (:mod:`scene_graph.boundary`), checkpoints that exist and parse, xform ops
-that agree with the exact 4x4, registration records that obey :mod:`scene_graph.checks`.
+the stage's folder (:mod:`regnf.scene_graph.boundary`), checkpoints that exist and parse, xform ops
+that agree with the exact 4x4, registration records that obey :mod:`regnf.scene_graph.checks`.
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 from pxr import Ar, Sdf, Tf, Usd, UsdGeom
 
-from neural_fields.checkpoint import CheckpointError, verify_checkpoint
+from regnf.neural_fields.checkpoint import CheckpointError, verify_checkpoint
 
 from . import layout as L
 from .boundary import Boundary, open_composed
@@ -41,7 +41,7 @@ def open_stage(path: str | os.PathLike, allow_outside: bool = False) -> Usd.Stag
     """Open a stage fresh from disk (layers already in memory are reloaded), inside its boundary.
 
     Every sublayer, reference and payload is checked before it is opened
-    (:func:`scene_graph.boundary.open_composed`): one that resolves outside the stage's
+    (:func:`regnf.scene_graph.boundary.open_composed`): one that resolves outside the stage's
     folder (or package) is refused unless ``allow_outside``. A regnf asset layer opened on
     its own (``library/<name>.usda`` or ``slots/<class>.usda``, by the role its
     ``customLayerData`` gives) belongs to the stage one folder up, and has that boundary.
@@ -287,7 +287,7 @@ def read_stage(path: str | os.PathLike, check_checkpoints: bool = True, allow_ou
     allow_outside : bool
         Accept asset paths (layers, checkpoints, ``replacementOf``) that resolve outside the
         stage's folder, or outside the package for a .usdz. By default they are refused
-        (:mod:`scene_graph.boundary`): a stage is its folder.
+        (:mod:`regnf.scene_graph.boundary`): a stage is its folder.
 
     Raises
     ------

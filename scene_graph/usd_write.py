@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 from pxr import Gf, Sdf, Vt
 
-from neural_fields.checkpoint import CheckpointError, read_header
+from regnf.neural_fields.checkpoint import CheckpointError, read_header
 
 from . import layout as L
 from .checks import check_registration, check_similarity
@@ -242,7 +242,7 @@ def write_stage(scene: ComposedScene, stage_path: str | os.PathLike) -> list[Pat
 
     Everything is checked first, then every file is written to a temporary and the set is
     moved into place (the root layer last); on any error nothing on disk changes. The stage
-    folder's lock (:func:`scene_graph.locking.stage_lock`) is held meanwhile; an edit that
+    folder's lock (:func:`regnf.scene_graph.locking.stage_lock`) is held meanwhile; an edit that
     read the stage holds it already, from before its read.
 
     Returns
@@ -254,8 +254,8 @@ def write_stage(scene: ComposedScene, stage_path: str | os.PathLike) -> list[Pat
     ------
     StageError
         Bad names, a missing or corrupted checkpoint, a transform that is not a similarity, a
-        registration record :func:`scene_graph.checks.check_registration` refuses...
-    synthetic.file_lock.LockBusy
+        registration record :func:`regnf.scene_graph.checks.check_registration` refuses...
+    regnf.core.file_lock.LockBusy
         Another process kept the stage's folder locked for too long.
     """
     stage_path = Path(stage_path).absolute()

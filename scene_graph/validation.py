@@ -3,7 +3,7 @@
 Every validator registered in this usd-core build runs over the composed stage (which also
 validates the asset layers it references); the result is the list of issues as text, split
 into errors and warnings. The stage is opened inside its trust boundary
-(:func:`scene_graph.usd_read.open_stage`): a layer outside its folder is refused, not validated.
+(:func:`regnf.scene_graph.usd_read.open_stage`): a layer outside its folder is refused, not validated.
 """
 
 from __future__ import annotations

@@ -12,7 +12,7 @@ from typing import NamedTuple
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from neural_fields.similarity import decompose_similarity
+from regnf.neural_fields.similarity import decompose_similarity
 
 OP_ORDER = ("xformOp:translate", "xformOp:orient", "xformOp:scale")
 """The ops of every instance, outermost first."""

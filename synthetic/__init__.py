@@ -3,7 +3,7 @@
 Main entry points: :func:`make_library_object`, :func:`make_room`, :func:`capture_object`,
 :func:`capture_room` and :func:`load_capture` (which also reads real sdfstudio / ONR folders).
 
-Exports are resolved lazily, so that importing a light module (``synthetic.library``) does not
+Exports are resolved lazily, so that importing a light module (``regnf.synthetic.library``) does not
 import pyrender / OpenGL; the renderer is loaded only when something needs it.
 """
 
@@ -13,29 +13,29 @@ import importlib
 from typing import TYPE_CHECKING, Any
 
 _EXPORTS: dict[str, str] = {
-    "ObjectCaptureConfig": "synthetic.capture",
-    "RoomCaptureConfig": "synthetic.capture",
-    "capture_object": "synthetic.capture",
-    "capture_room": "synthetic.capture",
-    "Instance": "synthetic.instance",
-    "LIBRARY_NAMES": "synthetic.library",
-    "LibraryObject": "synthetic.library",
-    "library_object_names": "synthetic.library",
-    "make_library_object": "synthetic.library",
-    "RGBDRenderer": "synthetic.render",
-    "RenderOutput": "synthetic.render",
-    "ROOM_NAMES": "synthetic.rooms",
-    "Room": "synthetic.rooms",
-    "make_room": "synthetic.rooms",
-    "Capture": "synthetic.sdfstudio_format",
-    "CaptureError": "synthetic.sdfstudio_format",
-    "CaptureFrame": "synthetic.sdfstudio_format",
-    "load_capture": "synthetic.sdfstudio_format",
-    "write_capture": "synthetic.sdfstudio_format",
-    "ShadingConfig": "synthetic.shading",
-    "shade_face_colors": "synthetic.shading",
-    "shaded_copy": "synthetic.shading",
-    "look_at": "synthetic.trajectories",
+    "ObjectCaptureConfig": "regnf.synthetic.capture",
+    "RoomCaptureConfig": "regnf.synthetic.capture",
+    "capture_object": "regnf.synthetic.capture",
+    "capture_room": "regnf.synthetic.capture",
+    "Instance": "regnf.synthetic.instance",
+    "LIBRARY_NAMES": "regnf.synthetic.library",
+    "LibraryObject": "regnf.synthetic.library",
+    "library_object_names": "regnf.synthetic.library",
+    "make_library_object": "regnf.synthetic.library",
+    "RGBDRenderer": "regnf.synthetic.render",
+    "RenderOutput": "regnf.synthetic.render",
+    "ROOM_NAMES": "regnf.synthetic.rooms",
+    "Room": "regnf.synthetic.rooms",
+    "make_room": "regnf.synthetic.rooms",
+    "Capture": "regnf.synthetic.sdfstudio_format",
+    "CaptureError": "regnf.synthetic.sdfstudio_format",
+    "CaptureFrame": "regnf.synthetic.sdfstudio_format",
+    "load_capture": "regnf.synthetic.sdfstudio_format",
+    "write_capture": "regnf.synthetic.sdfstudio_format",
+    "ShadingConfig": "regnf.synthetic.shading",
+    "shade_face_colors": "regnf.synthetic.shading",
+    "shaded_copy": "regnf.synthetic.shading",
+    "look_at": "regnf.synthetic.trajectories",
 }
 
 __all__ = [
@@ -78,27 +78,27 @@ def __dir__() -> list[str]:
 
 
 if TYPE_CHECKING:  # static analysers see the real names
-    from synthetic.capture import (
+    from regnf.synthetic.capture import (
         ObjectCaptureConfig,
         RoomCaptureConfig,
         capture_object,
         capture_room,
     )
-    from synthetic.instance import Instance
-    from synthetic.library import (
+    from regnf.synthetic.instance import Instance
+    from regnf.synthetic.library import (
         LIBRARY_NAMES,
         LibraryObject,
         library_object_names,
         make_library_object,
     )
-    from synthetic.render import RenderOutput, RGBDRenderer
-    from synthetic.rooms import ROOM_NAMES, Room, make_room
-    from synthetic.sdfstudio_format import (
+    from regnf.synthetic.render import RenderOutput, RGBDRenderer
+    from regnf.synthetic.rooms import ROOM_NAMES, Room, make_room
+    from regnf.synthetic.sdfstudio_format import (
         Capture,
         CaptureError,
         CaptureFrame,
         load_capture,
         write_capture,
     )
-    from synthetic.shading import ShadingConfig, shade_face_colors, shaded_copy
-    from synthetic.trajectories import look_at
+    from regnf.synthetic.shading import ShadingConfig, shade_face_colors, shaded_copy
+    from regnf.synthetic.trajectories import look_at

@@ -1,6 +1,6 @@
 """Render and write the ONR-like captures: library objects in a void, and rooms.
 
-Each capture is an sdfstudio-style folder (see :mod:`synthetic.sdfstudio_format`) plus
+Each capture is an sdfstudio-style folder (see :mod:`regnf.synthetic.sdfstudio_format`) plus
 ``gt_mesh.ply`` (metres) and, for rooms, ``meshes/<instance id>.ply`` (room metres).
 """
 
@@ -14,14 +14,14 @@ import numpy as np
 import trimesh
 from tqdm import tqdm
 
-from synthetic.atomic_io import atomic_path
-from synthetic.instance import Instance
-from synthetic.library import make_library_object
-from synthetic.render import VOID_GREY, RGBDRenderer
-from synthetic.rooms import make_room
-from synthetic.sdfstudio_format import Capture, load_capture, normalisation, write_capture
-from synthetic.shading import shaded_copy
-from synthetic.trajectories import (
+from regnf.core.atomic_io import atomic_path
+from regnf.synthetic.instance import Instance
+from regnf.synthetic.library import make_library_object
+from regnf.synthetic.render import VOID_GREY, RGBDRenderer
+from regnf.synthetic.rooms import make_room
+from regnf.synthetic.sdfstudio_format import Capture, load_capture, normalisation, write_capture
+from regnf.synthetic.shading import shaded_copy
+from regnf.synthetic.trajectories import (
     object_capture_poses,
     room_full_coverage_poses,
     room_low_coverage_poses,

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 
-from synthetic.instance import yaw_pose
-from synthetic.placement import place_circles
-from synthetic.primitives import Part, box, canonicalise, cylinder, union_parts
+from regnf.synthetic.instance import yaw_pose
+from regnf.synthetic.placement import place_circles
+from regnf.synthetic.primitives import Part, box, canonicalise, cylinder, union_parts
 
 CLUTTER_COLORS: tuple[tuple[float, float, float], ...] = (
     (0.78, 0.20, 0.15),

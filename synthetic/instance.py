@@ -52,7 +52,7 @@ class Instance:
         """
         if self.mesh_path is not None and Path(self.mesh_path).is_file():
             return trimesh.load(self.mesh_path, force="mesh", process=False)
-        from synthetic.library import LIBRARY_NAMES, make_library_object
+        from regnf.synthetic.library import LIBRARY_NAMES, make_library_object
 
         if self.library not in LIBRARY_NAMES:
             raise FileNotFoundError(

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import trimesh
 
-from synthetic.primitives import (
+from regnf.synthetic.primitives import (
     Part,
     box,
     canonicalise,

@@ -2,7 +2,7 @@
 
 Two passes per frame:
 - colour: ``RenderFlags.FLAT`` (the shading is baked into face colours, see
-  :mod:`synthetic.shading`), antialiased by pyrender's 4x MSAA at silhouettes;
+  :mod:`regnf.synthetic.shading`), antialiased by pyrender's 4x MSAA at silhouettes;
 - segmentation: ``RenderFlags.SEG`` renders with multisampling disabled, so its depth and ids
   are exact at pixel centres. Depth is read from THIS pass: the MSAA depth resolve of the colour
   pass returns one sub-sample, not the pixel centre.

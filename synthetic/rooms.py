@@ -11,11 +11,11 @@ from dataclasses import dataclass, field
 import numpy as np
 import trimesh
 
-from synthetic.clutter import make_table_clutter
-from synthetic.instance import Instance, box_corners, yaw_pose
-from synthetic.library import make_library_object
-from synthetic.placement import place_circles
-from synthetic.primitives import box
+from regnf.synthetic.clutter import make_table_clutter
+from regnf.synthetic.instance import Instance, box_corners, yaw_pose
+from regnf.synthetic.library import make_library_object
+from regnf.synthetic.placement import place_circles
+from regnf.synthetic.primitives import box
 
 ROOM_NAMES: tuple[str, ...] = ("ac-room", "atbl-room", "mix-room")
 """Names of the rooms."""

@@ -22,8 +22,8 @@ whose one-line message names the file and the frame.
 
 The pose rules live here, at the bottom of the package graph (``synthetic`` ->
 ``neural_fields`` -> ... -> ``compositor``), so that training and rendering share them: the
-compositor's :class:`~compositor.camera.Camera` and
-:func:`neural_fields.similarity.decompose_similarity` call the same functions.
+compositor's :class:`~regnf.compositor.camera.Camera` and
+:func:`regnf.neural_fields.similarity.decompose_similarity` call the same functions.
 """
 
 from __future__ import annotations
@@ -41,8 +41,8 @@ import imageio.v3 as iio
 import numpy as np
 import trimesh
 
-from synthetic.atomic_io import atomic_path, write_json
-from synthetic.instance import Instance
+from regnf.core.atomic_io import atomic_path, write_json
+from regnf.synthetic.instance import Instance
 
 META_NAME = "meta_data.json"
 """File name of the capture's metadata."""
@@ -124,7 +124,7 @@ def check_rigid_pose(M: np.ndarray, rtol: float = POSE_RTOL) -> None:
     """Refuse a camera-to-world ``M`` (4, 4) that is not a rotation plus a translation.
 
     The one rule for camera poses: training (:func:`load_capture`) and rendering
-    (:class:`compositor.camera.Camera`) both call it, so a pose one accepts the other does.
+    (:class:`regnf.compositor.camera.Camera`) both call it, so a pose one accepts the other does.
 
     Raises
     ------
@@ -142,7 +142,7 @@ def check_intrinsics(K: np.ndarray) -> None:
 
     ``K = [[fx, skew, cx], [0, fy, cy], [0, 0, 1]]`` with finite entries and ``fx, fy > 0``
     (which also makes it invertible). Shared by :func:`load_capture` and
-    :class:`compositor.camera.Camera`.
+    :class:`regnf.compositor.camera.Camera`.
 
     Raises
     ------

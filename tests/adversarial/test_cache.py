@@ -12,13 +12,13 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 
-from neural_fields.checkpoint import verify_checkpoint
-from neural_fields.neural_sdf import NeuralSDFConfig
-from neural_fields.raycast import render_field
-from neural_fields.training import RGBDTrainConfig
 from regnf import cache as cache_module
 from regnf.cache import Cache
-from synthetic.sdfstudio_format import load_capture, write_capture
+from regnf.neural_fields.checkpoint import verify_checkpoint
+from regnf.neural_fields.neural_sdf import NeuralSDFConfig
+from regnf.neural_fields.raycast import render_field
+from regnf.neural_fields.training import RGBDTrainConfig
+from regnf.synthetic.sdfstudio_format import load_capture, write_capture
 from tests.neural_fields import capture_helpers as C
 
 TINY = NeuralSDFConfig(levels=2, finest_resolution=16, hidden_dim=16, base_resolution=8,

@@ -14,14 +14,19 @@ import numpy as np
 import pytest
 import trimesh
 
-from compositor.camera import Camera
-from compositor.cameras_io import cameras_from_capture
-from neural_fields.neural_sdf import NeuralSDFConfig
-from neural_fields.training import RGBDTrainConfig, train_rgbd
-from synthetic import sdfstudio_format
-from synthetic.instance import Instance, box_corners, yaw_pose
-from synthetic.sdfstudio_format import CaptureError, load_capture, normalisation, write_capture
-from synthetic.trajectories import look_at
+from regnf.compositor.camera import Camera
+from regnf.compositor.cameras_io import cameras_from_capture
+from regnf.neural_fields.neural_sdf import NeuralSDFConfig
+from regnf.neural_fields.training import RGBDTrainConfig, train_rgbd
+from regnf.synthetic import sdfstudio_format
+from regnf.synthetic.instance import Instance, box_corners, yaw_pose
+from regnf.synthetic.sdfstudio_format import (
+    CaptureError,
+    load_capture,
+    normalisation,
+    write_capture,
+)
+from regnf.synthetic.trajectories import look_at
 
 W, H, N = 16, 12, 3
 K = np.array([[14.0, 0.0, 8.0], [0.0, 15.0, 6.0], [0.0, 0.0, 1.0]])

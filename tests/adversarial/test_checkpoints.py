@@ -14,7 +14,7 @@ import torch
 from safetensors import safe_open
 from safetensors.torch import load_file, save_file
 
-from neural_fields.checkpoint import (
+from regnf.neural_fields.checkpoint import (
     DIGEST_KEY,
     FORMAT_VERSION,
     HEADER_KEY,
@@ -28,8 +28,8 @@ from neural_fields.checkpoint import (
     save_field,
     verify_checkpoint,
 )
-from neural_fields.field import FieldInfo
-from neural_fields.neural_sdf import NeuralSDF, NeuralSDFConfig
+from regnf.neural_fields.field import FieldInfo
+from regnf.neural_fields.neural_sdf import NeuralSDF, NeuralSDFConfig
 
 TINY = NeuralSDFConfig(levels=2, finest_resolution=16, hidden_dim=16, base_resolution=8,
                        geo_feature_dim=3, color_hidden_dim=8)

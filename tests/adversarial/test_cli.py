@@ -19,13 +19,13 @@ import numpy as np
 import pytest
 import torch
 
-import registration.register as register_module
-from compositor.composite_field import MAX_COMPONENTS, CompositeField
-from compositor.placement import PlacedObject
-from compositor.render_folder import MAX_PIXELS
-from neural_fields.analytic import Sphere
+import regnf.registration.register as register_module
 from regnf import commands_fields, commands_registration
 from regnf.cli import EXIT_BAD_INPUT, EXIT_INTERNAL, main
+from regnf.compositor.composite_field import MAX_COMPONENTS, CompositeField
+from regnf.compositor.placement import PlacedObject
+from regnf.compositor.render_folder import MAX_PIXELS
+from regnf.neural_fields.analytic import Sphere
 from tests.adversarial.disk import changes, snapshot
 from tests.regnf.cli_helpers import assert_fails, run_cli
 from tests.scene_graph.helpers import checkpoint
@@ -224,7 +224,7 @@ def test_a_stage_another_process_is_writing_gives_status_busy(tmp_path, monkeypa
     import sys
 
     from regnf.cli import EXIT_BUSY
-    from scene_graph import locking
+    from regnf.scene_graph import locking
     from tests.scene_graph.helpers import make_stage, registration_json, similarity
 
     stage = make_stage(tmp_path / "stage", ("c", "t"))
@@ -233,7 +233,7 @@ def test_a_stage_another_process_is_writing_gives_status_busy(tmp_path, monkeypa
                                                    similarity(0.3, (1.0, 0.0, 0.0), 1.0))))
     before = snapshot(stage.parent)
     holder = subprocess.Popen(
-        [sys.executable, "-c", ("import sys, time\nfrom synthetic.file_lock import folder_lock\n"
+        [sys.executable, "-c", ("import sys, time\nfrom regnf.core.file_lock import folder_lock\n"
                                 f"with folder_lock({str(stage.parent)!r}):\n"
                                 "    print('held', flush=True)\n    time.sleep(60)")],
         stdout=subprocess.PIPE, text=True, cwd=Path(__file__).parents[2])

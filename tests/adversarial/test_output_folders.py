@@ -23,17 +23,17 @@ from pathlib import Path
 
 import pytest
 
-from compositor.cameras_io import OrbitConfig
-from compositor.render_folder import RenderConfig, render_views
-from compositor.stage_config import StageCompositeConfig
 from regnf.cli import EXIT_BAD_INPUT, main
+from regnf.compositor.cameras_io import OrbitConfig
+from regnf.compositor.render_folder import RenderConfig, render_views
+from regnf.compositor.stage_config import StageCompositeConfig
+from regnf.core.atomic_io import TEMP_PREFIX
+from regnf.core.file_lock import LOCK_NAME
+from regnf.core.output_dir import MARKER_NAME, OutputFolderError, claim_output_dir
 from regnf.demo import REMADE, DemoConfig, demo_folder
 from regnf.generate import GenerateConfig, generate, load_rows, prepare_output
 from regnf.manifest import MANIFEST_NAME, read_manifest
-from scene_graph import add_instance
-from synthetic.atomic_io import TEMP_PREFIX
-from synthetic.file_lock import LOCK_NAME
-from synthetic.output_dir import MARKER_NAME, OutputFolderError, claim_output_dir
+from regnf.scene_graph import add_instance
 from tests.adversarial.disk import changes, snapshot
 from tests.compositor import golden_scenes as G
 from tests.regnf.test_generate import CLI_VIEWS, ORBIT
@@ -56,7 +56,7 @@ def stage(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 def one_variant(**changes_: object) -> GenerateConfig:
     """One variant of three 24 x 18 views on one worker: the cheapest real run."""
-    from regnf.executors import ExecutorConfig
+    from regnf.core.executors import ExecutorConfig
 
     cfg = GenerateConfig(variants=1, cameras=ORBIT, executor=ExecutorConfig(workers=1))
     return dataclasses.replace(cfg, **changes_)
@@ -126,8 +126,8 @@ RUNNER = textwrap.dedent('''
     import time
     from pathlib import Path
 
-    from compositor.cameras_io import OrbitConfig
-    from regnf.executors import ExecutorConfig
+    from regnf.compositor.cameras_io import OrbitConfig
+    from regnf.core.executors import ExecutorConfig
     from regnf.generate import GenerateConfig, generate
 
     if __name__ == "__main__":
@@ -225,9 +225,9 @@ KILLED_RENDER = textwrap.dedent('''
 
     import numpy as np
 
-    import compositor.render_folder as RV
-    from compositor.cameras_io import OrbitConfig, orbit_around_bounds
-    from compositor.stage_config import StageCompositeConfig
+    import regnf.compositor.render_folder as RV
+    from regnf.compositor.cameras_io import OrbitConfig, orbit_around_bounds
+    from regnf.compositor.stage_config import StageCompositeConfig
     from tests.compositor import golden_scenes as G
 
     if __name__ == "__main__":
@@ -256,7 +256,7 @@ def render_cameras():
     """The cameras the killed render and the next one use."""
     import numpy as np
 
-    from compositor.cameras_io import orbit_around_bounds
+    from regnf.compositor.cameras_io import orbit_around_bounds
 
     return orbit_around_bounds(np.array(RENDER_BOUNDS), OrbitConfig(**RENDER_ORBIT))
 

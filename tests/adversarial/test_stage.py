@@ -22,9 +22,10 @@ import numpy as np
 import pytest
 from pxr import Sdf
 
-from compositor.from_stage import composite_from_stage, replacement_base
-from compositor.stage_config import StageCompositeConfig
-from scene_graph import (
+from regnf.compositor.from_stage import composite_from_stage, replacement_base
+from regnf.compositor.stage_config import StageCompositeConfig
+from regnf.core.file_lock import LockBusy
+from regnf.scene_graph import (
     StageError,
     add_instance,
     add_instance_from_registration,
@@ -35,7 +36,6 @@ from scene_graph import (
     read_stage,
     stage_lock,
 )
-from synthetic.file_lock import LockBusy
 from tests.adversarial.disk import changes, snapshot
 from tests.scene_graph.helpers import make_stage, registration_json, similarity
 
@@ -298,7 +298,7 @@ def test_files_get_the_umask_mode(tmp_path: Path, umask: int) -> None:
 # -- (e) check_writable ----------------------------------------------------------------------------
 CHECK = """
 import sys
-from scene_graph import StageError, check_writable
+from regnf.scene_graph import StageError, check_writable
 try:
     check_writable(sys.argv[1])
 except StageError as exc:
@@ -364,8 +364,8 @@ def test_check_writable_refuses_a_read_only_folder(monkeypatch: pytest.MonkeyPat
 
 def test_a_command_holding_its_output_folder_can_write_and_export_a_stage_in_it(tmp_path: Path) -> None:
     # As regnf demo does: its folder's lock is held while the stage and the package are written there.
-    from scene_graph import export_stage
-    from synthetic.output_dir import owned_output_dir
+    from regnf.core.output_dir import owned_output_dir
+    from regnf.scene_graph import export_stage
 
     out = tmp_path / "demo"
     with owned_output_dir(out, "test-command"):

@@ -8,9 +8,9 @@ import numpy as np
 import torch
 import trimesh
 
-from benchmarks.observed_difference import observed_difference
-from neural_fields.analytic import Sphere
-from neural_fields.visibility import VisibilityGrid
+from regnf.benchmarks.observed_difference import observed_difference
+from regnf.neural_fields.analytic import Sphere
+from regnf.neural_fields.visibility import VisibilityGrid
 
 BOUNDS = np.array([[-2.0, -2.0, -2.0], [2.0, 2.0, 2.0]])
 

@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-from benchmarks.registration import wrong_pairs
-from benchmarks.registration_report import coverage_table, within_bars, wrong_pair_rates
-from synthetic.library import LIBRARY_NAMES
+from regnf.benchmarks.registration import wrong_pairs
+from regnf.benchmarks.registration_report import coverage_table, within_bars, wrong_pair_rates
+from regnf.synthetic.library import LIBRARY_NAMES
 
 
 def test_wrong_pairs_cross_classes_and_pair_every_chair_with_every_other_chairs_box() -> None:

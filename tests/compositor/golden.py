@@ -25,7 +25,7 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from compositor import (
+from regnf.compositor import (
     Camera,
     SphereTracerConfig,
     VolumeRendererConfig,
@@ -38,9 +38,9 @@ from compositor import (
     write_instance_png,
     write_rgb_png,
 )
-from compositor.image_io import depth_to_mm
-from compositor.stage_config import StageCompositeConfig
-from neural_fields.field import Field
+from regnf.compositor.image_io import depth_to_mm
+from regnf.compositor.stage_config import StageCompositeConfig
+from regnf.neural_fields.field import Field
 
 from . import golden_scenes as G
 
@@ -113,7 +113,7 @@ def paths(name: str, folder: Path = G.GOLDEN_DIR) -> dict[str, Path]:
 
 
 def write_images(images: Images, name: str, kinds: tuple[str, ...] = KINDS, folder: Path = G.GOLDEN_DIR) -> None:
-    """Write the ``kinds`` of ``images`` (atomically, see compositor.image_io)."""
+    """Write the ``kinds`` of ``images`` (atomically, see regnf.compositor.image_io)."""
     p = paths(name, folder)
     if "rgb" in kinds:
         write_rgb_png(p["rgb"], images.rgb)

@@ -25,13 +25,13 @@ import torch
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from compositor import Camera, CompositeField, look_at
-from compositor.stage_config import StageCompositeConfig
-from compositor.substitution import SubstitutedInstance, build_composite
-from neural_fields.analytic import Box, Cylinder, Transformed, Union
-from neural_fields.field import Field, FieldInfo
-from neural_fields.neural_sdf import NeuralSDFConfig
-from neural_fields.similarity import similarity_matrix
+from regnf.compositor import Camera, CompositeField, look_at
+from regnf.compositor.stage_config import StageCompositeConfig
+from regnf.compositor.substitution import SubstitutedInstance, build_composite
+from regnf.neural_fields.analytic import Box, Cylinder, Transformed, Union
+from regnf.neural_fields.field import Field, FieldInfo
+from regnf.neural_fields.neural_sdf import NeuralSDFConfig
+from regnf.neural_fields.similarity import similarity_matrix
 
 GOLDEN_DIR = Path(__file__).parent / "golden"
 """Where the golden PNGs (and the tiny neural checkpoint) live."""
@@ -196,7 +196,7 @@ def pouf_mesh() -> trimesh.Trimesh:
 def distil_pouf(steps: int = 300) -> Field:
     """Distil the pouf: about 10 s, on one thread so that it is deterministic for its seed
     (bitwise-identical weights run after run; trained fields are never committed)."""
-    from neural_fields.distill import DistillConfig, distill_mesh
+    from regnf.neural_fields.distill import DistillConfig, distill_mesh
 
     threads = torch.get_num_threads()
     torch.set_num_threads(1)

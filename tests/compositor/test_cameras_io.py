@@ -8,16 +8,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from compositor import Camera, render
-from compositor.cameras_io import (
+from regnf.compositor import Camera, render
+from regnf.compositor.cameras_io import (
     OrbitConfig,
     cameras_from_capture,
     field_bounds_metres,
     orbit_around_bounds,
     resized,
 )
-from neural_fields.analytic import Box, Union
-from synthetic.sdfstudio_format import Capture, CaptureError
+from regnf.neural_fields.analytic import Box, Union
+from regnf.synthetic.sdfstudio_format import Capture, CaptureError
 from tests.neural_fields import capture_helpers as C
 
 from .golden_scenes import sim

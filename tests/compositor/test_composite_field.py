@@ -7,7 +7,7 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from compositor import (
+from regnf.compositor import (
     CompositeConfig,
     CompositeField,
     OrientedBoxRegion,
@@ -15,9 +15,9 @@ from compositor import (
     ShellRegion,
     sample_field,
 )
-from neural_fields.analytic import Box, Sphere, Union
-from neural_fields.field import Field
-from neural_fields.similarity import similarity_matrix
+from regnf.neural_fields.analytic import Box, Sphere, Union
+from regnf.neural_fields.field import Field
+from regnf.neural_fields.similarity import similarity_matrix
 
 from . import helpers as H
 
@@ -239,8 +239,8 @@ def test_invalid_inputs_are_refused() -> None:
 
 
 def test_existing_meshing_and_rendering_accept_a_composite() -> None:
-    from neural_fields.meshing import extract_mesh
-    from neural_fields.raycast import render_field
+    from regnf.neural_fields.meshing import extract_mesh
+    from regnf.neural_fields.raycast import render_field
 
     comp = make_composite()
     box = np.stack([H.PLACED_CENTER - 0.3, H.PLACED_CENTER + 0.3])

@@ -9,14 +9,14 @@ import numpy as np
 import pytest
 import torch
 
-from compositor import Camera, OrientedBoxRegion, ShellRegion, look_at, render
-from compositor.from_stage import composite_from_stage, original_selections
-from compositor.stage_config import StageCompositeConfig
-from compositor.substitution import base_height, check_z_up, library_to_scene
-from neural_fields.checkpoint import save_field
-from neural_fields.field import FieldInfo
-from neural_fields.neural_sdf import NeuralSDF
-from scene_graph import (
+from regnf.compositor import Camera, OrientedBoxRegion, ShellRegion, look_at, render
+from regnf.compositor.from_stage import composite_from_stage, original_selections
+from regnf.compositor.stage_config import StageCompositeConfig
+from regnf.compositor.substitution import base_height, check_z_up, library_to_scene
+from regnf.neural_fields.checkpoint import save_field
+from regnf.neural_fields.field import FieldInfo
+from regnf.neural_fields.neural_sdf import NeuralSDF
+from regnf.scene_graph import (
     StageError,
     add_instance,
     add_instance_from_registration,

@@ -17,9 +17,9 @@ from collections.abc import Iterator
 import pytest
 import torch
 
-import compositor.sphere_tracer as tracer
-from compositor import CompositeField
-from compositor.shading import Shaded
+import regnf.compositor.sphere_tracer as tracer
+from regnf.compositor import CompositeField
+from regnf.compositor.shading import Shaded
 
 from . import golden as GD
 

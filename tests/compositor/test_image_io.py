@@ -11,8 +11,8 @@ import pytest
 import torch
 from PIL import Image
 
-import compositor.image_io as io
-from compositor import (
+import regnf.compositor.image_io as io
+from regnf.compositor import (
     read_depth_png,
     read_instance_png,
     read_rgb_png,

@@ -9,14 +9,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import compositor.render_folder as RV
-from compositor import Camera, look_at, read_depth_png, read_instance_png, read_rgb_png
-from compositor.cameras_io import OrbitConfig, orbit_around_bounds
-from compositor.contact_sheets import contact_sheet
-from compositor.nerfstudio import opencv_to_opengl, transforms_json
-from compositor.render_folder import RenderConfig, ViewFiles, render_views
-from compositor.stage_config import StageCompositeConfig
-from synthetic.file_lock import LOCK_NAME
+import regnf.compositor.render_folder as RV
+from regnf.compositor import Camera, look_at, read_depth_png, read_instance_png, read_rgb_png
+from regnf.compositor.cameras_io import OrbitConfig, orbit_around_bounds
+from regnf.compositor.contact_sheets import contact_sheet
+from regnf.compositor.nerfstudio import opencv_to_opengl, transforms_json
+from regnf.compositor.render_folder import RenderConfig, ViewFiles, render_views
+from regnf.compositor.stage_config import StageCompositeConfig
+from regnf.core.file_lock import LOCK_NAME
 
 from . import golden_scenes as G
 
@@ -93,7 +93,7 @@ def test_overwriting_needs_consent_and_drops_stale_views(tmp_path: Path) -> None
 
 
 def test_volume_renderer_writes_the_same_files(tmp_path: Path) -> None:
-    from compositor import VolumeRendererConfig
+    from regnf.compositor import VolumeRendererConfig
 
     cfg = RenderConfig(renderer="volume", volume=VolumeRendererConfig(n_samples=64), progress=False)
     report = render_views(G.composite("own", StageCompositeConfig()), cameras(1), tmp_path, cfg)

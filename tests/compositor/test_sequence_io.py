@@ -9,14 +9,14 @@ import numpy as np
 import pytest
 from PIL import Image, ImageSequence
 
-import compositor.render_folder as RV
-import compositor.sequence_io as SIO
-from compositor import Camera, read_rgb_png
-from compositor.cameras_io import OrbitConfig, orbit_around_bounds
-from compositor.render_folder import RenderConfig, render_views
-from compositor.sequence_io import SequenceBackendError, write_gif, write_mp4
-from compositor.stage_config import StageCompositeConfig
-from synthetic.file_lock import LOCK_NAME
+import regnf.compositor.render_folder as RV
+import regnf.compositor.sequence_io as SIO
+from regnf.compositor import Camera, read_rgb_png
+from regnf.compositor.cameras_io import OrbitConfig, orbit_around_bounds
+from regnf.compositor.render_folder import RenderConfig, render_views
+from regnf.compositor.sequence_io import SequenceBackendError, write_gif, write_mp4
+from regnf.compositor.stage_config import StageCompositeConfig
+from regnf.core.file_lock import LOCK_NAME
 
 from . import golden_scenes as G
 

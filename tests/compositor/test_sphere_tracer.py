@@ -9,7 +9,7 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from compositor import (
+from regnf.compositor import (
     Camera,
     DistanceGrid,
     SphereTracerConfig,
@@ -18,9 +18,9 @@ from compositor import (
     render,
     trace,
 )
-from neural_fields.analytic import Box, Sphere, Union
-from neural_fields.field import Field
-from neural_fields.similarity import similarity_matrix
+from regnf.neural_fields.analytic import Box, Sphere, Union
+from regnf.neural_fields.field import Field
+from regnf.neural_fields.similarity import similarity_matrix
 
 from . import helpers as H
 from .test_composite_field import make_composite

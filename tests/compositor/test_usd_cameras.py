@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 from pxr import Gf, Usd, UsdGeom
 
-from compositor import Camera, look_at
-from compositor.usd_cameras import camera_to_usd, cameras_from_usd, write_cameras_usd
-from scene_graph import StageError
+from regnf.compositor import Camera, look_at
+from regnf.compositor.usd_cameras import camera_to_usd, cameras_from_usd, write_cameras_usd
+from regnf.scene_graph import StageError
 
 
 def new_stage(path: Path, meters_per_unit: float = 1.0, up: str = "Z") -> Usd.Stage:

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from compositor import Camera, VolumeRendererConfig, integrate, look_at, render, render_volume
+from regnf.compositor import Camera, VolumeRendererConfig, integrate, look_at, render, render_volume
 
 from . import helpers as H
 from .test_composite_field import make_composite

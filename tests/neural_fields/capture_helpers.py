@@ -3,9 +3,9 @@
 The object is the union of an axis-aligned box (flat faces, sharp edges) and a sphere
 sitting on it, both with constant colours. It fills the normalised frame like a library
 object does (longest extent ~1.5 of the [-1, 1] box). Forty 64 x 64 views on a sphere
-around it are sphere-traced with :func:`neural_fields.raycast.render_field` (OpenCV
+around it are sphere-traced with :func:`regnf.neural_fields.raycast.render_field` (OpenCV
 cameras, z-depth in the normalised frame) and written with
-:func:`synthetic.sdfstudio_format.write_capture` in METRES through a known similarity
+:func:`regnf.synthetic.sdfstudio_format.write_capture` in METRES through a known similarity
 ``WORLDTOGT``, so loading the capture exercises the metres -> normalised conversion too.
 """
 
@@ -17,10 +17,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from neural_fields.analytic import Box, Sphere, Union
-from neural_fields.raycast import SphereTraceConfig, render_field
-from synthetic.sdfstudio_format import Capture, load_capture, write_capture
-from synthetic.trajectories import fibonacci_directions, look_at, viewing_distance
+from regnf.neural_fields.analytic import Box, Sphere, Union
+from regnf.neural_fields.raycast import SphereTraceConfig, render_field
+from regnf.synthetic.sdfstudio_format import Capture, load_capture, write_capture
+from regnf.synthetic.trajectories import fibonacci_directions, look_at, viewing_distance
 
 BOX_HALF = np.array([0.75, 0.55, 0.35])
 BOX_CENTER = np.array([0.0, 0.0, -0.25])

@@ -9,7 +9,7 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from neural_fields.analytic import (
+from regnf.neural_fields.analytic import (
     Box,
     Capsule,
     Cylinder,
@@ -19,8 +19,8 @@ from neural_fields.analytic import (
     Transformed,
     Union,
 )
-from neural_fields.field import Field
-from neural_fields.similarity import similarity_matrix
+from regnf.neural_fields.field import Field
+from regnf.neural_fields.similarity import similarity_matrix
 
 SQ2, SQ3 = math.sqrt(2.0), math.sqrt(3.0)
 

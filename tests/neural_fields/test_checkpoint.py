@@ -13,7 +13,8 @@ import pytest
 import torch
 from safetensors.torch import save_file
 
-from neural_fields.checkpoint import (
+from regnf.core import atomic_io
+from regnf.neural_fields.checkpoint import (
     DIGEST_KEY,
     HEADER_KEY,
     CheckpointError,
@@ -23,9 +24,8 @@ from neural_fields.checkpoint import (
     read_header,
     save_field,
 )
-from neural_fields.field import FieldInfo, Symmetry
-from neural_fields.neural_sdf import ARCHITECTURE, NeuralSDF, NeuralSDFConfig, parameter_count
-from synthetic import atomic_io
+from regnf.neural_fields.field import FieldInfo, Symmetry
+from regnf.neural_fields.neural_sdf import ARCHITECTURE, NeuralSDF, NeuralSDFConfig, parameter_count
 
 TINY = NeuralSDFConfig(
     levels=3,

@@ -7,17 +7,17 @@ import pytest
 import torch
 import trimesh
 
-from neural_fields.distill import (
+from regnf.neural_fields.distill import (
     DistillConfig,
     distill_mesh,
     distillation_targets,
     face_colors,
     normalising_transform,
 )
-from neural_fields.evaluation import world_to_field
-from neural_fields.field import FieldInfo
-from neural_fields.mesh_repair import MeshError
-from neural_fields.neural_sdf import NeuralSDF, NeuralSDFConfig
+from regnf.neural_fields.evaluation import world_to_field
+from regnf.neural_fields.field import FieldInfo
+from regnf.neural_fields.mesh_repair import MeshError
+from regnf.neural_fields.neural_sdf import NeuralSDF, NeuralSDFConfig
 
 TINY = NeuralSDFConfig(
     levels=4,

@@ -16,7 +16,7 @@ import pytest
 import torch
 import trimesh
 
-from benchmarks.defective_meshes import (
+from regnf.benchmarks.defective_meshes import (
     DEFECTS,
     HOLE_RADIUS,
     SHAPES,
@@ -24,12 +24,17 @@ from benchmarks.defective_meshes import (
     defective_mesh,
     unsignable_meshes,
 )
-from neural_fields.checkpoint import load_field
-from neural_fields.distill import DistillConfig, distillation_targets
-from neural_fields.mesh_repair import UP_AXES, MeshError, repair_mesh, up_rotation
-from neural_fields.mesh_sign import SignedMesh
-from neural_fields.neural_sdf import NeuralSDFConfig
-from neural_fields.winding import RayWinding, WindingConfig, exact_winding_numbers, winding_numbers
+from regnf.neural_fields.checkpoint import load_field
+from regnf.neural_fields.distill import DistillConfig, distillation_targets
+from regnf.neural_fields.mesh_repair import UP_AXES, MeshError, repair_mesh, up_rotation
+from regnf.neural_fields.mesh_sign import SignedMesh
+from regnf.neural_fields.neural_sdf import NeuralSDFConfig
+from regnf.neural_fields.winding import (
+    RayWinding,
+    WindingConfig,
+    exact_winding_numbers,
+    winding_numbers,
+)
 from tests.regnf.cli_helpers import assert_fails, run_cli
 
 MARGIN = 0.01

@@ -11,9 +11,9 @@ import torch
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from neural_fields.analytic import Box, Sphere
-from neural_fields.meshing import extract_mesh, grid_shape, save_mesh
-from neural_fields.similarity import similarity_matrix
+from regnf.neural_fields.analytic import Box, Sphere
+from regnf.neural_fields.meshing import extract_mesh, grid_shape, save_mesh
+from regnf.neural_fields.similarity import similarity_matrix
 
 R0, C0 = 0.6, np.array([0.1, -0.2, 0.05])
 COLOR = (0.2, 0.4, 0.6)

@@ -7,10 +7,10 @@ import math
 import pytest
 import torch
 
-from neural_fields.analytic import Box, Sphere
-from neural_fields.dense_grid import DenseGridEncoding, grid_shape, level_resolutions
-from neural_fields.hash_grid import HashGridEncoding
-from neural_fields.neural_sdf import NeuralSDF, NeuralSDFConfig, tetrahedral_gradient
+from regnf.neural_fields.analytic import Box, Sphere
+from regnf.neural_fields.dense_grid import DenseGridEncoding, grid_shape, level_resolutions
+from regnf.neural_fields.hash_grid import HashGridEncoding
+from regnf.neural_fields.neural_sdf import NeuralSDF, NeuralSDFConfig, tetrahedral_gradient
 
 SMALL = NeuralSDFConfig(
     levels=3,

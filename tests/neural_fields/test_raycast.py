@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 import torch
 
-from neural_fields.analytic import Box, Sphere
-from neural_fields.field import Field
-from neural_fields.raycast import (
+from regnf.neural_fields.analytic import Box, Sphere
+from regnf.neural_fields.field import Field
+from regnf.neural_fields.raycast import (
     SphereTraceConfig,
     TraceResult,
     pinhole_rays,

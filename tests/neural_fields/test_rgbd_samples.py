@@ -10,13 +10,13 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from neural_fields.rgbd_samples import (
+from regnf.neural_fields.rgbd_samples import (
     backproject_frame,
     build_samples,
     depth_normals,
     ray_box_interval,
 )
-from synthetic.sdfstudio_format import Capture
+from regnf.synthetic.sdfstudio_format import Capture
 
 from .capture_helpers import (
     BOX_CENTER,

@@ -7,7 +7,7 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from neural_fields.similarity import decompose_similarity, similarity_matrix
+from regnf.neural_fields.similarity import decompose_similarity, similarity_matrix
 
 
 @pytest.mark.parametrize("s", [1e-3, 0.25, 1.0, 4.0, 250.0])

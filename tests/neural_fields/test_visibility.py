@@ -1,6 +1,6 @@
 """Visibility grids against closed-form truth, their checkpoint storage and the cache upgrade.
 
-The scene is an axis-aligned box (the analytic :class:`~neural_fields.analytic.Box`) seen by
+The scene is an axis-aligned box (the analytic :class:`~regnf.neural_fields.analytic.Box`) seen by
 cameras placed by hand; depths are exact ray-box intersections computed here in float64
 (independent of the code under test), written in metres through a known similarity and
 loaded back, so the grid is checked in the capture's normalised frame, the field frame.
@@ -20,8 +20,10 @@ import torch
 from safetensors import safe_open
 from safetensors.torch import load_file, save_file
 
-from neural_fields.analytic import Box
-from neural_fields.checkpoint import (
+from regnf import cache as cache_module
+from regnf.cache import Cache, reusable
+from regnf.neural_fields.analytic import Box
+from regnf.neural_fields.checkpoint import (
     DIGEST_KEY,
     HEADER_KEY,
     VISIBILITY_KEY,
@@ -35,13 +37,11 @@ from neural_fields.checkpoint import (
     save_field,
     verify_checkpoint,
 )
-from neural_fields.field import FieldInfo
-from neural_fields.neural_sdf import NeuralSDF, NeuralSDFConfig
-from neural_fields.training import RGBDTrainConfig
-from neural_fields.visibility import VisibilityGrid, build_visibility
-from regnf import cache as cache_module
-from regnf.cache import Cache, reusable
-from synthetic.sdfstudio_format import Capture, CaptureError, load_capture, write_capture
+from regnf.neural_fields.field import FieldInfo
+from regnf.neural_fields.neural_sdf import NeuralSDF, NeuralSDFConfig
+from regnf.neural_fields.training import RGBDTrainConfig
+from regnf.neural_fields.visibility import VisibilityGrid, build_visibility
+from regnf.synthetic.sdfstudio_format import Capture, CaptureError, load_capture, write_capture
 
 from .capture_helpers import WORLD_OFFSET, WORLD_SCALE, WORLDTOGT
 

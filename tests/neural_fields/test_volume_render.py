@@ -6,9 +6,9 @@ import dataclasses
 
 import torch
 
-from neural_fields.neural_sdf import NeuralSDF, NeuralSDFConfig
-from neural_fields.training import RGBDTrainConfig, train_rgbd
-from neural_fields.volume_render import render_rays_neus
+from regnf.neural_fields.neural_sdf import NeuralSDF, NeuralSDFConfig
+from regnf.neural_fields.training import RGBDTrainConfig, train_rgbd
+from regnf.neural_fields.volume_render import render_rays_neus
 
 from .test_training import TINY, capture  # noqa: F401  (capture is a fixture)
 

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from registration.containment import containment
-from registration.proposal import ProposalBox
-from registration.transform import SimilarityTransform
+from regnf.registration.containment import containment
+from regnf.registration.proposal import ProposalBox
+from regnf.registration.transform import SimilarityTransform
 
 from .fixtures import rot
 

@@ -5,15 +5,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from registration.initialisation import (
+from regnf.registration.initialisation import (
     Hypothesis,
     InitConfig,
     fgr_baseline,
     initial_hypotheses,
 )
-from registration.metrics import geodesic_angle
-from registration.sampling import SamplingConfig, SurfaceSamples, sample_surface
-from registration.transform import SimilarityTransform
+from regnf.registration.metrics import geodesic_angle
+from regnf.registration.sampling import SamplingConfig, SurfaceSamples, sample_surface
+from regnf.registration.transform import SimilarityTransform
 
 from .fixtures import OBJECT_HI, OBJECT_LO, make_object, make_scene, object_box, placement
 
@@ -126,7 +126,7 @@ def _rot(axis: np.ndarray, angle: float) -> np.ndarray:
 
 
 def test_symmetric_angle_is_zero_on_the_group_and_the_tilt_off_it() -> None:
-    from registration.metrics import symmetric_angle
+    from regnf.registration.metrics import symmetric_angle
 
     axis = np.array([0.3, -0.2, 0.9])
     axis /= np.linalg.norm(axis)
@@ -144,7 +144,7 @@ def test_symmetric_angle_is_zero_on_the_group_and_the_tilt_off_it() -> None:
 
 
 def test_hypotheses_a_symmetry_maps_onto_each_other_are_merged() -> None:
-    from registration.initialisation import ObjectSymmetry, _select
+    from regnf.registration.initialisation import ObjectSymmetry, _select
 
     axis = np.array([0.0, 0.0, 1.0])
     R1 = _rot([1.0, 0.5, 0.2], 0.7)

@@ -6,7 +6,7 @@ import math
 
 import torch
 
-from registration.irls import (
+from regnf.registration.irls import (
     ALPHA_FRACTIONS,
     SCALE_DECADES,
     SCALE_STEPS,
@@ -16,7 +16,7 @@ from registration.irls import (
     fit_kernel,
     segment_normal_equations,
 )
-from registration.robust_loss import general_rho, robust_nll
+from regnf.registration.robust_loss import general_rho, robust_nll
 
 
 def test_weights_are_the_loss_slope_over_the_residual() -> None:

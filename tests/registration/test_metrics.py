@@ -7,9 +7,9 @@ import math
 import numpy as np
 import pytest
 
-from neural_fields.field import Symmetry
-from neural_fields.similarity import similarity_matrix
-from registration.metrics import (
+from regnf.neural_fields.field import Symmetry
+from regnf.neural_fields.similarity import similarity_matrix
+from regnf.registration.metrics import (
     RegistrationErrors,
     euler_rmse,
     geodesic_angle,
@@ -17,7 +17,7 @@ from registration.metrics import (
     symmetry_rotations,
     wrap_angle,
 )
-from registration.transform import SimilarityTransform
+from regnf.registration.transform import SimilarityTransform
 
 from .fixtures import rot
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from registration.proposal import ProposalBox
+from regnf.registration.proposal import ProposalBox
 
 from .fixtures import placement, rot
 

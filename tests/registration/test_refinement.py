@@ -9,16 +9,24 @@ import numpy as np
 import pytest
 import torch
 
-from neural_fields.analytic import Box, Capsule, Cylinder, RoundedBox, Sphere, Transformed, Union
-from neural_fields.field import Field
-from registration.refinement import (
+from regnf.neural_fields.analytic import (
+    Box,
+    Capsule,
+    Cylinder,
+    RoundedBox,
+    Sphere,
+    Transformed,
+    Union,
+)
+from regnf.neural_fields.field import Field
+from regnf.registration.refinement import (
     RefineConfig,
     _Nearest,
     reference_length,
     refine,
     refine_many,
 )
-from registration.transform import SimilarityTransform
+from regnf.registration.transform import SimilarityTransform
 
 # Converges well inside the paper's 200 iterations from the start used below; the test config
 # only lowers the early-stop threshold so that the 1e-3 accuracy, not the paper's stopping
@@ -363,7 +371,7 @@ def test_same_bits_on_any_thread_count_and_the_count_is_restored(problem: dict, 
 def test_lm_jacobian_matches_finite_differences(problem: dict) -> None:
     """The Jacobian written out in ``linearise`` against central differences of the residuals
     under the same local updates (rotation, log scale, translation, offset latent)."""
-    from registration.refinement import _Batch
+    from regnf.registration.refinement import _Batch
 
     T0 = perturbed(problem["T_gt"], 0.1, [0.02, -0.01, 0.0], 1.04)
     A, B = problem["A"].double(), problem["B"].double()

@@ -8,13 +8,18 @@ import numpy as np
 import pytest
 import torch
 
-from neural_fields.analytic import Box, Cylinder, Transformed, Union
-from neural_fields.similarity import similarity_matrix
-from registration.baselines import kabsch, register_fgr, register_init_only, register_nerf2nerf
-from registration.metrics import geodesic_angle
-from registration.proposal import ProposalBox
-from registration.register import RegistrationConfig, register
-from registration.transform import SimilarityTransform
+from regnf.neural_fields.analytic import Box, Cylinder, Transformed, Union
+from regnf.neural_fields.similarity import similarity_matrix
+from regnf.registration.baselines import (
+    kabsch,
+    register_fgr,
+    register_init_only,
+    register_nerf2nerf,
+)
+from regnf.registration.metrics import geodesic_angle
+from regnf.registration.proposal import ProposalBox
+from regnf.registration.register import RegistrationConfig, register
+from regnf.registration.transform import SimilarityTransform
 
 from .fixtures import OBJECT_HI, OBJECT_LO, make_object, make_scene, placement, rot
 
@@ -125,7 +130,7 @@ def test_kabsch_recovers_a_rigid_transform() -> None:
 
 
 def test_single_hypothesis_config_refines_one() -> None:
-    from registration.register import single_hypothesis
+    from regnf.registration.register import single_hypothesis
 
     cfg = single_hypothesis(RegistrationConfig())
     assert cfg.init.top_k == 1

@@ -10,7 +10,7 @@ import torch
 from scipy.integrate import quad
 from scipy.special import k1
 
-from registration.robust_loss import (
+from regnf.registration.robust_loss import (
     AdaptiveRobustLoss,
     general_rho,
     log_partition,

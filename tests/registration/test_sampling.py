@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 import torch
 
-from neural_fields.analytic import Transformed
-from neural_fields.field import Field
-from neural_fields.similarity import similarity_matrix
-from registration.proposal import ProposalBox
-from registration.sampling import (
+from regnf.neural_fields.analytic import Transformed
+from regnf.neural_fields.field import Field
+from regnf.neural_fields.similarity import similarity_matrix
+from regnf.registration.proposal import ProposalBox
+from regnf.registration.sampling import (
     SamplingConfig,
     SurfaceSamples,
     camera_rig,

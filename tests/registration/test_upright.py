@@ -7,13 +7,13 @@ import dataclasses
 import numpy as np
 import pytest
 
-from registration.initialisation import Hypothesis, InitConfig, initial_hypotheses
-from registration.metrics import geodesic_angle
-from registration.refinement import RefineConfig
-from registration.register import RegistrationConfig, sample_pair, sample_tensors
-from registration.screening import screen_hypotheses
-from registration.transform import SimilarityTransform
-from registration.upright import UprightPrior, axis_rotation, rotation_between, yaw_starts
+from regnf.registration.initialisation import Hypothesis, InitConfig, initial_hypotheses
+from regnf.registration.metrics import geodesic_angle
+from regnf.registration.refinement import RefineConfig
+from regnf.registration.register import RegistrationConfig, sample_pair, sample_tensors
+from regnf.registration.screening import screen_hypotheses
+from regnf.registration.transform import SimilarityTransform
+from regnf.registration.upright import UprightPrior, axis_rotation, rotation_between, yaw_starts
 
 from .fixtures import make_object, make_scene, object_box, placement
 from .test_visibility_weighting import SEEN_BELOW_X, seen_from_minus_x

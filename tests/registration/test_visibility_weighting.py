@@ -16,12 +16,12 @@ import pytest
 import torch
 import trimesh
 
-from neural_fields.analytic import Box, Sphere, Union
-from neural_fields.visibility import VisibilityGrid
-from registration.metrics import geodesic_angle
-from registration.refinement import RefineConfig, refine, without_steps
-from registration.register import RegistrationConfig, sample_pair, sample_tensors
-from registration.transform import SimilarityTransform
+from regnf.neural_fields.analytic import Box, Sphere, Union
+from regnf.neural_fields.visibility import VisibilityGrid
+from regnf.registration.metrics import geodesic_angle
+from regnf.registration.refinement import RefineConfig, refine, without_steps
+from regnf.registration.register import RegistrationConfig, sample_pair, sample_tensors
+from regnf.registration.transform import SimilarityTransform
 
 from .fixtures import make_object, make_scene, object_box, placement
 

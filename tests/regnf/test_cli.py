@@ -7,8 +7,8 @@ from pathlib import Path
 import pytest
 import trimesh
 
-from neural_fields.checkpoint import load_field
 from regnf.cli import main
+from regnf.neural_fields.checkpoint import load_field
 from tests.neural_fields.capture_helpers import write_analytic_capture
 from tests.regnf.cli_helpers import assert_fails
 
@@ -77,9 +77,9 @@ def test_train_from_a_capture_folder(tmp_path: Path) -> None:
 def test_cache_keys_ignore_new_options_left_at_their_default() -> None:
     import dataclasses
 
-    from neural_fields.presets import object_rgbd_preset
-    from neural_fields.training import RGBDTrainConfig
     from regnf.cache import config_key
+    from regnf.neural_fields.presets import object_rgbd_preset
+    from regnf.neural_fields.training import RGBDTrainConfig
 
     cfg = object_rgbd_preset()
     assert config_key(cfg) == config_key(dataclasses.replace(cfg))

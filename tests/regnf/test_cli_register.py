@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 
 import regnf.commands_registration as commands
-from neural_fields.analytic import Box, Cylinder, Union
-from registration.register import RegistrationConfig
 from regnf.cli import main
+from regnf.neural_fields.analytic import Box, Cylinder, Union
+from regnf.registration.register import RegistrationConfig
 
 from ..adversarial.disk import changes, snapshot
 from ..registration.fixtures import make_object, make_scene, placement

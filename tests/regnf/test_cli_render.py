@@ -11,12 +11,12 @@ import pytest
 from PIL import Image
 from pxr import Usd, UsdGeom
 
-from compositor import Camera, read_depth_png, read_instance_png, read_rgb_png
-from compositor.replace import pick_replacements
-from compositor.usd_cameras import camera_to_usd, write_cameras_usd
 from regnf.cli import main
-from scene_graph import add_instance, export_stage, read_stage
-from synthetic.file_lock import LOCK_NAME
+from regnf.compositor import Camera, read_depth_png, read_instance_png, read_rgb_png
+from regnf.compositor.replace import pick_replacements
+from regnf.compositor.usd_cameras import camera_to_usd, write_cameras_usd
+from regnf.core.file_lock import LOCK_NAME
+from regnf.scene_graph import add_instance, export_stage, read_stage
 from tests.regnf.cli_helpers import assert_fails
 from tests.scene_graph.helpers import make_stage, similarity
 
@@ -142,7 +142,7 @@ def test_render_and_replace_write_a_sequence(stage: Path, tmp_path: Path) -> Non
 
 def test_mp4_without_its_package_is_refused_at_once(stage: Path, tmp_path: Path,
                                                     monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
-    from compositor import sequence_io
+    from regnf.compositor import sequence_io
 
     monkeypatch.setattr(sequence_io.importlib.util, "find_spec", lambda name: None)  # as if not installed
     for command in (["render", str(stage), "--mode", "scene"], ["replace", str(stage)]):

@@ -3,7 +3,7 @@
 A stage of tiny neural fields (two chairs and a table registered in a blob of a room; the
 library holds a third chair) is generated into data sets of a few 24 x 18 views. The truths
 are independent of the generation code: the replacement layers as USD reads them, the
-in-process single-variant path (:func:`compositor.replace.replace_and_render`) rendering
+in-process single-variant path (:func:`regnf.compositor.replace.replace_and_render`) rendering
 the same seed from the same cameras, and a run that was never interrupted.
 """
 
@@ -22,19 +22,19 @@ import numpy as np
 import pytest
 from pxr import Gf, Sdf
 
-from compositor import read_depth_png, read_instance_png, read_rgb_png
-from compositor.cameras_io import OrbitConfig, field_bounds_metres
-from compositor.from_stage import composite_from_stage
-from compositor.replace import ReplaceConfig, pick_replacements, replace_and_render
-from compositor.stage_config import StageCompositeConfig
 from regnf.cli import main
-from regnf.executors import ExecutorConfig
+from regnf.compositor import read_depth_png, read_instance_png, read_rgb_png
+from regnf.compositor.cameras_io import OrbitConfig, field_bounds_metres
+from regnf.compositor.from_stage import composite_from_stage
+from regnf.compositor.replace import ReplaceConfig, pick_replacements, replace_and_render
+from regnf.compositor.stage_config import StageCompositeConfig
+from regnf.core.atomic_io import TEMP_PREFIX
+from regnf.core.executors import ExecutorConfig
+from regnf.core.file_lock import LOCK_NAME
 from regnf.generate import GenerateConfig, generate, load_rows, prepare_output, variant_cameras
 from regnf.manifest import MANIFEST_NAME
-from scene_graph import add_instance, read_stage
-from scene_graph import layout as L
-from synthetic.atomic_io import TEMP_PREFIX
-from synthetic.file_lock import LOCK_NAME
+from regnf.scene_graph import add_instance, read_stage
+from regnf.scene_graph import layout as L
 from tests.scene_graph.helpers import make_stage, similarity
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -219,7 +219,7 @@ def test_other_settings_in_the_same_folder_are_refused(stage: Path, reference: P
 
 def test_a_package_is_unpacked_once_and_gives_the_same_variants(stage: Path, reference: Path,
                                                                  tmp_path: Path) -> None:
-    from scene_graph import export_stage
+    from regnf.scene_graph import export_stage
 
     package = export_stage(stage, tmp_path / "scene.usdz")
     out = tmp_path / "data"

@@ -10,10 +10,10 @@ import numpy as np
 import torch
 import trimesh
 
-from neural_fields.checkpoint import save_field
-from neural_fields.field import FieldInfo, Symmetry
-from neural_fields.neural_sdf import NeuralSDF, NeuralSDFConfig
-from scene_graph import new_stage
+from regnf.neural_fields.checkpoint import save_field
+from regnf.neural_fields.field import FieldInfo, Symmetry
+from regnf.neural_fields.neural_sdf import NeuralSDF, NeuralSDFConfig
+from regnf.scene_graph import new_stage
 
 TINY = NeuralSDFConfig(levels=2, finest_resolution=16, hidden_dim=16, base_resolution=8,
                        geo_feature_dim=3, color_hidden_dim=8)

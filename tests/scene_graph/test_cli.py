@@ -7,7 +7,7 @@ import json
 import numpy as np
 
 from regnf.cli import main
-from scene_graph import read_stage
+from regnf.scene_graph import read_stage
 from tests.regnf.cli_helpers import assert_fails
 
 from .helpers import checkpoint, registration_json, similarity

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from pxr import Sdf, Usd, UsdGeom
 
-from scene_graph import (
+from regnf.scene_graph import (
     StageError,
     add_instance,
     add_instance_from_registration,
@@ -18,7 +18,7 @@ from scene_graph import (
     read_stage,
     transaction,
 )
-from scene_graph import usd_write as usd_write_module
+from regnf.scene_graph import usd_write as usd_write_module
 
 from .helpers import checkpoint, make_library, make_stage, registration_json, similarity, snapshot
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from pxr import Usd, UsdGeom
 
-from scene_graph import StageError, add_instance, make_replacement_layer, read_stage
+from regnf.scene_graph import StageError, add_instance, make_replacement_layer, read_stage
 
 from .helpers import OBJECTS, make_stage, similarity, snapshot
 

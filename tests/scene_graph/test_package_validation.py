@@ -8,15 +8,18 @@ import numpy as np
 import pytest
 from pxr import Sdf, Usd, Vt
 
-from scene_graph import (
+from regnf.scene_graph import (
     add_instance,
     export_stage,
     make_replacement_layer,
     read_stage,
     validate_stage,
 )
-from scene_graph.embedded_checkpoint import read_embedded_checkpoint, write_embedded_checkpoint
-from scene_graph.errors import StageError
+from regnf.scene_graph.embedded_checkpoint import (
+    read_embedded_checkpoint,
+    write_embedded_checkpoint,
+)
+from regnf.scene_graph.errors import StageError
 
 from .helpers import make_stage, similarity
 

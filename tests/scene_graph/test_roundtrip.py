@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 from pxr import Kind, Sdf, Usd, UsdGeom, UsdSemantics
 
-from scene_graph import RegistrationProvenance, add_instance, read_stage, write_stage
-from scene_graph.xform import OP_ORDER
+from regnf.scene_graph import RegistrationProvenance, add_instance, read_stage, write_stage
+from regnf.scene_graph.xform import OP_ORDER
 
 from .helpers import make_stage, similarity
 
@@ -23,7 +23,7 @@ POSES = {
 
 
 def _quat_matrix(w: float, x: float, y: float, z: float) -> np.ndarray:
-    """Rotation of a unit quaternion, written out independently of scene_graph.xform."""
+    """Rotation of a unit quaternion, written out independently of regnf.scene_graph.xform."""
     n = np.sqrt(w * w + x * x + y * y + z * z)
     w, x, y, z = w / n, x / n, y / n, z / n
     return np.array([
@@ -99,7 +99,7 @@ def _assert_same(a, b):
 
 
 def test_field_records_match_checkpoints(stage_path):
-    from neural_fields.checkpoint import read_header
+    from regnf.neural_fields.checkpoint import read_header
 
     scene = read_stage(stage_path)
     for rec in [scene.scene, *scene.library.values()]:

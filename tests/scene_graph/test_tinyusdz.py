@@ -10,7 +10,7 @@ import pytest
 import tinyusdz  # the second, independent USD reader (a dev dependency)
 from pxr import Usd, UsdGeom
 
-from scene_graph import add_instance, export_stage
+from regnf.scene_graph import add_instance, export_stage
 
 from .helpers import make_stage, similarity
 

@@ -8,9 +8,14 @@ import numpy as np
 import open3d as o3d
 import pytest
 
-from synthetic.capture import ObjectCaptureConfig, RoomCaptureConfig, capture_object, capture_room
-from synthetic.library import make_library_object
-from synthetic.sdfstudio_format import Capture
+from regnf.synthetic.capture import (
+    ObjectCaptureConfig,
+    RoomCaptureConfig,
+    capture_object,
+    capture_room,
+)
+from regnf.synthetic.library import make_library_object
+from regnf.synthetic.sdfstudio_format import Capture
 
 from .synth_helpers import backproject, erode
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from synthetic.library import LIBRARY_NAMES, library_object_names, make_library_object
+from regnf.synthetic.library import LIBRARY_NAMES, library_object_names, make_library_object
 
 SYMMETRIC = {"et": 4, "t": 2, "wt": 0}
 

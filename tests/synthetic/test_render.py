@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from synthetic.library import make_library_object
-from synthetic.render import VOID_GREY, RGBDRenderer
-from synthetic.rooms import make_room
-from synthetic.shading import shaded_copy
-from synthetic.trajectories import look_at, object_capture_poses
+from regnf.synthetic.library import make_library_object
+from regnf.synthetic.render import VOID_GREY, RGBDRenderer
+from regnf.synthetic.rooms import make_room
+from regnf.synthetic.shading import shaded_copy
+from regnf.synthetic.trajectories import look_at, object_capture_poses
 
 from .synth_helpers import erode, raycast
 

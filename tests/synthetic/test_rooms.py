@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 from scipy.spatial import ConvexHull
 
-from synthetic.capture import RoomCaptureConfig, capture_room
-from synthetic.library import make_library_object
-from synthetic.render import RGBDRenderer
-from synthetic.rooms import ROOM_CONTENTS, ROOM_NAMES, make_room
+from regnf.synthetic.capture import RoomCaptureConfig, capture_room
+from regnf.synthetic.library import make_library_object
+from regnf.synthetic.render import RGBDRenderer
+from regnf.synthetic.rooms import ROOM_CONTENTS, ROOM_NAMES, make_room
 
 from .synth_helpers import backproject, erode
 

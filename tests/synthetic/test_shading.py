@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 
-from synthetic.shading import ShadingConfig, shade_face_colors, shaded_copy
+from regnf.synthetic.shading import ShadingConfig, shade_face_colors, shaded_copy
 
 
 def test_lambert_terms() -> None:

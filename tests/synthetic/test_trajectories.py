@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from synthetic.trajectories import (
+from regnf.synthetic.trajectories import (
     MIN_EYE_HEIGHT,
     look_at,
     object_capture_poses,

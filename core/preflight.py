@@ -48,8 +48,8 @@ def check_memory(needed_bytes: float, what: str) -> None:
 
 def check_image_size(width: int, height: int, option: str = "--width/--height") -> None:
     """Refuse, before anything is loaded, an image larger than a render may make
-    (:data:`compositor.render_folder.MAX_PIXELS`) or one that cannot fit in memory."""
-    from compositor.render_folder import check_image_size as check_view_size
+    (:data:`regnf.compositor.render_folder.MAX_PIXELS`) or one that cannot fit in memory."""
+    from regnf.compositor.render_folder import check_image_size as check_view_size
 
     if width < 1 or height < 1:
         raise PreflightError(f"{option}: the image size must be at least 1 x 1, got {width} x {height}")

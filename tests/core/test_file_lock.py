@@ -10,13 +10,13 @@ from pathlib import Path
 
 import pytest
 
-from synthetic.file_lock import LOCK_NAME, LockBusy, folder_lock
+from regnf.core.file_lock import LOCK_NAME, LockBusy, folder_lock
 
 ROOT = Path(__file__).parents[2]
 
 
 def _hold_in_a_process(folder: Path, seconds: float) -> subprocess.Popen:
-    code = ("import sys, time\nfrom synthetic.file_lock import folder_lock\n"
+    code = ("import sys, time\nfrom regnf.core.file_lock import folder_lock\n"
             f"with folder_lock({str(folder)!r}):\n    print('held', flush=True)\n    time.sleep({seconds})")
     proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True, cwd=ROOT)
     assert proc.stdout.readline().strip() == "held"

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from regnf.executors import ExecutorConfig, run_tasks
+from regnf.core.executors import ExecutorConfig, run_tasks
 
 
 def square_or_fail(x: int) -> tuple[int, int]:

@@ -14,9 +14,9 @@ may be removed (:meth:`OutputFolder.remove`). Its content holds no time or path,
 runs that make the same files write the same marker.
 
 Temporary entries (staging folders, files being written) are named with
-:data:`synthetic.atomic_io.TEMP_PREFIX`. One still there after a run was left by a killed
+:data:`regnf.core.atomic_io.TEMP_PREFIX`. One still there after a run was left by a killed
 run: it is ours to remove, and nothing without that prefix ever is. Every writer that
-makes such entries in a folder holds the folder's lock (:mod:`synthetic.file_lock`) while
+makes such entries in a folder holds the folder's lock (:mod:`regnf.core.file_lock`) while
 they exist, so :func:`remove_leftovers`, called under the same lock, never removes a live
 one. :func:`owned_output_dir` does all of it: claim, lock, clean, yield.
 """
@@ -33,8 +33,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from synthetic.atomic_io import TEMP_PREFIX, user_mode, write_json
-from synthetic.file_lock import LOCK_NAME, folder_lock
+from regnf.core.atomic_io import TEMP_PREFIX, user_mode, write_json
+from regnf.core.file_lock import LOCK_NAME, folder_lock
 
 MARKER_NAME = ".regnf-output.json"
 """File name of the marker that says which kind of command made a folder, and what it made there."""
@@ -353,9 +353,9 @@ def owned_output_dir(out: str | os.PathLike, kind: str, reuse: bool = False, wha
     OutputFolderError
         The folder is refused (nothing written), or another kind of command marked it
         between the claim and the lock.
-    synthetic.file_lock.LockBusy
+    regnf.core.file_lock.LockBusy
         Another process holds the folder's lock: it is writing there now.
-    synthetic.file_lock.LockUnavailable
+    regnf.core.file_lock.LockUnavailable
         The folder's file system cannot take locks.
     """
     folder = claim_output_dir(out, kind, reuse, legacy)
