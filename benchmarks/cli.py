@@ -12,9 +12,9 @@ from typing import Literal
 import torch
 from rich.console import Console
 
-from regnf.cache import Cache, default_cache_dir
 from regnf.core.atomic_io import write_json
 from regnf.core.preflight import check_output_file
+from regnf.neural_fields.cache import Cache, default_cache_dir
 
 console = Console(stderr=True)
 

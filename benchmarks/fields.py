@@ -15,8 +15,8 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from regnf.cache import Cache
 from regnf.core.atomic_io import write_json
+from regnf.neural_fields.cache import Cache
 from regnf.neural_fields.checkpoint import load_field
 from regnf.neural_fields.evaluation import chamfer_relative, heldout_psnr, surface_error
 from regnf.neural_fields.field import Field

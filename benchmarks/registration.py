@@ -37,25 +37,24 @@ from typing import NamedTuple
 
 import numpy as np
 import torch
-import trimesh
 from tqdm import tqdm
 
 from regnf.benchmarks.observed_difference import observed_difference
-from regnf.cache import Cache
 from regnf.core.executors import ExecutorConfig, run_tasks
 from regnf.neural_fields.analytic import Transformed
+from regnf.neural_fields.cache import Cache
 from regnf.neural_fields.checkpoint import load_field
 from regnf.neural_fields.field import Field
 from regnf.neural_fields.similarity import similarity_matrix
 from regnf.registration.baselines import register_fgr, register_init_only, register_nerf2nerf
 from regnf.registration.ground_truth import (
+    evaluate,
     find_instance,
+    pair_truth,
     proposal_from_instance,
-    true_scene_to_library,
 )
-from regnf.registration.metrics import RegistrationErrors, registration_errors
-from regnf.registration.proposal import ProposalBox
-from regnf.registration.register import (
+from regnf.registration.metrics import RegistrationErrors
+from regnf.registration.pipeline import (
     RegistrationConfig,
     adam_method,
     paper_method,
@@ -63,9 +62,7 @@ from regnf.registration.register import (
     single_hypothesis,
 )
 from regnf.registration.result import RegistrationResult
-from regnf.registration.transform import SimilarityTransform
 from regnf.synthetic.capture import RoomCaptureConfig
-from regnf.synthetic.instance import Instance
 from regnf.synthetic.library import LIBRARY_NAMES, make_library_object
 from regnf.synthetic.rooms import ROOM_CONTENTS
 
@@ -110,42 +107,6 @@ def scaled_library(field: Field, factor: float) -> Field:
     wrapped.to_world = torch.as_tensor(L @ np.linalg.inv(S), dtype=torch.float64, device=field.device)
     wrapped.info = dataclasses.replace(field.info)
     return wrapped
-
-
-def evaluate(result: RegistrationResult, truth: SimilarityTransform, scene: Field, library: Field,
-             surface_lib: np.ndarray, diag_m: float) -> dict:
-    """Metric columns of one row."""
-    errs = registration_errors(
-        result.transform, truth, scene_world_scale=scene.world_scale,
-        library_points=surface_lib, library_diagonal_m=diag_m,
-        library_to_world=library.to_world.detach().cpu().double().numpy(), symmetry=library.symmetry,
-    )
-    return errs._asdict()
-
-
-class PairTruth(NamedTuple):
-    """The ground truth of one instance, for the metrics."""
-
-    truth: SimilarityTransform
-    """True scene field frame -> library field frame."""
-    proposal: ProposalBox
-    """The instance's true box as a proposal (scene field frame)."""
-    surface_lib: np.ndarray
-    """(2000, 3) points on the library object's true surface, library field frame."""
-    diagonal_m: float
-    """The object's bounding-box diagonal, metres."""
-
-
-def pair_truth(inst: Instance, scene: Field, library: Field, seed: int = 0) -> PairTruth:
-    """Truth of capture instance ``inst`` for ``library`` registered in ``scene``."""
-    S = scene.to_world.detach().cpu().double().numpy()
-    L = library.to_world.detach().cpu().double().numpy()
-    truth = true_scene_to_library(S, inst.object_to_world, L)
-    mesh = make_library_object(inst.library).mesh
-    diag = float(np.linalg.norm(mesh.bounds[1] - mesh.bounds[0]))
-    pts_m, _ = trimesh.sample.sample_surface(mesh, 2000, seed=seed)
-    surface_lib = (np.asarray(pts_m) - L[:3, 3]) @ np.linalg.inv(L[:3, :3]).T
-    return PairTruth(truth, proposal_from_instance(inst, S), surface_lib, diag)
 
 
 METRIC_KEYS = tuple(RegistrationErrors._fields)

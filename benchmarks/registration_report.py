@@ -9,6 +9,7 @@ from PIL import Image, ImageDraw
 
 from regnf.benchmarks.observed_difference import UNOBSERVED
 from regnf.core.atomic_io import atomic_path
+from regnf.registration.metrics import BARS, within_bars
 from regnf.registration.result import RegistrationResult
 
 SCENE_RGB = (40, 110, 220)
@@ -54,20 +55,10 @@ def before_after_png(result: RegistrationResult, path: Path, size: int = 220) ->
         sheet.save(tmp, format="PNG")
 
 
-BARS = {"rot_geodesic_sym_rad": 0.02, "trans_rel_diag_sym": 0.01, "scale_rel": 0.01}
-"""A registration is within the bars when its symmetry-aware rotation error (rad), centre error
-(fraction of the object's diagonal) and relative scale error are all at most these."""
-
-
 def is_reference(row: dict) -> bool:
     """A row of Table I's setting: full coverage, RGB-D library, the box's own object."""
     return (row.get("coverage", "full") == "full" and row.get("library_source", "rgbd") == "rgbd"
             and not row.get("wrong_pair", False))
-
-
-def within_bars(row: dict) -> bool:
-    """Whether a (right-object) row's errors are all within :data:`BARS`."""
-    return all(row[k] is not None and row[k] <= v for k, v in BARS.items())
 
 
 def table_one(rows: list[dict], paper: dict) -> str:

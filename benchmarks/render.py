@@ -27,7 +27,6 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from regnf.cache import Cache
 from regnf.compositor import Camera, look_at, render, render_volume
 from regnf.compositor.distance_grid import DistanceGrid
 from regnf.compositor.oriented_box import OrientedBox
@@ -35,12 +34,13 @@ from regnf.compositor.sphere_tracer import SphereTracerConfig
 from regnf.compositor.stage_config import StageCompositeConfig
 from regnf.compositor.substitution import SubstitutedInstance, build_composite
 from regnf.compositor.volume_renderer import VolumeRendererConfig
+from regnf.neural_fields.cache import Cache
 from regnf.neural_fields.checkpoint import load_field
 from regnf.neural_fields.evaluation import psnr, world_to_field
 from regnf.neural_fields.field import Field
 from regnf.neural_fields.meshing import extract_mesh
 from regnf.registration.ground_truth import proposal_from_instance
-from regnf.registration.register import register
+from regnf.registration.pipeline import register
 from regnf.synthetic.capture import RoomCaptureConfig
 from regnf.synthetic.render import RGBDRenderer
 from regnf.synthetic.rooms import Room, make_room

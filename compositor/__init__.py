@@ -7,101 +7,42 @@ optionally, a GIF or MP4 sequence). Cameras come from a capture, an orbit, or th
 ``UsdGeom.Camera`` prims of a stage (:func:`cameras_from_usd`, :func:`camera_to_usd`).
 """
 
-from .camera import Camera, CameraRays, camera_rays, look_at, orbit_cameras
-from .cameras_io import OrbitConfig, cameras_from_capture, field_bounds_metres, orbit_around_bounds
-from .composite_field import (
-    BACKGROUND_ID,
-    SCENE_ID,
-    CompositeConfig,
-    CompositeField,
-    CompositeSample,
-    sample_field,
-)
-from .contact_sheets import contact_sheet
-from .distance_grid import DistanceGrid
-from .from_stage import StageComposite, composite_from_stage
-from .image_io import (
-    read_depth_png,
-    read_instance_png,
-    read_rgb_png,
-    rgb_to_uint8,
-    write_depth_png,
-    write_instance_png,
-    write_rgb_png,
-)
-from .nerfstudio import opencv_to_opengl, transforms_json
-from .oriented_box import OrientedBox
-from .placement import PlacedObject
-from .regions import OrientedBoxRegion, RemovalRegion, ShellRegion
-from .render_folder import RenderConfig, RenderReport, ViewFiles, render_views
-from .render_result import Render
-from .replace import ReplaceConfig, ReplacementResult, pick_replacements, replace_and_render
-from .sequence_io import SequenceBackendError, write_gif, write_mp4
-from .sphere_tracer import SphereTracerConfig, TraceHits, render, trace
-from .stage_config import StageCompositeConfig
-from .substitution import SubstitutedInstance, build_composite, library_to_scene
-from .usd_cameras import camera_to_usd, cameras_from_usd, write_cameras_usd
-from .volume_renderer import VolumeHits, VolumeRendererConfig, integrate, render_volume
+from __future__ import annotations
 
-__all__ = [
-    "BACKGROUND_ID",
-    "SCENE_ID",
-    "Camera",
-    "CameraRays",
-    "CompositeConfig",
-    "CompositeField",
-    "CompositeSample",
-    "DistanceGrid",
-    "OrbitConfig",
-    "OrientedBox",
-    "OrientedBoxRegion",
-    "PlacedObject",
-    "RemovalRegion",
-    "Render",
-    "RenderConfig",
-    "RenderReport",
-    "ReplaceConfig",
-    "ReplacementResult",
-    "SequenceBackendError",
-    "ShellRegion",
-    "SphereTracerConfig",
-    "StageComposite",
-    "StageCompositeConfig",
-    "SubstitutedInstance",
-    "TraceHits",
-    "ViewFiles",
-    "VolumeHits",
-    "VolumeRendererConfig",
-    "build_composite",
-    "camera_rays",
-    "camera_to_usd",
-    "cameras_from_capture",
-    "cameras_from_usd",
-    "composite_from_stage",
-    "contact_sheet",
-    "field_bounds_metres",
-    "integrate",
-    "library_to_scene",
-    "look_at",
-    "opencv_to_opengl",
-    "orbit_around_bounds",
-    "orbit_cameras",
-    "pick_replacements",
-    "read_depth_png",
-    "read_instance_png",
-    "read_rgb_png",
-    "render",
-    "render_views",
-    "render_volume",
-    "replace_and_render",
-    "rgb_to_uint8",
-    "sample_field",
-    "trace",
-    "transforms_json",
-    "write_cameras_usd",
-    "write_depth_png",
-    "write_gif",
-    "write_instance_png",
-    "write_mp4",
-    "write_rgb_png",
-]
+from typing import TYPE_CHECKING
+
+from regnf.core.lazy_exports import lazy_exports
+
+_EXPORTS = {
+    "Camera": "camera",
+    "look_at": "camera",
+    "orbit_cameras": "camera",
+    "CompositeField": "composite_field",
+    "CompositeConfig": "composite_field",
+    "build_composite": "substitution",
+    "composite_from_stage": "from_stage",
+    "StageCompositeConfig": "stage_config",
+    "render": "sphere_tracer",
+    "SphereTracerConfig": "sphere_tracer",
+    "render_volume": "volume_renderer",
+    "VolumeRendererConfig": "volume_renderer",
+    "render_views": "render_folder",
+    "RenderConfig": "render_folder",
+    "replace_and_render": "replace",
+    "ReplaceConfig": "replace",
+    "Render": "render_result",
+}
+__all__ = list(_EXPORTS)
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
+
+if TYPE_CHECKING:  # static analysers see the real names
+    from .camera import Camera, look_at, orbit_cameras
+    from .composite_field import CompositeConfig, CompositeField
+    from .from_stage import composite_from_stage
+    from .render_folder import RenderConfig, render_views
+    from .render_result import Render
+    from .replace import ReplaceConfig, replace_and_render
+    from .sphere_tracer import SphereTracerConfig, render
+    from .stage_config import StageCompositeConfig
+    from .substitution import build_composite
+    from .volume_renderer import VolumeRendererConfig, render_volume

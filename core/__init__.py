@@ -1,0 +1,7 @@
+"""What every layer shares, at the bottom of the package: atomic writes
+(:mod:`~regnf.core.atomic_io`), folder locks (:mod:`~regnf.core.file_lock`), output folders that
+lose nothing (:mod:`~regnf.core.output_dir`), process-pool and Ray executors
+(:mod:`~regnf.core.executors`), the checks a command makes before it starts
+(:mod:`~regnf.core.preflight`) and lazily loaded package exports
+(:mod:`~regnf.core.lazy_exports`). Nothing here imports another part of regnf.
+"""

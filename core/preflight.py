@@ -46,17 +46,15 @@ def check_memory(needed_bytes: float, what: str) -> None:
                              f"{budget / 2**30:.1f} GiB available; make it smaller")
 
 
-def check_image_size(width: int, height: int, option: str = "--width/--height") -> None:
-    """Refuse, before anything is loaded, an image larger than a render may make
-    (:data:`regnf.compositor.render_folder.MAX_PIXELS`) or one that cannot fit in memory."""
-    from regnf.compositor.render_folder import check_image_size as check_view_size
-
+def check_image_size(width: int, height: int, max_pixels: int, option: str = "--width/--height") -> None:
+    """Refuse, before anything is loaded, an image of more than ``max_pixels`` pixels (the
+    renderer's limit, :data:`regnf.compositor.render_folder.MAX_PIXELS`) or one that cannot fit
+    in memory."""
     if width < 1 or height < 1:
         raise PreflightError(f"{option}: the image size must be at least 1 x 1, got {width} x {height}")
-    try:
-        check_view_size(width, height, f"{option}: a view")
-    except ValueError as exc:
-        raise PreflightError(str(exc)) from exc
+    if width * height > max_pixels:
+        raise PreflightError(f"{option}: a view of {width} x {height} pixels is more than the "
+                             f"{max_pixels:,} pixels a view may have; render smaller views")
     check_memory(width * height * RENDER_BYTES_PER_PIXEL, f"{option}: a {width} x {height} image")
 
 

@@ -11,7 +11,7 @@
 
 Each returns a :class:`RegistrationResult` whose confidence is measured the same way as
 Reg-NF's: the fraction of SDF residuals under the inlier threshold at the returned transform,
-times the fraction of the library object inside the proposal (:func:`regnf.registration.register.scored`).
+times the fraction of the library object inside the proposal (:func:`regnf.registration.pipeline.scored`).
 """
 
 from __future__ import annotations
@@ -24,9 +24,7 @@ import numpy as np
 
 from regnf.neural_fields.field import Field
 from regnf.registration.initialisation import Hypothesis, fgr_baseline
-from regnf.registration.proposal import ProposalBox
-from regnf.registration.refinement import RefineResult, refine, without_steps
-from regnf.registration.register import (
+from regnf.registration.pipeline import (
     RegistrationConfig,
     check_fields,
     initialise,
@@ -34,6 +32,8 @@ from regnf.registration.register import (
     sample_tensors,
     scored,
 )
+from regnf.registration.proposal import ProposalBox
+from regnf.registration.refinement import RefineResult, refine, without_steps
 from regnf.registration.result import HypothesisReport, RegistrationResult
 from regnf.registration.sampling import SurfaceSamples
 from regnf.registration.transform import SimilarityTransform

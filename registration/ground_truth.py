@@ -1,12 +1,20 @@
-"""Ground truth for registration benchmarks: the true scene -> library similarity of an instance."""
+"""Ground truth for registration benchmarks: the true scene -> library similarity of an
+instance, its box, and the error columns of a registration against it."""
 
 from __future__ import annotations
 
-import numpy as np
+from typing import NamedTuple
 
+import numpy as np
+import trimesh
+
+from regnf.neural_fields.field import Field
+from regnf.registration.metrics import registration_errors
 from regnf.registration.proposal import ProposalBox
+from regnf.registration.result import RegistrationResult
 from regnf.registration.transform import SimilarityTransform
 from regnf.synthetic.instance import Instance
+from regnf.synthetic.library import make_library_object
 
 
 def true_scene_to_library(
@@ -38,3 +46,39 @@ def find_instance(instances: list[Instance], library: str) -> Instance:
         if inst.library == library:
             return inst
     raise ValueError(f"no instance of {library!r}; the scene has {[i.library for i in instances]}")
+
+
+def evaluate(result: RegistrationResult, truth: SimilarityTransform, scene: Field, library: Field,
+             surface_lib: np.ndarray, diag_m: float) -> dict:
+    """Metric columns of one row."""
+    errs = registration_errors(
+        result.transform, truth, scene_world_scale=scene.world_scale,
+        library_points=surface_lib, library_diagonal_m=diag_m,
+        library_to_world=library.to_world.detach().cpu().double().numpy(), symmetry=library.symmetry,
+    )
+    return errs._asdict()
+
+
+class PairTruth(NamedTuple):
+    """The ground truth of one instance, for the metrics."""
+
+    truth: SimilarityTransform
+    """True scene field frame -> library field frame."""
+    proposal: ProposalBox
+    """The instance's true box as a proposal (scene field frame)."""
+    surface_lib: np.ndarray
+    """(2000, 3) points on the library object's true surface, library field frame."""
+    diagonal_m: float
+    """The object's bounding-box diagonal, metres."""
+
+
+def pair_truth(inst: Instance, scene: Field, library: Field, seed: int = 0) -> PairTruth:
+    """Truth of capture instance ``inst`` for ``library`` registered in ``scene``."""
+    S = scene.to_world.detach().cpu().double().numpy()
+    L = library.to_world.detach().cpu().double().numpy()
+    truth = true_scene_to_library(S, inst.object_to_world, L)
+    mesh = make_library_object(inst.library).mesh
+    diag = float(np.linalg.norm(mesh.bounds[1] - mesh.bounds[0]))
+    pts_m, _ = trimesh.sample.sample_surface(mesh, 2000, seed=seed)
+    surface_lib = (np.asarray(pts_m) - L[:3, 3]) @ np.linalg.inv(L[:3, :3]).T
+    return PairTruth(truth, proposal_from_instance(inst, S), surface_lib, diag)

@@ -27,7 +27,7 @@ Procedure:
 5. ICP refinement of every start on the full (normalised) clouds, point-to-point with
    scaling or point-to-plane; rank by fitness then inlier RMSE; keep hypotheses at least
    ``min_rotation_deg`` apart (modulo the object's symmetry); undo the normalisation.
-   :func:`regnf.registration.register.initialise` then screens them by SDF evidence
+   :func:`regnf.registration.pipeline.initialise` then screens them by SDF evidence
    (:mod:`regnf.registration.screening`).
 
 Determinism: every RANSAC run seeds Open3D's global generator (``o3d.utility.random.seed``).

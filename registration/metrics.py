@@ -318,3 +318,13 @@ def registration_errors(
         add_m_sym=add_m_sym,
         add_rel_sym=add_m_sym / diag,
     )
+
+
+BARS = {"rot_geodesic_sym_rad": 0.02, "trans_rel_diag_sym": 0.01, "scale_rel": 0.01}
+"""A registration is within the bars when its symmetry-aware rotation error (rad), centre error
+(fraction of the object's diagonal) and relative scale error are all at most these."""
+
+
+def within_bars(row: dict) -> bool:
+    """Whether a (right-object) row's errors are all within :data:`BARS`."""
+    return all(row[k] is not None and row[k] <= v for k, v in BARS.items())

@@ -9,8 +9,8 @@ from typing import Annotated
 
 from tyro.conf import OmitArgPrefixes
 
-from regnf.cache import default_cache_dir
 from regnf.demo import DemoConfig
+from regnf.neural_fields.cache import default_cache_dir
 
 
 @dataclass
@@ -26,9 +26,9 @@ class Demo:
     """Cache of captures and trained fields (reused: a second run trains nothing)."""
 
     def run(self) -> None:
-        from regnf.cache import Cache
         from regnf.core.preflight import check_output_dir
         from regnf.demo import run_demo
+        from regnf.neural_fields.cache import Cache
 
         check_output_dir(self.out)
         run_demo(self.out, self.demo, Cache(self.cache_dir))

@@ -10,7 +10,6 @@ from typing import Literal
 import torch
 from rich.console import Console
 
-from regnf.cache import Cache, capture_info, default_cache_dir
 from regnf.core.atomic_io import write_bytes
 from regnf.core.preflight import (
     check_input_file,
@@ -18,6 +17,7 @@ from regnf.core.preflight import (
     check_output_dir,
     check_output_file,
 )
+from regnf.neural_fields.cache import Cache, capture_info, default_cache_dir
 from regnf.neural_fields.checkpoint import load_field
 from regnf.neural_fields.field import FieldInfo, Symmetry
 from regnf.neural_fields.meshing import MESH_FORMATS, extract_mesh, save_mesh

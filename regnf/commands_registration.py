@@ -131,8 +131,8 @@ class Register:
         return np.asarray(inst.box_corners, dtype=np.float64)
 
     def run(self) -> None:
+        from regnf.registration.pipeline import RegistrationConfig, register
         from regnf.registration.proposal import ProposalBox
-        from regnf.registration.register import RegistrationConfig, register
 
         # Everything that can be checked is checked before the registration's seconds of work.
         check_output_file(self.out, "--out")

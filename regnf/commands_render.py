@@ -98,10 +98,12 @@ class _Views:
         for option, value in (("--width", self.width), ("--height", self.height)):
             if value is not None and value < 1:
                 raise SystemExit(f"{option} must be at least 1, got {value}")
+        from regnf.compositor.render_folder import MAX_PIXELS
+
         if self.capture is None:  # orbit and USD cameras: the size is known now
-            check_image_size(self.width or 320, self.height or self.width or 240)
+            check_image_size(self.width or 320, self.height or self.width or 240, MAX_PIXELS)
         elif self.width is not None and self.height is not None:
-            check_image_size(self.width, self.height)
+            check_image_size(self.width, self.height, MAX_PIXELS)
         check_output_dir(self.out)
 
     def cameras(self, field: CompositeField) -> list[Camera]:
@@ -111,6 +113,7 @@ class _Views:
             field_bounds_metres,
             orbit_around_bounds,
         )
+        from regnf.compositor.render_folder import MAX_PIXELS
         from regnf.compositor.usd_cameras import cameras_from_usd
 
         self.check_options()
@@ -128,7 +131,7 @@ class _Views:
         except ValueError as exc:  # CaptureError and StageError are ValueErrors naming the file
             raise SystemExit(f"regnf: cameras: {exc}") from exc
         for cam in cams:  # a capture's own size, or a USD camera's aspect ratio, is known only now
-            check_image_size(cam.width, cam.height, "image size")
+            check_image_size(cam.width, cam.height, MAX_PIXELS, "image size")
         return cams
 
     def render_config(self) -> RenderConfig:

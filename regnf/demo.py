@@ -51,9 +51,8 @@ import numpy as np
 import torch
 from rich.console import Console
 
-from regnf.benchmarks.registration_report import BARS
-
-from .cache import Cache, default_cache_dir
+from regnf.neural_fields.cache import Cache, default_cache_dir
+from regnf.registration.metrics import BARS
 
 if TYPE_CHECKING:
     from regnf.compositor.camera import Camera
@@ -183,11 +182,11 @@ def machine() -> dict[str, Any]:
 def _register_all(stage: Path, out: Path, scene_path: Path, library_paths: dict[str, Path],
                    capture: Capture, device: str) -> list[dict[str, Any]]:
     """Register every capture instance with its library object; accepted ones go into the stage."""
-    from regnf.benchmarks.registration import evaluate, pair_truth
-    from regnf.benchmarks.registration_report import within_bars
     from regnf.core.atomic_io import write_json
     from regnf.neural_fields.checkpoint import load_field
-    from regnf.registration.register import register
+    from regnf.registration.ground_truth import evaluate, pair_truth
+    from regnf.registration.metrics import within_bars
+    from regnf.registration.pipeline import register
     from regnf.scene_graph import add_instance_from_registration
 
     from .commands_registration import registration_payload

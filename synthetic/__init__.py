@@ -9,72 +9,38 @@ import pyrender / OpenGL; the renderer is loaded only when something needs it.
 
 from __future__ import annotations
 
-import importlib
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
+
+from regnf.core.lazy_exports import lazy_exports
 
 _EXPORTS: dict[str, str] = {
-    "ObjectCaptureConfig": "regnf.synthetic.capture",
-    "RoomCaptureConfig": "regnf.synthetic.capture",
-    "capture_object": "regnf.synthetic.capture",
-    "capture_room": "regnf.synthetic.capture",
-    "Instance": "regnf.synthetic.instance",
-    "LIBRARY_NAMES": "regnf.synthetic.library",
-    "LibraryObject": "regnf.synthetic.library",
-    "library_object_names": "regnf.synthetic.library",
-    "make_library_object": "regnf.synthetic.library",
-    "RGBDRenderer": "regnf.synthetic.render",
-    "RenderOutput": "regnf.synthetic.render",
-    "ROOM_NAMES": "regnf.synthetic.rooms",
-    "Room": "regnf.synthetic.rooms",
-    "make_room": "regnf.synthetic.rooms",
-    "Capture": "regnf.synthetic.sdfstudio_format",
-    "CaptureError": "regnf.synthetic.sdfstudio_format",
-    "CaptureFrame": "regnf.synthetic.sdfstudio_format",
-    "load_capture": "regnf.synthetic.sdfstudio_format",
-    "write_capture": "regnf.synthetic.sdfstudio_format",
-    "ShadingConfig": "regnf.synthetic.shading",
-    "shade_face_colors": "regnf.synthetic.shading",
-    "shaded_copy": "regnf.synthetic.shading",
-    "look_at": "regnf.synthetic.trajectories",
+    "ObjectCaptureConfig": "capture",
+    "RoomCaptureConfig": "capture",
+    "capture_object": "capture",
+    "capture_room": "capture",
+    "Instance": "instance",
+    "LIBRARY_NAMES": "library",
+    "LibraryObject": "library",
+    "library_object_names": "library",
+    "make_library_object": "library",
+    "RGBDRenderer": "render",
+    "RenderOutput": "render",
+    "ROOM_NAMES": "rooms",
+    "Room": "rooms",
+    "make_room": "rooms",
+    "Capture": "sdfstudio_format",
+    "CaptureError": "sdfstudio_format",
+    "CaptureFrame": "sdfstudio_format",
+    "load_capture": "sdfstudio_format",
+    "write_capture": "sdfstudio_format",
+    "ShadingConfig": "shading",
+    "shade_face_colors": "shading",
+    "shaded_copy": "shading",
+    "look_at": "trajectories",
 }
 
-__all__ = [
-    "LIBRARY_NAMES",
-    "ROOM_NAMES",
-    "Capture",
-    "CaptureError",
-    "CaptureFrame",
-    "Instance",
-    "LibraryObject",
-    "ObjectCaptureConfig",
-    "RGBDRenderer",
-    "RenderOutput",
-    "Room",
-    "RoomCaptureConfig",
-    "ShadingConfig",
-    "capture_object",
-    "capture_room",
-    "library_object_names",
-    "load_capture",
-    "look_at",
-    "make_library_object",
-    "make_room",
-    "shade_face_colors",
-    "shaded_copy",
-    "write_capture",
-]
-
-
-def __getattr__(name: str) -> Any:
-    if name not in _EXPORTS:
-        raise AttributeError(f"module 'synthetic' has no attribute {name!r}")
-    value = getattr(importlib.import_module(_EXPORTS[name]), name)
-    globals()[name] = value  # cache: later lookups skip __getattr__
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(_EXPORTS))
+__all__ = list(_EXPORTS)
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
 
 
 if TYPE_CHECKING:  # static analysers see the real names

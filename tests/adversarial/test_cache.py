@@ -12,8 +12,8 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 
-from regnf import cache as cache_module
-from regnf.cache import Cache
+from regnf.neural_fields import cache as cache_module
+from regnf.neural_fields.cache import Cache
 from regnf.neural_fields.checkpoint import verify_checkpoint
 from regnf.neural_fields.neural_sdf import NeuralSDFConfig
 from regnf.neural_fields.raycast import render_field

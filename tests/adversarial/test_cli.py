@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 import torch
 
-import regnf.registration.register as register_module
+import regnf.registration.pipeline as register_module
 from regnf import commands_fields, commands_registration
 from regnf.cli import EXIT_BAD_INPUT, EXIT_INTERNAL, main
 from regnf.compositor.composite_field import MAX_COMPONENTS, CompositeField

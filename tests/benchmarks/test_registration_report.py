@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 from regnf.benchmarks.registration import wrong_pairs
-from regnf.benchmarks.registration_report import coverage_table, within_bars, wrong_pair_rates
+from regnf.benchmarks.registration_report import coverage_table, wrong_pair_rates
+from regnf.registration.metrics import within_bars
 from regnf.synthetic.library import LIBRARY_NAMES
 
 

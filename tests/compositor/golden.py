@@ -25,20 +25,16 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from regnf.compositor import (
-    Camera,
-    SphereTracerConfig,
-    VolumeRendererConfig,
+from regnf.compositor import Camera, SphereTracerConfig, VolumeRendererConfig, render, render_volume
+from regnf.compositor.image_io import (
+    depth_to_mm,
     read_instance_png,
     read_rgb_png,
-    render,
-    render_volume,
     rgb_to_uint8,
     write_depth_png,
     write_instance_png,
     write_rgb_png,
 )
-from regnf.compositor.image_io import depth_to_mm
 from regnf.compositor.stage_config import StageCompositeConfig
 from regnf.neural_fields.field import Field
 

@@ -7,14 +7,10 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from regnf.compositor import (
-    CompositeConfig,
-    CompositeField,
-    OrientedBoxRegion,
-    PlacedObject,
-    ShellRegion,
-    sample_field,
-)
+from regnf.compositor import CompositeConfig, CompositeField
+from regnf.compositor.composite_field import sample_field
+from regnf.compositor.placement import PlacedObject
+from regnf.compositor.regions import OrientedBoxRegion, ShellRegion
 from regnf.neural_fields.analytic import Box, Sphere, Union
 from regnf.neural_fields.field import Field
 from regnf.neural_fields.similarity import similarity_matrix

@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 import torch
 
-from regnf.compositor import Camera, OrientedBoxRegion, ShellRegion, look_at, render
+from regnf.compositor import Camera, look_at, render
 from regnf.compositor.from_stage import composite_from_stage, original_selections
+from regnf.compositor.regions import OrientedBoxRegion, ShellRegion
 from regnf.compositor.stage_config import StageCompositeConfig
 from regnf.compositor.substitution import base_height, check_z_up, library_to_scene
 from regnf.neural_fields.checkpoint import save_field

@@ -12,7 +12,7 @@ import torch
 from PIL import Image
 
 import regnf.compositor.image_io as io
-from regnf.compositor import (
+from regnf.compositor.image_io import (
     read_depth_png,
     read_instance_png,
     read_rgb_png,

@@ -9,15 +9,9 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from regnf.compositor import (
-    Camera,
-    DistanceGrid,
-    SphereTracerConfig,
-    look_at,
-    orbit_cameras,
-    render,
-    trace,
-)
+from regnf.compositor import Camera, SphereTracerConfig, look_at, orbit_cameras, render
+from regnf.compositor.distance_grid import DistanceGrid
+from regnf.compositor.sphere_tracer import trace
 from regnf.neural_fields.analytic import Box, Sphere, Union
 from regnf.neural_fields.field import Field
 from regnf.neural_fields.similarity import similarity_matrix

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from regnf.compositor import Camera, VolumeRendererConfig, integrate, look_at, render, render_volume
+from regnf.compositor import Camera, VolumeRendererConfig, look_at, render, render_volume
+from regnf.compositor.volume_renderer import integrate
 
 from . import helpers as H
 from .test_composite_field import make_composite

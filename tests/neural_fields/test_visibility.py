@@ -20,9 +20,9 @@ import torch
 from safetensors import safe_open
 from safetensors.torch import load_file, save_file
 
-from regnf import cache as cache_module
-from regnf.cache import Cache, reusable
+from regnf.neural_fields import cache as cache_module
 from regnf.neural_fields.analytic import Box
+from regnf.neural_fields.cache import Cache, reusable
 from regnf.neural_fields.checkpoint import (
     DIGEST_KEY,
     HEADER_KEY,

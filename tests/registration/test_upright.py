@@ -9,8 +9,8 @@ import pytest
 
 from regnf.registration.initialisation import Hypothesis, InitConfig, initial_hypotheses
 from regnf.registration.metrics import geodesic_angle
+from regnf.registration.pipeline import RegistrationConfig, sample_pair, sample_tensors
 from regnf.registration.refinement import RefineConfig
-from regnf.registration.register import RegistrationConfig, sample_pair, sample_tensors
 from regnf.registration.screening import screen_hypotheses
 from regnf.registration.transform import SimilarityTransform
 from regnf.registration.upright import UprightPrior, axis_rotation, rotation_between, yaw_starts

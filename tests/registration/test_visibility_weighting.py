@@ -19,8 +19,8 @@ import trimesh
 from regnf.neural_fields.analytic import Box, Sphere, Union
 from regnf.neural_fields.visibility import VisibilityGrid
 from regnf.registration.metrics import geodesic_angle
+from regnf.registration.pipeline import RegistrationConfig, sample_pair, sample_tensors
 from regnf.registration.refinement import RefineConfig, refine, without_steps
-from regnf.registration.register import RegistrationConfig, sample_pair, sample_tensors
 from regnf.registration.transform import SimilarityTransform
 
 from .fixtures import make_object, make_scene, object_box, placement

@@ -77,7 +77,7 @@ def test_train_from_a_capture_folder(tmp_path: Path) -> None:
 def test_cache_keys_ignore_new_options_left_at_their_default() -> None:
     import dataclasses
 
-    from regnf.cache import config_key
+    from regnf.neural_fields.cache import config_key
     from regnf.neural_fields.presets import object_rgbd_preset
     from regnf.neural_fields.training import RGBDTrainConfig
 

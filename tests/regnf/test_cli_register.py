@@ -16,7 +16,7 @@ import pytest
 import regnf.commands_registration as commands
 from regnf.cli import main
 from regnf.neural_fields.analytic import Box, Cylinder, Union
-from regnf.registration.register import RegistrationConfig
+from regnf.registration.pipeline import RegistrationConfig
 
 from ..adversarial.disk import changes, snapshot
 from ..registration.fixtures import make_object, make_scene, placement

@@ -12,7 +12,8 @@ from PIL import Image
 from pxr import Usd, UsdGeom
 
 from regnf.cli import main
-from regnf.compositor import Camera, read_depth_png, read_instance_png, read_rgb_png
+from regnf.compositor import Camera
+from regnf.compositor.image_io import read_depth_png, read_instance_png, read_rgb_png
 from regnf.compositor.replace import pick_replacements
 from regnf.compositor.usd_cameras import camera_to_usd, write_cameras_usd
 from regnf.core.file_lock import LOCK_NAME

@@ -23,9 +23,9 @@ import pytest
 from pxr import Gf, Sdf
 
 from regnf.cli import main
-from regnf.compositor import read_depth_png, read_instance_png, read_rgb_png
 from regnf.compositor.cameras_io import OrbitConfig, field_bounds_metres
 from regnf.compositor.from_stage import composite_from_stage
+from regnf.compositor.image_io import read_depth_png, read_instance_png, read_rgb_png
 from regnf.compositor.replace import ReplaceConfig, pick_replacements, replace_and_render
 from regnf.compositor.stage_config import StageCompositeConfig
 from regnf.core.atomic_io import TEMP_PREFIX

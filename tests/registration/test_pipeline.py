@@ -17,8 +17,8 @@ from regnf.registration.baselines import (
     register_nerf2nerf,
 )
 from regnf.registration.metrics import geodesic_angle
+from regnf.registration.pipeline import RegistrationConfig, register
 from regnf.registration.proposal import ProposalBox
-from regnf.registration.register import RegistrationConfig, register
 from regnf.registration.transform import SimilarityTransform
 
 from .fixtures import OBJECT_HI, OBJECT_LO, make_object, make_scene, placement, rot
@@ -130,7 +130,7 @@ def test_kabsch_recovers_a_rigid_transform() -> None:
 
 
 def test_single_hypothesis_config_refines_one() -> None:
-    from regnf.registration.register import single_hypothesis
+    from regnf.registration.pipeline import single_hypothesis
 
     cfg = single_hypothesis(RegistrationConfig())
     assert cfg.init.top_k == 1

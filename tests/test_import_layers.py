@@ -1,0 +1,101 @@
+"""The package's layers: a module imports only from its own layer or the layers below it.
+
+Bottom to top: ``regnf.core`` (atomic writes, locks, output folders, executors, pre-flight
+checks), ``synthetic``, ``neural_fields``, ``registration``, ``scene_graph``, ``compositor``,
+``benchmarks``, and the command line (the modules directly in ``regnf/``). Every import
+counts, including those inside functions, and nothing imports the folders by their bare names
+(``import compositor`` would load a second copy of the module beside ``regnf.compositor``).
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+LAYERS = ("core", "synthetic", "neural_fields", "registration", "scene_graph", "compositor", "benchmarks",
+          "cli")
+"""Bottom to top; ``cli`` is the root package ``regnf`` itself (regnf/*.py)."""
+
+FOLDERS = {layer: ROOT / ("regnf" if layer == "cli" else layer) for layer in LAYERS}
+
+
+def layer_of(module: str) -> str | None:
+    """The layer of an absolute module name, or None for a module outside the project."""
+    parts = module.split(".")
+    if parts[0] != "regnf":
+        return None
+    if len(parts) > 1 and parts[1] in LAYERS[:-1]:
+        return parts[1]
+    return "cli"
+
+
+def module_name(path: Path) -> str:
+    """The dotted name a file under one of :data:`FOLDERS` is imported as."""
+    for layer, folder in FOLDERS.items():
+        if path.parent == folder:
+            package = "regnf" if layer == "cli" else f"regnf.{layer}"
+            return package if path.stem == "__init__" else f"{package}.{path.stem}"
+    raise ValueError(f"{path} is in no layer's folder")
+
+
+def imported_modules(source: str, package: str) -> list[tuple[int, str]]:
+    """(line, absolute module name) of every import in ``source``, a module of ``package``
+    (relative imports resolved against it)."""
+    out = []
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Import):
+            out += [(node.lineno, alias.name) for alias in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package.split(".")
+                base = base[: len(base) - (node.level - 1)]
+                name = ".".join([*base, node.module] if node.module else base)
+            else:
+                name = node.module or ""
+            out.append((node.lineno, name))
+            # ``from regnf import compositor`` imports the subpackage.
+            out += [(node.lineno, f"{name}.{a.name}") for a in node.names if name == "regnf"]
+    return out
+
+
+def violations(source: str, module: str, is_package: bool = False) -> list[str]:
+    """Every import in ``source`` (the text of ``module``) that breaks the layering."""
+    own = LAYERS.index(layer_of(module))
+    package = module if is_package else module.rsplit(".", 1)[0]
+    bad = []
+    for line, name in imported_modules(source, package):
+        top = name.split(".")[0]
+        if top in FOLDERS and top not in ("cli", "regnf"):
+            bad.append(f"{module}:{line} imports {name!r} by its bare name (use regnf.{name})")
+            continue
+        layer = layer_of(name)
+        if layer is not None and name != "regnf" and LAYERS.index(layer) > own:
+            bad.append(f"{module}:{line} ({LAYERS[own]}) imports {name} ({layer}, a layer above)")
+    return bad
+
+
+def test_every_module_imports_only_from_below() -> None:
+    files = [p for folder in FOLDERS.values() for p in sorted(folder.glob("*.py"))]
+    assert len(files) > 100  # every folder was found
+    bad = [v for p in files for v in violations(p.read_text(), module_name(p), p.stem == "__init__")]
+    assert not bad, "\n".join(bad)
+
+
+@pytest.mark.parametrize(("module", "source", "expected"), [
+    ("regnf.neural_fields.training", "from regnf.registration.pipeline import register\n", 1),
+    ("regnf.neural_fields.training", "def f():\n    import regnf.compositor.camera\n", 1),
+    ("regnf.registration.metrics", "from regnf.benchmarks import registration\n", 1),
+    ("regnf.registration.metrics", "from regnf import demo\n", 1),
+    ("regnf.compositor.camera", "from . import sphere_tracer\nfrom ..scene_graph import read_stage\n", 0),
+    ("regnf.core.atomic_io", "from ..synthetic import rooms\n", 1),
+    ("regnf.scene_graph.fields", "import compositor.camera\n", 1),
+    ("regnf.benchmarks.registration", "from regnf.registration.pipeline import register\n", 0),
+    ("regnf.demo", "from regnf.benchmarks.registration import run_pair\nimport numpy\n", 0),
+])
+def test_the_check_sees_an_upward_import(module: str, source: str, expected: int) -> None:
+    # The test above can fail: an upward import, a lazy one or a bare name is each reported.
+    assert len(violations(source, module)) == expected
