@@ -1,9 +1,9 @@
 """Composite neural fields and render them: scene minus removals plus placed library objects.
 
-See METHOD.md section 9. Everything here works on any :class:`regnf.neural_fields.field.Field`;
-:func:`composite_from_stage` builds the composite of a USD stage (section 8), and
-:func:`render_views` / :func:`replace_and_render` render it to folders of images (and,
-optionally, a GIF or MP4 sequence). Cameras come from a capture, an orbit, or the
+See docs/design.md section 1.9. Everything here works on any
+:class:`regnf.neural_fields.field.Field`; :func:`composite_from_stage` builds the composite of a USD
+stage (section 1.8), and :func:`render_views` / :func:`replace_and_render` render it to folders of
+images (and, optionally, a GIF or MP4 sequence). Cameras come from a capture, an orbit, or the
 ``UsdGeom.Camera`` prims of a stage (:func:`cameras_from_usd`, :func:`camera_to_usd`).
 """
 

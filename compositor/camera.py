@@ -15,6 +15,7 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
+from regnf.core.cameras import look_at
 from regnf.neural_fields.field import Field
 from regnf.neural_fields.raycast import pinhole_rays
 from regnf.synthetic.sdfstudio_format import check_intrinsics, check_rigid_pose
@@ -72,28 +73,6 @@ class Camera:
         f = 0.5 * width / math.tan(math.radians(fov_deg) / 2.0)
         K = np.array([[f, 0.0, width / 2.0], [0.0, f, height / 2.0], [0.0, 0.0, 1.0]])
         return Camera(K, width, height, np.asarray(camera_to_world, dtype=np.float64))
-
-
-def look_at(eye: ArrayLike, target: ArrayLike, up: ArrayLike = (0.0, 0.0, 1.0)) -> np.ndarray:
-    """(4, 4) float64 OpenCV camera -> world pose at ``eye`` looking at ``target``.
-
-    The camera's y axis (image down) is as close to ``-up`` as the view direction allows.
-    Raises ``ValueError`` if ``eye == target`` or the view direction is parallel to ``up``.
-    """
-    e, g, u = (np.asarray(v, dtype=np.float64).reshape(3) for v in (eye, target, up))
-    z = g - e
-    if np.linalg.norm(z) < 1e-12:
-        raise ValueError(f"eye and target coincide at {e.tolist()}")
-    z = z / np.linalg.norm(z)
-    x = np.cross(z, u)
-    if np.linalg.norm(x) < 1e-9:
-        raise ValueError(f"the view direction {z.tolist()} is parallel to up {u.tolist()}")
-    x = x / np.linalg.norm(x)
-    y = np.cross(z, x)
-    pose = np.eye(4)
-    pose[:3, :3] = np.stack([x, y, z], axis=1)
-    pose[:3, 3] = e
-    return pose
 
 
 def orbit_cameras(

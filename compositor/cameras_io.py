@@ -18,10 +18,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from regnf.core.cameras import look_at
 from regnf.neural_fields.field import Field
 from regnf.synthetic.sdfstudio_format import load_capture
 
-from .camera import Camera, look_at
+from .camera import Camera
 
 
 def resized(camera: Camera, width: int, height: int) -> Camera:

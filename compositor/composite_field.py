@@ -8,7 +8,7 @@ meshing and both renderers accept it::
     composite(x)    = min(scene_masked(x), min_i s_i S_i(T_i^-1 x))
 
 with ``T_i`` the similarity library field frame -> scene field frame and ``s_i`` its scale
-(METHOD.md section 9 writes the same with the inverse map, scene -> library, and divides
+(docs/design.md section 1.9 writes the same with the inverse map, scene -> library, and divides
 by its scale ``1 / s_i``). Each placed field is culled to its oriented box (see
 :mod:`regnf.compositor.placement`): with culling, the composite keeps the sign of the exact one
 everywhere, never exceeds it in magnitude, and equals it within ``cull_pad`` of the surface.

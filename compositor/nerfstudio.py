@@ -13,18 +13,10 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-import numpy as np
+from regnf.core.cameras import opencv_to_opengl
 
 from .camera import Camera
 from .render_folder import ViewFiles
-
-OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])
-"""Right-multiplied into an OpenCV camera-to-world to get the OpenGL one (and back)."""
-
-
-def opencv_to_opengl(camera_to_world: np.ndarray) -> np.ndarray:
-    """(4, 4) OpenGL camera-to-world of an OpenCV camera-to-world (4, 4)."""
-    return np.asarray(camera_to_world, dtype=np.float64) @ OPENCV_TO_OPENGL
 
 
 def intrinsics_json(camera: Camera) -> dict:

@@ -14,7 +14,9 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
+from regnf.neural_fields.analytic import box_sdf
 from regnf.neural_fields.similarity import decompose_similarity
+from regnf.registration.proposal import ProposalBox
 
 ArrayLike = torch.Tensor | np.ndarray | Sequence[float] | Sequence[Sequence[float]]
 
@@ -32,16 +34,9 @@ def as_float64(value: ArrayLike, shape: tuple[int, ...], what: str) -> torch.Ten
     return t.clone()
 
 
-def box_sdf(local: torch.Tensor, half_extents: torch.Tensor) -> torch.Tensor:
-    """Exact SDF (n,) of the centred axis-aligned box ``half_extents`` (3,) at ``local`` (n, 3)."""
-    q = local.abs() - half_extents
-    outside = torch.linalg.vector_norm(q.clamp(min=0.0), dim=-1)
-    inside = q.max(dim=-1).values.clamp(max=0.0)
-    return outside + inside
-
-
 class OrientedBox(torch.nn.Module):
-    """A box with its own axes, as float64 buffers (``.to(device)`` moves it).
+    """A box with its own axes, as float64 buffers (``.to(device)`` moves it): the torch form of
+    :class:`regnf.registration.proposal.ProposalBox`, which validates it.
 
     Parameters
     ----------
@@ -61,20 +56,14 @@ class OrientedBox(torch.nn.Module):
         self, center: ArrayLike, half_extents: ArrayLike, rotation: ArrayLike | None = None
     ) -> None:
         super().__init__()
-        c = as_float64(center, (3,), "box center")
-        h = as_float64(half_extents, (3,), "box half_extents")
-        if bool((h <= 0).any()):
-            raise ValueError(f"box half_extents must all be > 0, got {h.tolist()}")
-        R = (
-            torch.eye(3, dtype=torch.float64)
-            if rotation is None
-            else as_float64(rotation, (3, 3), "box rotation")
+        # One validation of a box for the whole project: the proposal's (finite, half extents
+        # > 0, a proper rotation).
+        box = ProposalBox(
+            as_float64(center, (3,), "box center").numpy(),
+            as_float64(half_extents, (3,), "box half_extents").numpy(),
+            None if rotation is None else as_float64(rotation, (3, 3), "box rotation").numpy(),
         )
-        err = float((R.T @ R - torch.eye(3, dtype=torch.float64)).abs().max())
-        if err > 1e-5 or float(torch.linalg.det(R)) <= 0:
-            raise ValueError(
-                f"box rotation must be a proper rotation (R^T R = I, det = +1); |R^T R - I| = {err:.3g}"
-            )
+        c, h, R = (torch.from_numpy(np.array(a, dtype=np.float64)) for a in box)
         self.register_buffer("center", c)
         self.register_buffer("half_extents", h)
         self.register_buffer("rotation", R)

@@ -46,8 +46,9 @@ from typing import NamedTuple
 
 import torch
 
+from regnf.core.cameras import ray_aabb
 from regnf.neural_fields.field import DEFAULT_CHUNK, Field
-from regnf.neural_fields.raycast import by_chunks, check_rays, ray_aabb
+from regnf.neural_fields.raycast import by_chunks, check_rays
 
 from .camera import Camera, CameraRays, camera_rays
 from .composite_field import BACKGROUND_ID, CompositeSample, sample_field

@@ -1,6 +1,6 @@
 """Swap registered instances for library fields: frames, removal regions, the composite.
 
-Frames (METHOD.md sections 1 and 8), all 4x4 similarities acting on column vectors:
+Frames (docs/design.md section 2), all 4x4 similarities acting on column vectors:
 
 - ``S``: scene field frame -> scene metres (the scene field's ``to_world``);
 - ``L``: library field frame -> canonical object metres (the library field's ``to_world``;

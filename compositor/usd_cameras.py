@@ -35,13 +35,12 @@ import numpy as np
 from pxr import Gf, Sdf, Usd, UsdGeom
 
 from regnf.core.atomic_io import atomic_path
+from regnf.core.cameras import OPENCV_TO_OPENGL, opencv_to_opengl
 from regnf.scene_graph import StageError
 from regnf.scene_graph.usd_read import open_stage
 
 from .camera import Camera
 
-USD_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
-"""(4, 4) flip of the camera's y and z axes: USD camera axes <-> OpenCV camera axes (its own inverse)."""
 DEFAULT_HORIZONTAL_APERTURE = float(Gf.Camera.DEFAULT_HORIZONTAL_APERTURE)
 """Horizontal aperture authored by :func:`camera_to_usd` (USD's default, 35 mm academy)."""
 DEFAULT_TIME = Usd.TimeCode.Default()
@@ -179,7 +178,7 @@ def cameras_from_usd(
     for path in paths:  # a handful of cameras
         prim = _camera_prim(stage, file, path)
         K, h = _intrinsics(UsdGeom.Camera(prim).GetCamera(t), int(width), height, file, path)
-        pose = _rigid(np.array(cache.GetLocalToWorldTransform(prim)).T, file, path) @ USD_TO_OPENCV
+        pose = _rigid(np.array(cache.GetLocalToWorldTransform(prim)).T, file, path) @ OPENCV_TO_OPENGL
         pose[:3, 3] *= metres
         cams.append(Camera(K, int(width), h, pose))
     return cams
@@ -236,7 +235,7 @@ def camera_to_usd(stage: Usd.Stage, path: str, camera: Camera) -> UsdGeom.Camera
     usd_cam.CreateHorizontalApertureOffsetAttr().Set((W / 2.0 - cx) / fx * f)
     usd_cam.CreateVerticalApertureOffsetAttr().Set((cy - H / 2.0) / fy * f)
 
-    world = camera.camera_to_world @ USD_TO_OPENCV
+    world = opencv_to_opengl(camera.camera_to_world)
     world[:3, 3] /= float(UsdGeom.GetStageMetersPerUnit(stage))
     parent = usd_cam.GetPrim().GetParent()
     cache = UsdGeom.XformCache(DEFAULT_TIME)

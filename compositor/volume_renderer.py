@@ -25,8 +25,9 @@ from typing import NamedTuple
 
 import torch
 
+from regnf.core.cameras import ray_aabb
 from regnf.neural_fields.field import Field
-from regnf.neural_fields.raycast import by_chunks, check_rays, ray_aabb
+from regnf.neural_fields.raycast import by_chunks, check_rays
 
 from .camera import Camera, camera_rays
 from .composite_field import BACKGROUND_ID, sample_field

@@ -160,7 +160,7 @@ def _from_slab_distances(q: torch.Tensor) -> torch.Tensor:
     return outside + inside
 
 
-def _box_sdf(p: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+def box_sdf(p: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """Exact SDF (n,) of the centred box with half extents ``b`` (3,) at points ``p`` (n, 3)."""
     return _from_slab_distances(p.abs() - b)
 
@@ -197,7 +197,7 @@ class Box(AnalyticField):
     def sdf(self, x: torch.Tensor) -> torch.Tensor:
         """Signed distance (n,) of points ``x`` (n, 3)."""
         check_points(x, self)
-        return _box_sdf(x - self._p("center", x), self._p("half_extents", x))
+        return box_sdf(x - self._p("center", x), self._p("half_extents", x))
 
 
 class RoundedBox(AnalyticField):
@@ -241,7 +241,7 @@ class RoundedBox(AnalyticField):
         """Signed distance (n,) of points ``x`` (n, 3)."""
         check_points(x, self)
         r = self._p("radius", x)
-        return _box_sdf(x - self._p("center", x), self._p("half_extents", x) - r) - r
+        return box_sdf(x - self._p("center", x), self._p("half_extents", x) - r) - r
 
 
 class Cylinder(AnalyticField):

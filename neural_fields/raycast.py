@@ -21,6 +21,8 @@ from typing import NamedTuple, TypeVar
 import numpy as np
 import torch
 
+from regnf.core.cameras import ray_aabb
+
 from .field import DEFAULT_CHUNK, Field
 
 Rays = TypeVar("Rays", bound=tuple)
@@ -177,26 +179,6 @@ def pinhole_rays(
 
 
 # -- tracing ---------------------------------------------------------------------------------
-def ray_aabb(
-    origins: torch.Tensor, dirs: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Slab test: entry and exit ``t`` (n,) each of rays into the box ``[lo, hi]`` (3,).
-
-    ``t_in > t_out`` means the line misses the box; ``t_in`` may be negative (the origin is
-    inside or the box is behind). Axis-parallel rays are handled without NaNs.
-    """
-    inside = (origins >= lo) & (origins <= hi)  # (n, 3)
-    inv = 1.0 / dirs  # +-inf on zero components, fixed below
-    ta, tb = (lo - origins) * inv, (hi - origins) * inv
-    tmin, tmax = torch.minimum(ta, tb), torch.maximum(ta, tb)
-    # A zero direction component: the slab is everything (origin within it) or nothing.
-    zero = dirs == 0
-    inf = torch.full_like(tmin, math.inf)
-    tmin = torch.where(zero, torch.where(inside, -inf, inf), tmin)
-    tmax = torch.where(zero, torch.where(inside, inf, -inf), tmax)
-    return tmin.max(dim=-1).values, tmax.min(dim=-1).values
-
-
 def check_rays(origins: torch.Tensor, dirs: torch.Tensor, near: float, far: float,
                unit: bool = False) -> None:
     """Raise ``ValueError`` unless ``origins``, ``dirs`` are both (n, 3), ``0 <= near < far``

@@ -15,6 +15,7 @@ from typing import NamedTuple, Protocol
 import numpy as np
 import torch
 
+from regnf.core.cameras import ray_aabb
 from regnf.synthetic.sdfstudio_format import META_NAME, CaptureError
 
 
@@ -170,10 +171,13 @@ def build_samples(capture: CaptureLike, indices: Sequence[int]) -> RGBDSamples:
 def ray_box_interval(
     origins: torch.Tensor, dirs: torch.Tensor, bounds: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Entry and exit distances (n,) of rays through an AABB (2, 3) (entry clamped at 0)."""
-    inv = 1.0 / torch.where(dirs.abs() < 1e-12, torch.full_like(dirs, 1e-12), dirs)
-    t0 = (bounds[0] - origins) * inv
-    t1 = (bounds[1] - origins) * inv
-    tmin = torch.minimum(t0, t1).amax(-1).clamp_min(0.0)
-    tmax = torch.maximum(t0, t1).amin(-1)
-    return tmin, tmax
+    """Entry and exit distances (n,) of rays through an AABB ``bounds`` (2, 3).
+
+    The slab test (:func:`regnf.core.cameras.ray_aabb`) with the entry clamped at 0. A ray that
+    misses the box gets the empty interval (0, -1), so that points sampled on it stay finite
+    (training masks them out).
+    """
+    t_in, t_out = ray_aabb(origins, dirs, bounds[0], bounds[1])
+    t_in = t_in.clamp_min(0.0)
+    miss = ~(t_out >= t_in)
+    return torch.where(miss, 0.0, t_in), torch.where(miss, -1.0, t_out)

@@ -1,4 +1,4 @@
-"""Initial registration: FPFH + RANSAC + ICP with scale (METHOD.md section 4).
+"""Initial registration: FPFH + RANSAC + ICP with scale (docs/design.md section 1.3).
 
 Input: surface samples of the scene (inside the proposal) and of the library object, each in
 its own FIELD frame. Output: up to ``top_k`` hypotheses ``T: scene field -> library field``,

@@ -1,4 +1,4 @@
-"""Registration errors against ground truth (METHOD.md section 6).
+"""Registration errors against ground truth (docs/design.md section 1.7).
 
 Both the estimate ``T`` and the truth ``T_gt`` map the SCENE field frame to the LIBRARY field
 frame. Three kinds of numbers come out:

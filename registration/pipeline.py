@@ -1,6 +1,6 @@
 """``register``: the 7-DoF similarity of a library object inside a scene field (Reg-NF).
 
-Stages (METHOD.md sections 3-5), each a function with its own config:
+Stages (docs/design.md sections 1.2-1.5), each a function with its own config:
 
 1. multi-view surface sampling of the scene inside the proposal box and of the whole
    library object (:mod:`regnf.registration.sampling`);

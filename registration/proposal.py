@@ -50,10 +50,8 @@ class ProposalBox(_ProposalBoxFields):
         if c.shape != (3,) or not np.isfinite(c).all():
             raise ValueError(f"box center must be 3 finite numbers, got {c.tolist()}")
         if h.shape != (3,) or not np.isfinite(h).all() or not (h > 0).all():
-            raise ValueError(
-                f"box half extents must be 3 finite numbers > 0 (an empty or flat box is no "
-                f"proposal), got {h.tolist()}"
-            )
+            raise ValueError(f"box half_extents must be 3 finite numbers > 0 (a box cannot be empty or "
+                             f"flat), got {h.tolist()}")
         if R.shape != (3, 3) or not np.isfinite(R).all():
             raise ValueError(f"box rotation must be a finite 3x3 matrix, got shape {R.shape}")
         if np.abs(R.T @ R - np.eye(3)).max() > 1e-5 or np.linalg.det(R) <= 0:

@@ -1,4 +1,4 @@
-"""Bidirectional SDF refinement of a scene -> library similarity (Reg-NF, METHOD.md section 5).
+"""Bidirectional SDF refinement of a scene -> library similarity (docs/design.md section 1.5).
 
 Given surface samples ``A`` of the object in the scene field (scene field frame) and ``B`` of
 the library object (library field frame), and an initial similarity ``T0``, the refinement
@@ -82,7 +82,7 @@ from regnf.registration.transform import SimilarityTransform
 
 @dataclass(frozen=True)
 class RefineConfig:
-    """Settings of the bidirectional refinement; defaults are the paper's (METHOD.md section 5).
+    """Bidirectional refinement settings; defaults are the paper's (docs/design.md section 1.5).
 
     Lengths marked *L* are in units of the library reference length (see the module docstring):
     for a library field normalised to [-1, 1]^3 they are plain library field units.

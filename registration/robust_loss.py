@@ -11,7 +11,7 @@ negative log-likelihood
     nll(x; alpha, c) = rho(x, alpha, c) + log c + log Z(alpha)
 
 can be minimised over ``alpha`` and ``c`` too: without the ``log c + log Z`` terms the loss
-would always prefer the most robust shape and the largest scale. Reg-NF (METHOD.md section 5)
+would always prefer the most robust shape and the largest scale. Reg-NF (docs/design.md section 1.5)
 learns one (alpha, c) pair shared by both residual sets, alpha in (0, 1], c initialised to 1.
 
 ``Z(alpha) = integral over the real line of exp(-rho(x, alpha, 1))`` has no closed form for

@@ -1,4 +1,4 @@
-"""Multi-view surface sampling of a field around an object proposal (METHOD.md section 3).
+"""Multi-view surface sampling of a field around an object proposal (docs/design.md section 1.2).
 
 Virtual pinhole cameras on a sphere around the proposal box look at its centre; a grid of
 rays per camera (through pixel centres) is sphere-traced and bisected to the surface. On the
@@ -20,8 +20,9 @@ from typing import Literal, NamedTuple
 import numpy as np
 import torch
 
+from regnf.core.cameras import ray_aabb
 from regnf.neural_fields.field import DEFAULT_CHUNK, Field
-from regnf.neural_fields.raycast import SphereTraceConfig, pinhole_rays, ray_aabb, sphere_trace
+from regnf.neural_fields.raycast import SphereTraceConfig, pinhole_rays, sphere_trace
 
 from .proposal import ProposalBox
 

@@ -1,6 +1,6 @@
 """The result type of registration: a 7-DoF similarity ``y = s R x + t`` (float64 numpy).
 
-Registration estimates T: scene field frame -> library field frame (METHOD.md section 1).
+Registration estimates T: scene field frame -> library field frame (docs/design.md section 2).
 The USD stage stores the inverse, object -> scene.
 """
 

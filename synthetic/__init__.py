@@ -36,7 +36,6 @@ _EXPORTS: dict[str, str] = {
     "ShadingConfig": "shading",
     "shade_face_colors": "shading",
     "shaded_copy": "shading",
-    "look_at": "trajectories",
 }
 
 __all__ = list(_EXPORTS)
@@ -67,4 +66,3 @@ if TYPE_CHECKING:  # static analysers see the real names
         write_capture,
     )
     from regnf.synthetic.shading import ShadingConfig, shade_face_colors, shaded_copy
-    from regnf.synthetic.trajectories import look_at

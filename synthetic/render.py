@@ -24,11 +24,10 @@ import numpy as np
 import pyrender
 import trimesh
 
+from regnf.core.cameras import opencv_to_opengl
+
 VOID_GREY = (0.5, 0.5, 0.5)
 """Background colour of library captures ("in a void")."""
-
-OPENCV_TO_GL = np.diag([1.0, -1.0, -1.0, 1.0])
-"""Right-multiply an OpenCV cam-to-world by this to get pyrender's (x right, y up, z back)."""
 
 _BACKGROUND_CODE = 0
 _UNLABELLED_CODE = 1  # geometry without an instance id (floor, walls, clutter)
@@ -138,7 +137,7 @@ class RGBDRenderer:
             )
         self.camera.fx, self.camera.fy = float(K[0, 0]), float(K[1, 1])
         self.camera.cx, self.camera.cy = float(K[0, 2]), float(K[1, 2])
-        self.scene.set_pose(self.camera_node, camtoworld @ OPENCV_TO_GL)
+        self.scene.set_pose(self.camera_node, opencv_to_opengl(camtoworld))
         rgb, _ = self.renderer.render(self.scene, flags=pyrender.RenderFlags.FLAT)
         seg, depth = self.renderer.render(
             self.scene, flags=pyrender.RenderFlags.SEG, seg_node_map=self.seg_map

@@ -8,40 +8,13 @@ from __future__ import annotations
 
 import numpy as np
 
+from regnf.core.cameras import look_at
+
+X_AXIS = (1.0, 0.0, 0.0)
+"""Image up of a camera that looks straight down (where world +Z cannot be)."""
+
 MIN_EYE_HEIGHT = 1.2
 """Room cameras stay above this height: all furniture is lower, so no eye is inside an object."""
-
-
-def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = (0.0, 0.0, 1.0)) -> np.ndarray:
-    """Cam-to-world pose of a camera at ``eye`` looking at ``target`` (OpenCV convention).
-
-    Parameters
-    ----------
-    eye, target : (3,) float
-        Camera centre and the point it looks at.
-    up : (3,) float
-        World up; image "up" (-y) is its projection. A camera looking along ``up`` falls back
-        to world +X as up.
-
-    Returns
-    -------
-    (4, 4) float64
-    """
-    eye = np.asarray(eye, dtype=np.float64)
-    forward = np.asarray(target, dtype=np.float64) - eye
-    norm = np.linalg.norm(forward)
-    if norm < 1e-12:
-        raise ValueError("look_at: eye and target coincide")
-    z = forward / norm
-    up = np.asarray(up, dtype=np.float64)
-    x = np.cross(z, up)
-    if np.linalg.norm(x) < 1e-9 * np.linalg.norm(up):
-        x = np.cross(z, np.array([1.0, 0.0, 0.0]))
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    pose = np.eye(4)
-    pose[:3, 0], pose[:3, 1], pose[:3, 2], pose[:3, 3] = x, y, z, eye
-    return pose
 
 
 def viewing_distance(radius: float, K: np.ndarray, width: int, height: int, fill: float) -> float:
@@ -94,7 +67,7 @@ def object_capture_poses(
     """
     dist = viewing_distance(radius, K, width, height, fill)
     eyes = np.asarray(center) + dist * fibonacci_directions(n, *elev_range_deg)
-    return np.stack([look_at(e, center) for e in eyes])
+    return np.stack([look_at(e, center, fallback_up=X_AXIS) for e in eyes])
 
 
 def _clamp_xy(eyes: np.ndarray, half_extent: tuple[float, float], margin: float) -> np.ndarray:
@@ -160,7 +133,7 @@ def room_full_coverage_poses(
         )
         eyes = np.stack([c[0] + horiz * np.cos(az), c[1] + horiz * np.sin(az), eye_z], axis=1)
         eyes = _clamp_xy(eyes, half_extent, wall_margin)
-        poses += [look_at(e, c) for e in eyes]
+        poses += [look_at(e, c, fallback_up=X_AXIS) for e in eyes]
     # Overviews from an ellipse near the walls, looking across the room at the middle.
     az = rng.uniform(0, 2 * np.pi) + 2 * np.pi * np.arange(n_over) / max(n_over, 1)
     eyes = np.stack(
@@ -172,7 +145,7 @@ def room_full_coverage_poses(
         axis=1,
     )
     targets = np.concatenate([rng.normal(0.0, 0.3, size=(n_over, 2)), np.full((n_over, 1), 0.4)], 1)
-    poses += [look_at(e, t) for e, t in zip(eyes, targets)]
+    poses += [look_at(e, t, fallback_up=X_AXIS) for e, t in zip(eyes, targets)]
     return np.stack(poses)
 
 
@@ -207,4 +180,4 @@ def room_low_coverage_poses(
     # The look-at point pans with the camera so that the arc sweeps across the objects.
     spread = np.ptp(centres[:, 0]) if len(centres) else 1.0
     targets = focus + np.outer(t * 0.6 * spread, [1.0, 0.0, 0.0])
-    return np.stack([look_at(e, g) for e, g in zip(eyes, targets)])
+    return np.stack([look_at(e, g, fallback_up=X_AXIS) for e, g in zip(eyes, targets)])

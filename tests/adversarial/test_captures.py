@@ -16,6 +16,7 @@ import trimesh
 
 from regnf.compositor.camera import Camera
 from regnf.compositor.cameras_io import cameras_from_capture
+from regnf.core.cameras import look_at
 from regnf.neural_fields.neural_sdf import NeuralSDFConfig
 from regnf.neural_fields.training import RGBDTrainConfig, train_rgbd
 from regnf.synthetic import sdfstudio_format
@@ -26,7 +27,6 @@ from regnf.synthetic.sdfstudio_format import (
     normalisation,
     write_capture,
 )
-from regnf.synthetic.trajectories import look_at
 
 W, H, N = 16, 12, 3
 K = np.array([[14.0, 0.0, 8.0], [0.0, 15.0, 6.0], [0.0, 0.0, 1.0]])

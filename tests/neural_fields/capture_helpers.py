@@ -17,10 +17,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from regnf.core.cameras import look_at
 from regnf.neural_fields.analytic import Box, Sphere, Union
 from regnf.neural_fields.raycast import SphereTraceConfig, render_field
 from regnf.synthetic.sdfstudio_format import Capture, load_capture, write_capture
-from regnf.synthetic.trajectories import fibonacci_directions, look_at, viewing_distance
+from regnf.synthetic.trajectories import fibonacci_directions, viewing_distance
 
 BOX_HALF = np.array([0.75, 0.55, 0.35])
 BOX_CENTER = np.array([0.0, 0.0, -0.25])

@@ -14,7 +14,6 @@ from regnf.neural_fields.raycast import (
     SphereTraceConfig,
     TraceResult,
     pinhole_rays,
-    ray_aabb,
     render_field,
     sphere_trace,
 )
@@ -202,15 +201,6 @@ def test_steps_zero_outside_bounds_and_near_far() -> None:
         sphere_trace(field, o, d[:2])
     empty = sphere_trace(field, o[:0], d[:0])
     assert empty.hit.shape == (0,) and empty.points.shape == (0, 3)
-
-
-def test_ray_aabb_axis_parallel() -> None:
-    o = torch.tensor([[0.0, 0.0, -2.0], [2.0, 0.0, -2.0]])
-    d = torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]])
-    t_in, t_out = ray_aabb(o, d, torch.tensor([-1.0] * 3), torch.tensor([1.0] * 3))
-    assert t_in.tolist()[0] == 1.0 and t_out.tolist()[0] == 3.0
-    assert bool(t_in[1] > t_out[1])
-    assert not bool(torch.isnan(t_in).any() | torch.isnan(t_out).any())
 
 
 def test_chunked_trace_equals_unchunked() -> None:

@@ -66,7 +66,7 @@ def test_from_corners_rejects_non_boxes() -> None:
 def test_degenerate_boxes_raise() -> None:
     with pytest.raises(ValueError, match="hi > lo"):
         ProposalBox.from_aabb(np.zeros(3), np.array([1.0, 0.0, 1.0]))
-    with pytest.raises(ValueError, match="half extents"):
+    with pytest.raises(ValueError, match="half_extents"):
         ProposalBox(np.zeros(3), np.array([1.0, -1.0, 1.0]))
     with pytest.raises(ValueError, match="proper rotation"):
         ProposalBox(np.zeros(3), np.ones(3), np.diag([1.0, 1.0, -1.0]))

@@ -1,5 +1,5 @@
-"""Write then read: every transform to 1e-9, every attribute exactly, the layout METHOD.md
-section 8 asks for, and xform ops that compose (by hand, with numpy) to the stored 4x4."""
+"""Write then read: every transform to 1e-9, every attribute exactly, the layout docs/design.md
+section 1.8 asks for, and xform ops that compose (by hand, with numpy) to the stored 4x4."""
 
 from __future__ import annotations
 

@@ -5,11 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from regnf.core.cameras import look_at
 from regnf.synthetic.library import make_library_object
 from regnf.synthetic.render import VOID_GREY, RGBDRenderer
 from regnf.synthetic.rooms import make_room
 from regnf.synthetic.shading import shaded_copy
-from regnf.synthetic.trajectories import look_at, object_capture_poses
+from regnf.synthetic.trajectories import object_capture_poses
 
 from .synth_helpers import erode, raycast
 

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import trimesh
 
+from regnf.core.cameras import look_at
 from regnf.synthetic.instance import Instance, box_corners, yaw_pose
 from regnf.synthetic.sdfstudio_format import (
     CaptureError,
@@ -17,7 +18,6 @@ from regnf.synthetic.sdfstudio_format import (
     normalisation,
     write_capture,
 )
-from regnf.synthetic.trajectories import look_at
 
 W, H, N = 16, 12, 3
 K = np.array([[14.0, 0.0, 8.0], [0.0, 15.0, 6.0], [0.0, 0.0, 1.0]])

@@ -1,13 +1,11 @@
-"""Camera trajectories: OpenCV look-at, object spheres, room coverage."""
+"""Camera trajectories: object spheres, room coverage (look-at: tests/core/test_cameras.py)."""
 
 from __future__ import annotations
 
 import numpy as np
-import pytest
 
 from regnf.synthetic.trajectories import (
     MIN_EYE_HEIGHT,
-    look_at,
     object_capture_poses,
     room_full_coverage_poses,
     room_low_coverage_poses,
@@ -19,23 +17,6 @@ K = np.array([[240.0, 0.0, 100.0], [0.0, 240.0, 100.0], [0.0, 0.0, 1.0]])
 def _project(pose: np.ndarray, K: np.ndarray, pts: np.ndarray) -> np.ndarray:
     cam = (pts - pose[:3, 3]) @ pose[:3, :3]
     return np.c_[cam[:, :2] / cam[:, 2:3] * K[[0, 1], [0, 1]] + K[:2, 2], cam[:, 2]]
-
-
-def test_look_at_is_opencv() -> None:
-    eye, target = np.array([1.0, 2.0, 1.5]), np.array([-1.0, 0.5, 0.3])
-    pose = look_at(eye, target)
-    R = pose[:3, :3]
-    np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-12)
-    assert np.isclose(np.linalg.det(R), 1.0)
-    np.testing.assert_allclose(R[:, 2], (target - eye) / np.linalg.norm(target - eye))
-    assert R[2, 1] < 0  # image y (down) points down in the world
-    assert abs(R[2, 0]) < 1e-12  # image x is horizontal
-    # Looking along +X with Z up: right is -Y.
-    np.testing.assert_allclose(look_at([0, 0, 0], [1, 0, 0])[:3, 0], [0, -1, 0], atol=1e-12)
-    straight_down = look_at([0, 0, 2], [0, 0, 0])
-    assert np.all(np.isfinite(straight_down))
-    with pytest.raises(ValueError):
-        look_at([1, 1, 1], [1, 1, 1])
 
 
 def test_object_poses_surround_and_frame_the_object() -> None:
