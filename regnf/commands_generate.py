@@ -2,18 +2,20 @@
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
 
 from rich.console import Console
 from tyro.conf import Positional
 
+from regnf.generate import GenerateConfig
+
 console = Console(stderr=True)
 
 
-@dataclass
-class Generate:
+@dataclass(frozen=True, kw_only=True)
+class Generate(GenerateConfig):
     """Generate a synthetic data set: random instance replacements of a stage, rendered (resumable)."""
 
     stage: Positional[Path]
@@ -23,68 +25,15 @@ class Generate:
     variants/NNNNNN/ (views, depth, instance masks, transforms.json). It must be new, empty or
     an earlier generate's (see --reuse); rerunning resumes. One run at a time: a second run into
     the same folder stops at once (exit status 5)."""
-    reuse: bool = False
-    """Write into an --out folder that holds other files (they are kept: nothing is removed, and
-    only the data set's own names are written)."""
-    variants: int = 10
-    """Number of variants (one seed each), at most 1,000,000 (a larger data set: several folders,
-    --first-seed)."""
-    views: int = 8
-    """Views per variant, on an orbit inside the scene's bounds."""
-    first_seed: int = 0
-    """Seed of the first variant."""
-    executor: Literal["local", "ray"] = "local"
-    """local: a process pool on this machine; ray: a Ray cluster (pip install 'regnf[distributed]')."""
-    address: str | None = None
-    """Ray cluster to join ('auto', 'ray://head:10001'); default: a local Ray instance."""
-    workers: int = 0
-    """Variants at once (local pool size, or CPUs of a local Ray instance); 0: CPU count / threads."""
-    threads_per_task: int = 1
-    """Torch threads per variant (pinned: the same on every machine, so outputs agree)."""
-    width: int = 256
-    """Image width (width * height at most 4096 * 4096)."""
-    height: int = 192
-    """Image height."""
-    fov: float = 60.0
-    """Horizontal field of view, degrees."""
-    orbit_radius: float | None = None
-    """Horizontal orbit radius in metres (default: 0.4 of the bounds' smaller horizontal side)."""
-    orbit_elevation: float = 30.0
-    """Cameras look down at the target at this angle, degrees."""
-    jitter_cameras: bool = True
-    """Turn each variant's orbit by a random azimuth from its seed."""
-    removal: Literal["box", "shell"] = "box"
-    """What is cut out of the scene per instance: its oriented box or a shell around its surface."""
-    box_pad: float = 0.05
-    """Relative growth of the removal box."""
-    retry_failed: bool = True
-    """Make variants that failed in an earlier run again."""
-    device: str = "cpu"
-    """Torch device of the workers."""
 
-    def config(self):  # -> GenerateConfig (imported lazily: `regnf --help` stays fast)
-        """The :class:`regnf.generate.GenerateConfig` these options describe."""
-        from regnf.compositor.cameras_io import OrbitConfig
-        from regnf.compositor.stage_config import StageCompositeConfig
-        from regnf.core.executors import ExecutorConfig
-        from regnf.generate import GenerateConfig
+    def __post_init__(self) -> None:
+        # The values are checked when the settings are taken (:meth:`config`, first thing in
+        # :meth:`run`): a value out of range is then one line and status 1, not a usage error.
+        pass
 
-        try:
-            return GenerateConfig(
-                variants=self.variants,
-                first_seed=self.first_seed,
-                cameras=OrbitConfig(n=self.views, width=self.width, height=self.height, fov_deg=self.fov,
-                                    radius=self.orbit_radius, elevation_deg=self.orbit_elevation),
-                jitter_cameras=self.jitter_cameras,
-                composite=StageCompositeConfig(mode="substitute", removal=self.removal, box_pad=self.box_pad),
-                executor=ExecutorConfig(kind=self.executor, workers=self.workers,
-                                        threads_per_task=self.threads_per_task, address=self.address),
-                retry_failed=self.retry_failed,
-                device=self.device,
-                reuse=self.reuse,
-            )
-        except ValueError as exc:
-            raise SystemExit(f"regnf generate: {exc}") from exc
+    def config(self) -> GenerateConfig:
+        """The settings alone (every option but the stage and the output folder)."""
+        return GenerateConfig(**{f.name: getattr(self, f.name) for f in dataclasses.fields(GenerateConfig)})
 
     def run(self) -> None:
         from regnf.generate import generate, tile_sheet, variants_per_minute

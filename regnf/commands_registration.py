@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Literal
+from typing import TYPE_CHECKING
 
 import numpy as np
 from rich.console import Console
@@ -13,6 +13,7 @@ from rich.console import Console
 from regnf.core.atomic_io import write_json
 from regnf.core.preflight import check_output_file
 from regnf.neural_fields.checkpoint import load_field
+from regnf.registration.pipeline import RegistrationConfig
 
 if TYPE_CHECKING:
     from regnf.neural_fields.field import Field
@@ -92,7 +93,7 @@ class Register:
     """Instead of --box: a capture whose `instances` give the box (with --instance)."""
     instance: str | None = None
     """Instance id (or library name) in --capture to take the box from."""
-    out: Path = Path("regnf.registration.json")
+    out: Path = Path("registration.json")
     """Where to write the result (JSON)."""
     stage: Path | None = None
     """Also write the result as an instance into this USD stage (made by `regnf stage new`)."""
@@ -101,15 +102,13 @@ class Register:
     allow_outside: bool = False
     """Open asset paths of the stage that lie outside its folder (refused by default: a stage is
     a self-contained folder, and a path out of it may name anybody's file)."""
-    top_k: int | None = None
-    """Hypotheses refined (default: the config's; 1 is the paper's method)."""
-    upright: bool = True
-    """The object stands as its library model does (the scene's +Z and the library's +Z are
-    both up): 24 yaws also start the search. --no-upright: features alone (any orientation)."""
-    optimizer: Literal["lm", "adam"] = "lm"
-    """Refinement optimiser: Levenberg-Marquardt (ours, a few iterations) or the paper's Adam."""
+    registration: RegistrationConfig = field(default_factory=RegistrationConfig)
+    """Every setting of the registration, with its unit (docs/design.md section 3): for example
+    ``--registration.init.top-k 1`` (the paper's single hypothesis), ``--registration.no-upright``
+    (objects in any orientation: features alone), ``--registration.refine.optimizer adam`` (the
+    paper's Adam instead of Levenberg-Marquardt)."""
     device: str = "cpu"
-    """Torch device."""
+    """Torch device the fields are loaded on."""
 
     def proposal_corners(self) -> np.ndarray:
         """(8, 3) corners of the proposal box in scene metres, from --box or --capture/--instance."""
@@ -131,7 +130,7 @@ class Register:
         return np.asarray(inst.box_corners, dtype=np.float64)
 
     def run(self) -> None:
-        from regnf.registration.pipeline import RegistrationConfig, register
+        from regnf.registration.pipeline import register
         from regnf.registration.proposal import ProposalBox
 
         # Everything that can be checked is checked before the registration's seconds of work.
@@ -140,21 +139,12 @@ class Register:
             from regnf.scene_graph import check_writable
 
             check_writable(self.stage, allow_outside=self.allow_outside)
-        if self.top_k is not None and self.top_k < 1:
-            raise SystemExit(f"--top-k must be at least 1, got {self.top_k}")
         corners = self.proposal_corners()
         scene = load_field(self.scene, device=self.device)
         library = load_field(self.library, device=self.device)
         S = scene.to_world.detach().cpu().double().numpy()
         proposal = ProposalBox.from_corners(corners).transformed(np.linalg.inv(S))
-        import dataclasses
-
-        cfg = RegistrationConfig(upright=self.upright)
-        cfg = dataclasses.replace(cfg, refine=dataclasses.replace(cfg.refine, optimizer=self.optimizer))
-        if self.top_k is not None:
-            init = dataclasses.replace(cfg.init, top_k=self.top_k, candidates=max(cfg.init.candidates, self.top_k))
-            cfg = dataclasses.replace(cfg, init=init)
-        result = register(scene, library, proposal, cfg)
+        result = register(scene, library, proposal, self.registration)
         payload = registration_payload(result, scene, library, self.scene, self.library)
         write_json(self.out, payload)
         t = result.transform

@@ -21,6 +21,7 @@ from regnf.registration.pipeline import RegistrationConfig
 from ..adversarial.disk import changes, snapshot
 from ..registration.fixtures import make_object, make_scene, placement
 from ..scene_graph.helpers import make_stage
+from .cli_help import assert_documented, leaf_settings
 
 
 def _table():
@@ -81,3 +82,32 @@ def test_chair_against_a_table_box_is_reported_as_failed(fields, tmp_path, capsy
     saved = json.loads(out.read_text())  # the result is still saved, flagged
     assert saved["accepted"] is False
     assert saved["confidence"] < RegistrationConfig().acceptance_threshold
+
+
+def test_help_lists_every_registration_setting_with_its_documentation(
+        capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("COLUMNS", "200")
+    with pytest.raises(SystemExit) as done:
+        main(["register", "--help"])
+    assert done.value.code == 0
+    text = " ".join(capsys.readouterr().out.replace("│", " ").split())
+    settings = leaf_settings(RegistrationConfig, "--registration")
+    assert len(settings) > 60  # sampling x 2, trace x 2, initialisation, refinement, the rest
+    assert_documented(settings, text)
+
+
+def test_a_nested_registration_setting_reaches_the_registration(
+        fields: dict[str, Path], tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    seen = {}
+
+    def spy(scene, library, proposal, config):
+        seen["config"] = config
+        raise SystemExit(0)
+
+    monkeypatch.setattr("regnf.registration.pipeline.register", spy)
+    main(["register", "--scene", str(fields["chair_room"]), "--library", str(fields["chair"]),
+          "--box", str(fields["chair_box"]), "--out", str(tmp_path / "r.json"),
+          "--registration.init.top-k", "1", "--registration.refine.optimizer", "adam",
+          "--registration.no-upright", "--registration.refine.max-offset", "0.002"])
+    cfg = seen["config"]
+    assert (cfg.init.top_k, cfg.refine.optimizer, cfg.upright, cfg.refine.max_offset) == (1, "adam", False, 0.002)

@@ -42,7 +42,7 @@ N = 6
 """Variants of the reference data set."""
 ORBIT = OrbitConfig(n=3, width=24, height=18, radius=4.5)
 """Cameras well outside the tiny scene blob."""
-CLI_VIEWS = ["--views", "3", "--width", "24", "--height", "18", "--orbit-radius", "4.5"]
+CLI_VIEWS = ["--cameras.n", "3", "--cameras.width", "24", "--cameras.height", "18", "--cameras.radius", "4.5"]
 """The same cameras on the command line."""
 
 
@@ -132,7 +132,7 @@ def test_ray_gives_the_local_outputs(stage: Path, reference: Path, tmp_path: Pat
 def test_a_killed_run_resumes_to_the_uninterrupted_outputs(stage: Path, reference: Path, tmp_path: Path) -> None:
     out = tmp_path / "data"
     cmd = [sys.executable, "-m", "regnf", "generate", str(stage), "--out", str(out), "--variants", str(N),
-           "--workers", "1", *CLI_VIEWS]
+           "--executor.workers", "1", *CLI_VIEWS]
     env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
     proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
                             start_new_session=True)
@@ -230,3 +230,20 @@ def test_a_package_is_unpacked_once_and_gives_the_same_variants(stage: Path, ref
     for r in load_rows(out):
         assert r["selections"] == ref[r["seed"]]["selections"]
         assert_same_images(out / r["variant"], reference / r["variant"], 3)
+
+
+def test_help_lists_every_generation_setting_with_its_documentation(
+        capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch) -> None:
+    from regnf.generate import GenerateConfig
+
+    from .cli_help import assert_documented, leaf_settings
+
+    monkeypatch.setenv("COLUMNS", "200")
+    with pytest.raises(SystemExit) as done:
+        main(["generate", "--help"])
+    assert done.value.code == 0
+    text = " ".join(capsys.readouterr().out.replace("│", " ").split())
+    settings = [(option.replace("--generate.", "--"), doc)
+                for option, doc in leaf_settings(GenerateConfig, "--generate")]
+    assert len(settings) > 50  # cameras, composite, renderers, executor, the rest
+    assert_documented(settings, text)

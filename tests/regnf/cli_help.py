@@ -1,0 +1,43 @@
+"""What a command's ``--help`` must show: every leaf setting of its config, with its docstring."""
+
+from __future__ import annotations
+
+import ast
+import dataclasses
+import inspect
+import itertools
+import textwrap
+import typing
+
+
+def field_docs(cls: type) -> dict[str, str]:
+    """Field name -> the docstring written under it in the source of dataclass ``cls``."""
+    body = ast.parse(textwrap.dedent(inspect.getsource(cls))).body[0].body
+    docs = {}
+    for node, after in itertools.pairwise(body):
+        if (isinstance(node, ast.AnnAssign) and isinstance(after, ast.Expr)
+                and isinstance(after.value, ast.Constant) and isinstance(after.value.value, str)):
+            docs[node.target.id] = after.value.value
+    return docs
+
+
+def leaf_settings(cls: type, prefix: str) -> list[tuple[str, str | None]]:
+    """(option, docstring) of every leaf field of the nested dataclass ``cls``."""
+    hints = typing.get_type_hints(cls)
+    docs = field_docs(cls)
+    out = []
+    for f in dataclasses.fields(cls):
+        option = f"{prefix}.{f.name.replace('_', '-')}"
+        if dataclasses.is_dataclass(hints[f.name]):
+            out += leaf_settings(hints[f.name], option)
+        else:
+            out.append((option, docs.get(f.name)))
+    return out
+
+
+def assert_documented(settings: list[tuple[str, str | None]], help_text: str) -> None:
+    """Every option is in ``help_text`` (whitespace collapsed), with its docstring's first words."""
+    for option, doc in settings:
+        assert option in help_text, option
+        if doc:  # the help is the docstring (its first words: the help text wraps the rest)
+            assert " ".join(doc.split()[:6]) in help_text, (option, doc)
