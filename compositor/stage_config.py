@@ -14,7 +14,8 @@ REMOVALS = ("box", "shell")
 
 @dataclass(frozen=True)
 class StageCompositeConfig:
-    """Settings of :func:`regnf.compositor.from_stage.composite_from_stage` (lengths in scene METRES)."""
+    """Settings of :func:`regnf.compositor.from_stage.composite_from_stage`: lengths in scene
+    METRES, except ``cull_pad`` (scene FIELD units) and the relative ``box_pad``."""
 
     mode: Literal["scene", "substitute"] = "substitute"
     """``scene``: the scene field alone (no removal, no objects); ``substitute``: every instance's

@@ -82,7 +82,8 @@ from regnf.registration.transform import SimilarityTransform
 
 @dataclass(frozen=True)
 class RefineConfig:
-    """Bidirectional refinement settings; defaults are the paper's (docs/design.md section 1.5).
+    """Bidirectional refinement settings: the paper's values where we follow it; each departure
+    (optimiser, kernel scale, offset, stops, visibility) says why (docs/design.md section 1.5).
 
     Lengths marked *L* are in units of the library reference length (see the module docstring):
     for a library field normalised to [-1, 1]^3 they are plain library field units.
@@ -165,7 +166,8 @@ class RefineConfig:
     scale error in % of the diagonal / %): fc-nop unbounded 1.08 / 0.00, 0.01: 0.68 / 0.44,
     0.005: 0.44 / 0.63, no delta 0.14 / 0.66; dc unbounded 0.38 / 0.13, 0.01: 0.36 / 0.05,
     0.005: 0.35 / 0.33, no delta 0.27 / 1.23. The scene SDF at the true observed surface of
-    the five chairs is 0.0004-0.0017 scene units (2-8 mm)."""
+    the five chairs is -0.0004 to -0.0017 scene field units (medians; the field is dilated by
+    1.2-5.2 mm at the room's 3.16 m per unit)."""
     use_visibility: bool = True
     """Weight every residual (both terms, and the confidence) by how well the scene field's
     training views observed the place of its sample (``scene_field.visibility``, recorded at
@@ -207,7 +209,8 @@ class RefineConfig:
     ``prune_margin`` (Adam: ``prune_after``); 0 disables."""
     lm_step_tolerance: float = 1e-4
     """A hypothesis has converged once an LM step would move it less than this in rotation
-    (radians), in the mapped centroid of A (*L*) and in relative scale."""
+    (radians), in the mapped centroid of A (*L*), in relative scale and in the level-set
+    offset (*L*)."""
     lm_curvature: Literal["irls", "newton"] = "newton"
     """Curvature of each robust term in the LM system: ``irls`` the reweighting's ``rho'(x)/x``
     (a majoriser: safe steps, but linear convergence; measured on the low-coverage ac-room's

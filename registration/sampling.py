@@ -31,7 +31,8 @@ Side = Literal["scene", "library"]
 
 @dataclass(frozen=True)
 class SamplingConfig:
-    """Settings of :func:`sample_surface`; distances are relative to the proposal box."""
+    """Settings of :func:`sample_surface`: distances relative to the proposal box, except
+    ``trace`` (field units)."""
 
     n_views: int = 5
     """Cameras (paper: 5 = +x, -x, +y, -y, top-down; <= 6 adds bottom-up; > 6: Fibonacci)."""
