@@ -43,7 +43,6 @@ Summary keys (all optional; paths relative to ``out``)::
 
 from __future__ import annotations
 
-import html
 import math
 import os
 from collections.abc import Iterable, Mapping, Sequence
@@ -66,6 +65,8 @@ TIMINGS_NAME = "timings.png"
 """File name of the timings chart in :data:`ASSET_DIR`."""
 DPI = 100
 """Resolution of the charts."""
+TEMPLATE_NAME = "report.html.j2"
+"""The page's template in ``regnf/templates`` (jinja2, every value escaped)."""
 
 _STYLE = """
 body { font-family: system-ui, sans-serif; margin: 2em auto; max-width: 80em; padding: 0 1em;
@@ -196,16 +197,6 @@ def _check_present(root: Path, sections: Sequence[Mapping[str, Any]],
 # small formatting helpers
 
 
-def _e(value: Any) -> str:
-    """HTML-escaped text of ``value`` (quotes included); ``None`` gives an empty string."""
-    return "" if value is None else html.escape(str(value), quote=True)
-
-
-def _href(rel: str) -> str:
-    """A relative path as an escaped URL for ``src`` / ``href`` (``/`` separators)."""
-    return html.escape(quote(PurePath(rel).as_posix(), safe="/"), quote=True)
-
-
 def _number(value: Any) -> float | None:
     """``value`` as a float, or ``None`` when it is not a number (booleans are not)."""
     if isinstance(value, bool) or not isinstance(value, (int, float)):
@@ -238,20 +229,6 @@ def _median(values: Iterable[float | None]) -> float | None:
         return None
     mid = len(finite) // 2
     return finite[mid] if len(finite) % 2 else 0.5 * (finite[mid - 1] + finite[mid])
-
-
-def _cell(text: str, classes: Sequence[str] = (), title: str | None = None) -> str:
-    """One ``<td>`` with already-escaped ``text``."""
-    attrs = f' class="{" ".join(classes)}"' if classes else ""
-    attrs += f' title="{_e(title)}"' if title else ""
-    return f"<td{attrs}>{text}</td>"
-
-
-def _figure(src_rel: str, caption: str) -> str:
-    """A ``<figure>`` showing (and linking to) one image, with its caption."""
-    src = _href(src_rel)
-    return (f'<figure><a href="{src}"><img src="{src}" alt="{_e(caption)}" loading="lazy"></a>'
-            f"<figcaption>{_e(caption)}</figcaption></figure>")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -369,7 +346,36 @@ def _timings_figure(steps: Sequence[Mapping[str, Any]]) -> Figure | None:
 
 
 # ---------------------------------------------------------------------------------------------
-# page
+# page: the numbers are formatted here, the markup is templates/report.html.j2 (autoescaped)
+
+
+class _Cell(NamedTuple):
+    """One table cell: its text (escaped by the template), CSS classes and tooltip."""
+
+    text: str
+    classes: tuple[str, ...] = ()
+    title: str | None = None
+
+
+class _Figure(NamedTuple):
+    """One image of the page: its URL-quoted relative path and its caption."""
+
+    src: str
+    caption: str
+
+
+def _figure(src_rel: str, caption: str) -> _Figure:
+    """A figure showing (and linking to) one image."""
+    return _Figure(quote(PurePath(src_rel).as_posix(), safe="/"), caption)
+
+
+def _template() -> Any:
+    """The page template, escaping every value it is given (``Markup`` excepted)."""
+    import jinja2
+
+    env = jinja2.Environment(loader=jinja2.PackageLoader("regnf", "templates"), autoescape=True,
+                             undefined=jinja2.StrictUndefined, keep_trailing_newline=True)
+    return env.get_template(TEMPLATE_NAME)
 
 
 def _render_page(summary: Mapping[str, Any], sections: Sequence[Mapping[str, Any]],
@@ -377,139 +383,104 @@ def _render_page(summary: Mapping[str, Any], sections: Sequence[Mapping[str, Any
                  steps: Sequence[Mapping[str, Any]], loss_rel: str | None,
                  timings_rel: str | None) -> str:
     """The whole HTML page."""
+    from markupsafe import Markup
+
     title = str(summary.get("title") or "regnf report")
-    parts = [
-        "<!DOCTYPE html>",
-        '<html lang="en">',
-        "<head>",
-        '<meta charset="utf-8">',
-        '<meta name="viewport" content="width=device-width, initial-scale=1">',
-        f"<title>{_e(title)}</title>",
-        f"<style>{_STYLE}</style>",
-        "</head>",
-        "<body>",
-        _header_html(summary, title, sections),
-        _timings_html(steps, _number(summary.get("total_seconds")), timings_rel),
-        _registration_html(registrations, summary.get("thresholds") or {},
-                           str(summary.get("registration_note") or "")),
-        _loss_html(loss_rel),
-        *(_section_html(i, s) for i, s in enumerate(sections)),
-        _files_html(files),
-        "</body>",
-        "</html>",
-    ]
-    return "\n".join(parts) + "\n"
-
-
-def _header_html(summary: Mapping[str, Any], title: str,
-                 sections: Sequence[Mapping[str, Any]]) -> str:
-    """Title, command, time, machine and a table of contents."""
-    rows = [("command", f"<code>{_e(summary.get('command', ''))}</code>"),
-            ("created", _e(summary.get("created", ""))),
-            ("total time", _e(_duration(_number(summary.get("total_seconds")))))]
     machine = summary.get("machine") or {}
-    rows += [(str(k), _e(v)) for k, v in machine.items()]
-    items = "\n".join(f"<dt>{_e(k)}</dt><dd>{v}</dd>" for k, v in rows)
-    links = [("timings", "Timings"), ("registration", "Registration"),
-             ("loss-curves", "Loss curves")]
-    links += [(f"section-{i}", str(s.get("title", ""))) for i, s in enumerate(sections)]
-    links.append(("files", "Files"))
-    nav = " ".join(f'<a href="#{a}">{_e(t)}</a>' for a, t in links)
-    return (f"<header><h1>{_e(title)}</h1>\n<dl class=\"machine\">\n{items}\n</dl>\n"
-            f"<nav>{nav}</nav></header>")
+    header = [("command", str(summary.get("command", "")), True),
+              ("created", str(summary.get("created", "")), False),
+              ("total time", _duration(_number(summary.get("total_seconds"))), False)]
+    header += [(str(k), str(v), False) for k, v in machine.items()]
+    nav = [("timings", "Timings"), ("registration", "Registration"), ("loss-curves", "Loss curves")]
+    nav += [(f"section-{i}", str(s.get("title", ""))) for i, s in enumerate(sections)]
+    nav.append(("files", "Files"))
+    return _template().render(
+        title=title, style=Markup(_STYLE), header=header, nav=nav,
+        timings=_timings(steps, _number(summary.get("total_seconds")), timings_rel),
+        registration=_registration(registrations, summary.get("thresholds") or {}),
+        registration_note=str(summary.get("registration_note") or ""),
+        loss_chart=None if loss_rel is None else _figure(
+            loss_rel, "registration loss (and scale s) against iteration, one line per instance"),
+        sections=[{"title": str(s.get("title", "")), "text": str(s.get("text") or ""),
+                   "figures": [_figure(str(im["path"]), str(im.get("caption", "")))
+                               for im in s.get("images") or []]} for s in sections],
+        files=[{"href": quote(PurePath(str(f["path"])).as_posix(), safe="/"), "path": str(f["path"]),
+                "what": str(f.get("what") or "")} for f in files],
+    )
 
 
-def _timings_html(steps: Sequence[Mapping[str, Any]], total: float | None,
-                  chart_rel: str | None) -> str:
-    """The steps table and the timings chart."""
-    out = ['<section id="timings"><h2>Timings</h2>']
+def _timings(steps: Sequence[Mapping[str, Any]], total: float | None,
+             chart_rel: str | None) -> dict[str, Any] | None:
+    """Rows of the steps table, its total row and the chart; None without steps."""
     if not steps:
-        out.append("<p>No steps recorded.</p></section>")
-        return "\n".join(out)
+        return None
     seconds = [_number(step.get("seconds")) for step in steps]
     step_sum = sum(s for s in seconds if s is not None)
     whole = total if total is not None and total > 0 else step_sum
-    out.append('<table id="timings-table"><thead><tr><th>step</th><th>seconds</th>'
-               "<th>% of total</th><th>cached</th><th>detail</th></tr></thead><tbody>")
+    rows = []
     for step, sec in zip(steps, seconds):
         share = None if sec is None or whole <= 0 else 100.0 * sec / whole
         cached = bool(step.get("cached"))
-        out.append("<tr>" + _cell(_e(step.get("name", ""))) + _cell(_fmt(sec, ".2f"), ["num"])
-                   + _cell(_fmt(share, ".1f"), ["num"])
-                   + _cell("yes" if cached else "no", ["ok"] if cached else [])
-                   + _cell(_e(step.get("detail", ""))) + "</tr>")
-    out.append("</tbody><tfoot>")
-    out.append('<tr class="total">' + _cell("sum of steps") + _cell(_fmt(step_sum, ".2f"), ["num"])
-               + _cell(_fmt(100.0 * step_sum / whole if whole > 0 else None, ".1f"), ["num"])
-               + _cell(f"{sum(bool(s.get('cached')) for s in steps)}/{len(steps)}")
-               + _cell("") + "</tr>")
-    out.append("</tfoot></table>")
-    if chart_rel is not None:
-        out.append(f'<div class="figures">{_figure(chart_rel, "seconds per step")}</div>')
-    out.append("</section>")
-    return "\n".join(out)
+        rows.append([_Cell(str(step.get("name", ""))), _Cell(_fmt(sec, ".2f"), ("num",)),
+                     _Cell(_fmt(share, ".1f"), ("num",)),
+                     _Cell("yes" if cached else "no", ("ok",) if cached else ()),
+                     _Cell(str(step.get("detail", "")))])
+    total_row = [_Cell("sum of steps"), _Cell(_fmt(step_sum, ".2f"), ("num",)),
+                 _Cell(_fmt(100.0 * step_sum / whole if whole > 0 else None, ".1f"), ("num",)),
+                 _Cell(f"{sum(bool(s.get('cached')) for s in steps)}/{len(steps)}"), _Cell("")]
+    chart = None if chart_rel is None else _figure(chart_rel, "seconds per step")
+    return {"rows": rows, "total": total_row, "chart": chart}
 
 
 def _metric_cell(value: float | None, metric: _Metric, compared: float | None,
-                 thresholds: Mapping[str, Any]) -> str:
+                 thresholds: Mapping[str, Any]) -> _Cell:
     """One error cell, classed ``bad`` / ``ok`` when its quantity has a target."""
     shown = None if value is None else value * metric.factor
     limit = _number(thresholds.get(metric.threshold_key)) if metric.threshold_key else None
-    classes = ["num"]
+    classes: tuple[str, ...] = ("num",)
     title = None
     if limit is not None and compared is not None:
         # A NaN error fails the comparison, so it is marked bad as well.
         within = compared <= limit
-        classes.append("ok" if within else "bad")
+        classes += ("ok" if within else "bad",)
         title = f"target ≤ {limit:g} ({metric.threshold_key})"
-    return _cell(_fmt(shown, metric.spec), classes, title)
+    return _Cell(_fmt(shown, metric.spec), classes, title)
 
 
-def _registration_row(values: Mapping[str, float | None], thresholds: Mapping[str, Any]) -> str:
+def _registration_row(values: Mapping[str, float | None], thresholds: Mapping[str, Any]) -> list[_Cell]:
     """The error and time cells of one row (an instance or the medians)."""
     cells = [_metric_cell(values[m.key], m, values.get(m.threshold_key or ""), thresholds)
              for m in _METRICS]
-    cells.append(_cell(_fmt(values["seconds"], ".1f"), ["num"]))
-    return "".join(cells)
+    return [*cells, _Cell(_fmt(values["seconds"], ".1f"), ("num",))]
 
 
-def _registration_html(registrations: Sequence[Mapping[str, Any]],
-                       thresholds: Mapping[str, Any], note: str = "") -> str:
-    """The table of registration errors against ground truth, with a median row, then ``note``."""
-    out = ['<section id="registration"><h2>Registration against ground truth</h2>']
+def _registration(registrations: Sequence[Mapping[str, Any]],
+                  thresholds: Mapping[str, Any]) -> dict[str, Any] | None:
+    """The table of registration errors against ground truth with its median row; None if empty."""
     if not registrations:
-        out.append("<p>No registrations.</p></section>")
-        return "\n".join(out)
+        return None
     keys = sorted({m.key for m in _METRICS} | {"confidence", "seconds"})
     table = [{k: _number(reg.get(k)) for k in keys} for reg in registrations]
-    headers = ["instance", "object", "confidence", "accepted", *(m.header for m in _METRICS),
-               "seconds"]
-    out.append('<table id="registration-table"><thead><tr>'
-               + "".join(f"<th>{_e(h)}</th>" for h in headers) + "</tr></thead><tbody>")
+    headers = ["instance", "object", "confidence", "accepted", *(m.header for m in _METRICS), "seconds"]
+    rows = []
     for reg, values in zip(registrations, table):
-        obj = _e(reg.get("object", ""))
+        obj = str(reg.get("object", ""))
         if reg.get("label"):
-            obj += f" ({_e(reg['label'])})"
+            obj += f" ({reg['label']})"
         accepted = bool(reg.get("accepted"))
-        out.append("<tr>" + _cell(_e(reg.get("instance", ""))) + _cell(obj)
-                   + _cell(_fmt(values["confidence"], ".3f"), ["num"])
-                   + _cell("yes" if accepted else "no", [] if accepted else ["warn"])
-                   + _registration_row(values, thresholds) + "</tr>")
+        rows.append([_Cell(str(reg.get("instance", ""))), _Cell(obj),
+                     _Cell(_fmt(values["confidence"], ".3f"), ("num",)),
+                     _Cell("yes" if accepted else "no", () if accepted else ("warn",)),
+                     *_registration_row(values, thresholds)])
     medians = {k: _median(row[k] for row in table) for k in keys}
     n_accepted = sum(bool(reg.get("accepted")) for reg in registrations)
-    out.append('</tbody><tfoot><tr class="median">' + _cell("median") + _cell("")
-               + _cell(_fmt(medians["confidence"], ".3f"), ["num"])
-               + _cell(f"{n_accepted}/{len(registrations)}")
-               + _registration_row(medians, thresholds) + "</tr></tfoot></table>")
-    out.append(_targets_note(thresholds))
-    if note:
-        out.append(f"<p>{_e(note)}</p>")
-    out.append("</section>")
-    return "\n".join(out)
+    median = [_Cell("median"), _Cell(""), _Cell(_fmt(medians["confidence"], ".3f"), ("num",)),
+              _Cell(f"{n_accepted}/{len(registrations)}"), *_registration_row(medians, thresholds)]
+    return {"headers": headers, "rows": rows, "median": median, "targets": _targets(thresholds)}
 
 
-def _targets_note(thresholds: Mapping[str, Any]) -> str:
-    """A sentence stating the acceptance targets the marks refer to."""
+def _targets(thresholds: Mapping[str, Any]) -> str | None:
+    """A sentence stating the acceptance targets the marks refer to (None without targets)."""
     rot = _number(thresholds.get("rot_geodesic_rad"))
     trans = _number(thresholds.get("trans_rel_diag"))
     scale = _number(thresholds.get("scale_rel"))
@@ -520,48 +491,4 @@ def _targets_note(thresholds: Mapping[str, Any]) -> str:
         targets.append(f"translation ≤ {100 * trans:.3g} % of the bounding-box diagonal")
     if scale is not None:
         targets.append(f"scale ≤ {100 * scale:.3g} %")
-    if not targets:
-        return '<p class="note">No acceptance targets given.</p>'
-    return ('<p class="note">Targets: ' + _e(", ".join(targets))
-            + ". Cells outside their target are marked in red with a cross.</p>")
-
-
-def _loss_html(chart_rel: str | None) -> str:
-    """The loss-curve chart, or a note that there is no history."""
-    out = ['<section id="loss-curves"><h2>Loss curves</h2>']
-    if chart_rel is None:
-        out.append("<p>No refinement history.</p>")
-    else:
-        caption = "registration loss (and scale s) against iteration, one line per instance"
-        out.append(f'<div class="figures">{_figure(chart_rel, caption)}</div>')
-    out.append("</section>")
-    return "\n".join(out)
-
-
-def _section_html(index: int, section: Mapping[str, Any]) -> str:
-    """One image section: its title, paragraph and figures."""
-    out = [f'<section id="section-{index}"><h2>{_e(section.get("title", ""))}</h2>']
-    if section.get("text"):
-        out.append(f"<p>{_e(section['text'])}</p>")
-    figures = [_figure(str(image["path"]), str(image.get("caption", "")))
-               for image in section.get("images") or []]
-    if figures:
-        out.append('<div class="figures">\n' + "\n".join(figures) + "\n</div>")
-    out.append("</section>")
-    return "\n".join(out)
-
-
-def _files_html(files: Sequence[Mapping[str, Any]]) -> str:
-    """Links to the run's other outputs."""
-    out = ['<section id="files"><h2>Files</h2>']
-    if not files:
-        out.append("<p>No files listed.</p>")
-    else:
-        out.append("<ul>")
-        for entry in files:
-            rel = str(entry["path"])
-            what = f" — {_e(entry['what'])}" if entry.get("what") else ""
-            out.append(f'<li><a href="{_href(rel)}"><code>{_e(rel)}</code></a>{what}</li>')
-        out.append("</ul>")
-    out.append("</section>")
-    return "\n".join(out)
+    return ", ".join(targets) or None

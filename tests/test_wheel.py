@@ -38,3 +38,5 @@ def test_the_wheel_holds_one_top_level_package(tmp_path: Path) -> None:
     expected |= {f"regnf/{folder}/{p.name}" for folder in FOLDERS[1:] for p in (ROOT / folder).glob("*.py")}
     assert expected <= set(names), sorted(expected - set(names))
     assert all(f"regnf/{folder}/__init__.py" in names for folder in FOLDERS[1:])
+    # And the package's data: the report's template.
+    assert {f"regnf/templates/{p.name}" for p in (ROOT / "regnf" / "templates").glob("*.j2")} <= set(names)

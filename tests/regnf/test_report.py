@@ -195,7 +195,7 @@ def test_summary_text_is_escaped(tmp_path: Path) -> None:
     path = write_report(tmp_path, summary)
     text = path.read_text(encoding="utf-8")
     assert "<script" not in text and "<b>" not in text
-    assert "&lt;script&gt;alert(&#x27;x&#x27;)&lt;/script&gt;" in text
+    assert "&lt;script&gt;alert(&#39;x&#39;)&lt;/script&gt;" in text
     assert "a &amp; b" in text
     assert "1 of 3 rejected &lt;script&gt;" in text
     page = _parse(path)
