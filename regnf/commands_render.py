@@ -6,17 +6,17 @@ import dataclasses
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, Literal
+from typing import TYPE_CHECKING, Annotated
 
 from rich.console import Console
 from tyro.conf import Positional, arg
 
+from regnf.compositor.render_folder import RenderConfig
+from regnf.compositor.stage_config import StageCompositeConfig
 from regnf.core.preflight import check_image_size, check_output_dir
 
 if TYPE_CHECKING:
     from regnf.compositor import Camera, CompositeField
-    from regnf.compositor.render_folder import RenderConfig
-    from regnf.compositor.stage_config import StageCompositeConfig
 
 console = Console(stderr=True)
 
@@ -52,26 +52,15 @@ class _Views:
     cameras: from the aperture's aspect ratio)."""
     frames: tuple[int, ...] = ()
     """Capture frames to render (indices; default all)."""
-    renderer: Literal["sphere", "volume"] = "sphere"
-    """sphere: sphere tracer (fast); volume: NeuS-style volume rendering."""
-    samples: int = 200
-    """Volume renderer: uniform samples per ray."""
-    lipschitz: float = 1.0
-    """Sphere tracer: Lipschitz bound assumed by empty-space skipping (> 1 for fields that overestimate)."""
-    removal: Literal["box", "shell"] = "box"
-    """What is cut out of the scene per instance: its oriented box or a shell around its surface."""
-    box_pad: float = 0.05
-    """Relative growth of the removal box."""
-    shell_dilation: float = 0.05
-    """Dilation of the shell removal, metres."""
-    tint: bool = False
-    """Tint every placed object with its own colour."""
-    sequence: Literal["none", "gif", "mp4"] = "none"
-    """Also write the RGB views in order as sequence.gif or sequence.mp4 (mp4 needs imageio-ffmpeg)."""
-    fps: float = 10.0
-    """Frames per second of --sequence."""
-    overwrite: bool = False
-    """Render into a folder that already holds a render."""
+    render: RenderConfig = field(default_factory=RenderConfig)
+    """How the views are rendered and written (docs/design.md section 3.6): for example
+    ``--render.renderer volume``, ``--render.volume.n-samples 64``, ``--render.sphere.grid-lipschitz
+    1.5`` (fields that overestimate), ``--render.sequence gif``, ``--render.overwrite``."""
+    composite: StageCompositeConfig = field(default_factory=StageCompositeConfig)
+    """What is cut out and placed per instance: ``--composite.removal shell``, ``--composite.box-pad``,
+    ``--composite.tint``, ... ``regnf render`` renders ``--composite.mode`` (``scene``: the scene field
+    alone; ``substitute``, the default: every instance replaced by its library field); ``regnf
+    replace`` always substitutes."""
     allow_outside: bool = False
     """Open asset paths of the stage that lie outside its folder (refused by default: a stage is
     a self-contained folder, and a path out of it may name anybody's file)."""
@@ -88,11 +77,11 @@ class _Views:
                              "(one of them)")
         if self.camera_stage is not None and not self.usd_camera:
             raise SystemExit("--camera-stage names the stage of the --usd-camera prims: give them too")
-        if self.sequence == "mp4":
+        if self.render.sequence == "mp4":
             try:
                 require_mp4()
             except SequenceBackendError as exc:
-                raise SystemExit(f"regnf: --sequence mp4: {exc}") from exc
+                raise SystemExit(f"regnf: --render.sequence mp4: {exc}") from exc
         if self.orbit is not None and self.orbit < 1:
             raise SystemExit(f"--orbit must be at least 1 camera, got {self.orbit}")
         for option, value in (("--width", self.width), ("--height", self.height)):
@@ -134,28 +123,14 @@ class _Views:
             check_image_size(cam.width, cam.height, MAX_PIXELS, "image size")
         return cams
 
-    def render_config(self) -> RenderConfig:
-        from regnf.compositor.render_folder import RenderConfig
-        from regnf.compositor.volume_renderer import VolumeRendererConfig
-
-        sphere = dataclasses.replace(RenderConfig().sphere, grid_lipschitz=self.lipschitz)
-        return RenderConfig(renderer=self.renderer, sphere=sphere,
-                            volume=VolumeRendererConfig(n_samples=self.samples), sequence=self.sequence,
-                            sequence_fps=self.fps, overwrite=self.overwrite)
-
     def composite_config(self, mode: str) -> StageCompositeConfig:
-        from regnf.compositor.stage_config import StageCompositeConfig
-
-        return StageCompositeConfig(mode=mode, removal=self.removal, box_pad=self.box_pad,
-                                    shell_dilation=self.shell_dilation, tint=self.tint)
+        """The composite settings with ``mode`` (``replace`` needs both modes)."""
+        return dataclasses.replace(self.composite, mode=mode)
 
 
 @dataclass
 class RenderStage(_Views):
     """Render a stage's scene field alone, or with every instance substituted by its library field."""
-
-    mode: Literal["scene", "substitute"] = field(kw_only=True)
-    """scene: the scene field alone; substitute: instances removed and their library fields placed."""
 
     def run(self) -> None:
         from regnf.compositor.from_stage import composite_from_stage
@@ -165,15 +140,15 @@ class RenderStage(_Views):
         self.check_options()
         t0 = time.perf_counter()
         try:
-            comp = composite_from_stage(self.stage, self.composite_config(self.mode), self.device,
+            comp = composite_from_stage(self.stage, self.composite, self.device,
                                         allow_outside=self.allow_outside)
             cams = self.cameras(comp.field)
-            meta = {"stage": str(self.stage.absolute()), "mode": self.mode,
+            meta = {"stage": str(self.stage.absolute()), "mode": self.composite.mode,
                     "instance_ids": comp.instance_ids, "load_seconds": time.perf_counter() - t0}
-            report = render_views(comp.field, cams, self.out, self.render_config(), meta)
+            report = render_views(comp.field, cams, self.out, self.render, meta)
         except (StageError, ValueError) as exc:
             raise SystemExit(f"regnf render: {exc}") from exc
-        console.print(f"[green]rendered[/] {len(report.views)} views of {self.stage} ({self.mode}) -> {self.out} "
+        console.print(f"[green]rendered[/] {len(report.views)} views of {self.stage} ({self.composite.mode}) -> {self.out} "
                       f"in {sum(report.seconds):.1f} s, {report.evals_per_pixel_mean:.1f} evaluations per pixel")
 
 
@@ -195,7 +170,7 @@ class ReplaceInstances(_Views):
             scene_only = composite_from_stage(self.stage, self.composite_config("scene"), self.device,
                                               allow_outside=self.allow_outside)
             cams = self.cameras(scene_only.field)
-            cfg = ReplaceConfig(self.composite_config("substitute"), self.render_config(), self.device)
+            cfg = ReplaceConfig(self.composite_config("substitute"), self.render, self.device)
             result = replace_and_render(self.stage, self.seed, self.out, cams, cfg, allow_outside=self.allow_outside)
         except (StageError, ValueError) as exc:
             raise SystemExit(f"regnf replace: {exc}") from exc

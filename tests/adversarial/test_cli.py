@@ -142,7 +142,7 @@ def test_outputs_of_the_wrong_kind_are_refused_before_work(tmp_path, tiny, good_
     a_folder.mkdir()
     before = snapshot(tmp_path)
     # A file where a folder is wanted, and the reverse; a folder below a file; a read-only file system.
-    assert_fails(capsys, ["render", str(tmp_path / "missing.usda"), "--mode", "scene", "--orbit", "1",
+    assert_fails(capsys, ["render", str(tmp_path / "missing.usda"), "--composite.mode", "scene", "--orbit", "1",
                           "--out", str(a_file)], rf"--out {a_file}: is a file, expected a folder")
     assert_fails(capsys, ["mesh", "--field", str(tiny), "--out", str(a_folder)], "is a folder, expected a file")
     assert_fails(capsys, ["mesh", "--field", str(tiny), "--out", str(a_file / "sub" / "m.ply")],
@@ -151,7 +151,7 @@ def test_outputs_of_the_wrong_kind_are_refused_before_work(tmp_path, tiny, good_
                           "--out", str(a_folder)], "is a folder, expected a file")
     assert_fails(capsys, ["mesh", "--field", str(tiny), "--out", str(read_only_dir / "m.ply")],
                  f"the folder {read_only_dir} is not writable")
-    assert_fails(capsys, ["render", str(tmp_path / "missing.usda"), "--mode", "scene", "--orbit", "1",
+    assert_fails(capsys, ["render", str(tmp_path / "missing.usda"), "--composite.mode", "scene", "--orbit", "1",
                           "--out", str(read_only_dir / "renders")], f"the folder {read_only_dir} is not writable")
     assert_fails(capsys, ["train", "--capture", str(tmp_path), "--out", str(tmp_path / "f.ckpt")],
                  "must end in .safetensors")
@@ -163,11 +163,11 @@ def test_limits_are_checked_before_anything_is_loaded(tmp_path, tiny, monkeypatc
     assert_fails(capsys, ["mesh", "--field", str(tiny), "--out", str(tmp_path / "m.ply"), "--resolution", "100000"],
                  r"--resolution 100000 needs about .* GiB of memory")
     side = int(np.sqrt(MAX_PIXELS)) + 1
-    assert_fails(capsys, ["render", str(tmp_path / "missing.usda"), "--mode", "scene", "--orbit", "1",
+    assert_fails(capsys, ["render", str(tmp_path / "missing.usda"), "--composite.mode", "scene", "--orbit", "1",
                           "--width", "100000", "--height", "100000", "--out", str(tmp_path / "r")], "a view may have")
-    assert_fails(capsys, ["render", str(tmp_path / "missing.usda"), "--mode", "scene", "--orbit", "1",
+    assert_fails(capsys, ["render", str(tmp_path / "missing.usda"), "--composite.mode", "scene", "--orbit", "1",
                           "--width", str(side), "--height", str(side), "--out", str(tmp_path / "r")], "a view may have")
-    assert_fails(capsys, ["render", str(tmp_path / "missing.usda"), "--mode", "scene", "--orbit", "0",
+    assert_fails(capsys, ["render", str(tmp_path / "missing.usda"), "--composite.mode", "scene", "--orbit", "0",
                           "--out", str(tmp_path / "r")], "--orbit must be at least 1")
     assert not (tmp_path / "r").exists() and not (tmp_path / "m.ply").exists()
 

@@ -43,7 +43,7 @@ def files(folder: Path) -> dict[str, str]:
 @pytest.mark.parametrize("mode", ["scene", "substitute"])
 def test_render_writes_every_view(stage: Path, tmp_path: Path, mode: str) -> None:
     out = tmp_path / mode
-    assert main(["render", str(stage), "--mode", mode, "--out", str(out), *VIEWS]) == 0
+    assert main(["render", str(stage), "--composite.mode", mode, "--out", str(out), *VIEWS]) == 0
     expect = {f"{k}_{i:04d}.png" for k in ("rgb", "depth", "instance") for i in range(3)}
     assert set(files(out)) == expect | {"contact_sheet.png", "render.json"}
     data = json.loads((out / "render.json").read_text())
@@ -58,14 +58,14 @@ def test_render_writes_every_view(stage: Path, tmp_path: Path, mode: str) -> Non
 def test_render_refuses_a_camera_inside_the_scene(stage: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "bad"
     # A tight, steep orbit puts the cameras inside the scene blob.
-    args = ["render", str(stage), "--mode", "scene", "--out", str(out), "--orbit", "2",
+    args = ["render", str(stage), "--composite.mode", "scene", "--out", str(out), "--orbit", "2",
             "--orbit-radius", "0.1", "--orbit-elevation", "85", "--width", "8", "--height", "6"]
     assert_fails(capsys, args, "camera 0 .*inside matter of the scene")
     assert not out.exists() or not any(out.rglob("*"))  # no image, no staging folder
 
 
 def test_render_needs_cameras(stage: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    assert_fails(capsys, ["render", str(stage), "--mode", "scene", "--out", str(tmp_path / "x")], r"--capture DIR, --orbit N or --usd-camera PRIM \[PRIM ...\] \(one of")
+    assert_fails(capsys, ["render", str(stage), "--composite.mode", "scene", "--out", str(tmp_path / "x")], r"--capture DIR, --orbit N or --usd-camera PRIM \[PRIM ...\] \(one of")
 
 
 def cameras_of(out: Path) -> list[Camera]:
@@ -85,12 +85,12 @@ def assert_same_view(a: Path, b: Path) -> None:
 
 def test_render_from_usd_cameras(stage: Path, tmp_path: Path) -> None:
     orbit = tmp_path / "orbit"
-    assert main(["render", str(stage), "--mode", "scene", "--out", str(orbit), *VIEWS]) == 0
+    assert main(["render", str(stage), "--composite.mode", "scene", "--out", str(orbit), *VIEWS]) == 0
     cams = cameras_of(orbit)
     # From another stage, in the order given; the height follows from the aperture.
     write_cameras_usd(tmp_path / "cams.usda", cams)
     out = tmp_path / "usd"
-    assert main(["render", str(stage), "--mode", "scene", "--out", str(out), "--camera-stage",
+    assert main(["render", str(stage), "--composite.mode", "scene", "--out", str(out), "--camera-stage",
                  str(tmp_path / "cams.usda"), "--usd-camera", "/Cameras/view_0002", "/Cameras/view_0000",
                  "--width", "24"]) == 0
     for got, want in zip(cameras_of(out), [cams[2], cams[0]], strict=True):
@@ -106,14 +106,14 @@ def test_render_from_usd_cameras(stage: Path, tmp_path: Path) -> None:
     camera_to_usd(usd, "/Cameras/hero", cams[1])
     usd.Save()
     out = tmp_path / "own"
-    assert main(["render", str(own), "--mode", "scene", "--out", str(out), "--usd-camera", "/Cameras/hero",
+    assert main(["render", str(own), "--composite.mode", "scene", "--out", str(out), "--usd-camera", "/Cameras/hero",
                  "--width", "24", "--height", "18"]) == 0
     assert_same_view(out / "rgb_0000.png", orbit / "rgb_0001.png")
 
 
 def test_usd_camera_mistakes(stage: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "x"
-    args = ["render", str(stage), "--mode", "scene", "--out", str(out)]
+    args = ["render", str(stage), "--composite.mode", "scene", "--out", str(out)]
     assert_fails(capsys, [*args, "--usd-camera", "/Cameras/view_0000", *VIEWS], "one of them")
     assert_fails(capsys, [*args, "--camera-stage", str(stage), *VIEWS], "--camera-stage names the stage of the --usd-camera prims")
     assert_fails(capsys, [*args, "--usd-camera", "/Cameras/nope"], rf"regnf: cameras: {stage}: prim /Cameras/nope: no such prim")
@@ -132,12 +132,12 @@ def gif_frames(path: Path) -> int:
 
 def test_render_and_replace_write_a_sequence(stage: Path, tmp_path: Path) -> None:
     out = tmp_path / "render"
-    assert main(["render", str(stage), "--mode", "substitute", "--out", str(out), *VIEWS,
-                 "--sequence", "gif", "--fps", "5"]) == 0
+    assert main(["render", str(stage), "--composite.mode", "substitute", "--out", str(out), *VIEWS,
+                 "--render.sequence", "gif", "--render.sequence-fps", "5"]) == 0
     assert gif_frames(out / "sequence.gif") == 3
     assert json.loads((out / "render.json").read_text())["files"]["sequence"] == "sequence.gif"
     out = tmp_path / "replace"
-    assert main(["replace", str(stage), "--seed", "5", "--out", str(out), *VIEWS, "--sequence", "gif"]) == 0
+    assert main(["replace", str(stage), "--seed", "5", "--out", str(out), *VIEWS, "--render.sequence", "gif"]) == 0
     assert gif_frames(out / "sequence.gif") == 3 and (out / "transforms.json").is_file()
 
 
@@ -146,8 +146,8 @@ def test_mp4_without_its_package_is_refused_at_once(stage: Path, tmp_path: Path,
     from regnf.compositor import sequence_io
 
     monkeypatch.setattr(sequence_io.importlib.util, "find_spec", lambda name: None)  # as if not installed
-    for command in (["render", str(stage), "--mode", "scene"], ["replace", str(stage)]):
-        assert_fails(capsys, [*command, "--out", str(tmp_path / "x"), *VIEWS, "--sequence", "mp4"], "--sequence mp4: writing MP4 needs the package imageio-ffmpeg")
+    for command in (["render", str(stage), "--composite.mode", "scene"], ["replace", str(stage)]):
+        assert_fails(capsys, [*command, "--out", str(tmp_path / "x"), *VIEWS, "--render.sequence", "mp4"], "--render.sequence mp4: writing MP4 needs the package imageio-ffmpeg")
     assert not (tmp_path / "x").exists()
 
 
@@ -196,3 +196,21 @@ def test_replace_from_a_package_unpacks_it(stage: Path, tmp_path: Path, capsys: 
     assert {i: s.library_name for i, s in read_stage(out / "replacement.usda").instances.items()} == \
         pick_replacements(read_stage(stage), 5)
     assert_fails(capsys, ["replace", str(usdz), "--seed", "6", "--out", str(out), *views], "already holds replacement.usda")
+
+
+@pytest.mark.parametrize("command", ["render", "replace"])
+def test_help_lists_every_render_and_composite_setting(command: str, capsys: pytest.CaptureFixture[str],
+                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    from regnf.compositor.render_folder import RenderConfig
+    from regnf.compositor.stage_config import StageCompositeConfig
+
+    from .cli_help import assert_documented, leaf_settings
+
+    monkeypatch.setenv("COLUMNS", "200")
+    with pytest.raises(SystemExit) as done:
+        main([command, "--help"])
+    assert done.value.code == 0
+    text = " ".join(capsys.readouterr().out.replace("│", " ").split())
+    settings = leaf_settings(RenderConfig, "--render") + leaf_settings(StageCompositeConfig, "--composite")
+    assert len(settings) > 35  # both renderers, the folder, the composite
+    assert_documented(settings, text)
