@@ -28,6 +28,7 @@ import torch
 from regnf.core.cameras import ray_aabb
 from regnf.neural_fields.field import Field
 from regnf.neural_fields.raycast import by_chunks, check_rays
+from regnf.neural_fields.volume_render import neus_weights
 
 from .camera import Camera, camera_rays
 from .composite_field import BACKGROUND_ID, sample_field
@@ -111,15 +112,6 @@ def _sdf_checked(field: Field, p: torch.Tensor):
     return s
 
 
-def _weights(sdf: torch.Tensor, inv_s: float) -> torch.Tensor:
-    """NeuS interval weights (r, m - 1) from SDF samples (r, m) ordered along each ray."""
-    cdf = torch.sigmoid(sdf * inv_s)
-    alpha = ((cdf[:, :-1] - cdf[:, 1:]) / cdf[:, :-1].clamp(min=1e-6)).clamp(0.0, 1.0)
-    ones = torch.ones_like(alpha[:, :1])
-    trans = torch.cumprod(torch.cat([ones, 1.0 - alpha], dim=1), dim=1)[:, :-1]
-    return trans * alpha
-
-
 def _importance(t: torch.Tensor, w: torch.Tensor, k: int) -> torch.Tensor:
     """``k`` samples (r, k) per ray from the piecewise-constant pdf ``w`` (r, m - 1) on ``t`` (r, m)."""
     pdf = w + 1e-5  # a floor keeps rays without any weight uniformly sampled
@@ -201,13 +193,13 @@ def _integrate_chunk(
 
     sdf, win, evals = query(t)
     if cfg.n_importance > 0:
-        t_new = _importance(t, _weights(sdf, cfg.inv_s), cfg.n_importance)
+        t_new = _importance(t, neus_weights(sdf, cfg.inv_s), cfg.n_importance)
         sdf_new, win_new, evals_new = query(t_new)
         t, order = torch.cat([t, t_new], dim=1).sort(dim=1)
         sdf = torch.cat([sdf, sdf_new], dim=1).gather(1, order)
         win = torch.cat([win, win_new], dim=1).gather(1, order)
         evals = evals + evals_new
-    w = _weights(sdf, cfg.inv_s)  # (r, k - 1)
+    w = neus_weights(sdf, cfg.inv_s)  # (r, k - 1)
 
     acc = w.sum(dim=1)
     t_mid = 0.5 * (t[:, :-1] + t[:, 1:])

@@ -14,6 +14,25 @@ import torch.nn.functional as F
 
 from regnf.neural_fields.neural_sdf import NeuralSDF
 
+TRAINING_EPS = 1e-7
+"""Added to every ``1 - alpha`` of the transmittance in training: an opaque interval
+(``alpha = 1``) would otherwise zero the product, and with it every gradient that flows
+through the samples behind it."""
+
+
+def neus_weights(sdf: torch.Tensor, inv_s: float, eps: float = 0.0) -> torch.Tensor:
+    """NeuS interval weights (r, m - 1) from SDF samples ``sdf`` (r, m) ordered along each ray.
+
+    ``alpha_i = clamp((Phi(s f_i) - Phi(s f_{i+1})) / Phi(s f_i), 0, 1)`` with ``Phi`` the logistic
+    CDF of sharpness ``s = inv_s``, transmittance ``T_i = prod_{j<i} (1 - alpha_j + eps)``,
+    weight ``T_i alpha_i``. ``eps``: 0 to render, :data:`TRAINING_EPS` to train.
+    """
+    cdf = torch.sigmoid(sdf * inv_s)
+    alpha = ((cdf[:, :-1] - cdf[:, 1:]) / cdf[:, :-1].clamp_min(1e-6)).clamp(0.0, 1.0)
+    ones = torch.ones_like(alpha[:, :1])
+    keep = 1.0 - alpha + eps if eps else 1.0 - alpha
+    return torch.cumprod(torch.cat([ones, keep], dim=1), dim=1)[:, :-1] * alpha
+
 
 def render_rays_neus(
     field: NeuralSDF,
@@ -42,9 +61,6 @@ def render_rays_neus(
     sdf, feat = field.sdf_and_features(pts)
     normals = F.normalize(g, dim=-1).detach()
     rgb = field.color_from(feat, normals, dirs.repeat_interleave(n_samples, 0)).view(r, n_samples, 3)
-    cdf = torch.sigmoid(sdf.view(r, n_samples) * inv_s)
-    alpha = ((cdf[:, :-1] - cdf[:, 1:]) / cdf[:, :-1].clamp_min(1e-6)).clamp(0.0, 1.0)
-    trans = torch.cumprod(torch.cat([torch.ones(r, 1, device=alpha.device), 1.0 - alpha + 1e-7], dim=1), dim=1)[:, :-1]
-    weights = trans * alpha  # (r, n - 1): one weight per interval
+    weights = neus_weights(sdf.view(r, n_samples), inv_s, TRAINING_EPS)  # (r, n - 1)
     mid = 0.5 * (rgb[:, :-1] + rgb[:, 1:])
     return (weights[..., None] * mid).sum(dim=1), weights.sum(dim=1)
