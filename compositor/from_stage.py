@@ -17,31 +17,25 @@ from collections.abc import Callable, MutableMapping
 from pathlib import Path
 from typing import NamedTuple
 
-import numpy as np
 import torch
 
-from regnf.neural_fields.checkpoint import CheckpointError, load_field
 from regnf.neural_fields.field import Field
 from regnf.scene_graph import (
+    INSTANCES_PRIM,
+    SCENE_PRIM,
     ComposedScene,
-    FieldRecord,
     RegistrationProvenance,
     StageError,
+    instance_path,
+    load_record_field,
+    original_selections,
     read_stage,
 )
-from regnf.scene_graph import layout as L
-from regnf.scene_graph.embedded_checkpoint import checkpoint_file
-from regnf.scene_graph.usd_read import replacement_base as _replacement_base
 
 from .composite_field import CompositeField
 from .oriented_box import OrientedBox
 from .stage_config import DEFAULT_STAGE_COMPOSITE, StageCompositeConfig
 from .substitution import SubstitutedInstance, build_composite, check_z_up
-
-TO_WORLD_ATOL = 1e-9
-"""A stage's recorded to_world must match its checkpoint's to this (absolute, per entry)."""
-MAX_LAYER_DEPTH = 16
-"""Longest chain of replacement layers followed to find an instance's original object."""
 
 
 class StageComposite(NamedTuple):
@@ -119,17 +113,17 @@ def composite_from_scene(
         reads its fields).
     """
     path = Path(stage_path).absolute()
-    scene_field = _load(path, L.SCENE, scene.scene, device, loaded)
+    scene_field = load_record_field(path, SCENE_PRIM, scene.scene, device, loaded)
     if config.mode == "scene":
         return StageComposite(build_composite(scene_field, [], config), scene, {})
     try:
         check_z_up(scene.scene.to_world, f"scene field {scene.scene.name!r}")
     except ValueError as exc:
-        raise StageError(path, L.SCENE, str(exc)) from exc
+        raise StageError(path, SCENE_PRIM, str(exc)) from exc
     cache: dict[str, Field] = {}
     specs, ids = [], {}
     for k, (iid, inst) in enumerate(scene.instances.items(), start=1):
-        where = L.instance_path(iid)
+        where = instance_path(iid)
         original = originals.get(iid, inst.library_name)
         for name in (original, inst.library_name):
             if name not in scene.library:
@@ -148,73 +142,8 @@ def composite_from_scene(
     try:
         field = build_composite(scene_field, specs, config)
     except ValueError as exc:
-        raise StageError(path, L.INSTANCES, str(exc)) from exc
+        raise StageError(path, INSTANCES_PRIM, str(exc)) from exc
     return StageComposite(field, scene, ids)
-
-
-def original_selections(stage_path: str | os.PathLike, scene: ComposedScene, depth: int = 0,
-                        allow_outside: bool = False) -> dict[str, str]:
-    """Instance id -> the library object that was REGISTERED (the one to remove).
-
-    The registration provenance's library name when recorded; otherwise, for a replacement
-    layer, the selection of the stage beneath it (recursively); otherwise the selection.
-
-    Parameters
-    ----------
-    stage_path : str or PathLike
-        The stage ``scene`` was read from.
-    scene : ComposedScene
-    depth : int
-        Replacement layers followed so far (at most :data:`MAX_LAYER_DEPTH`).
-    allow_outside : bool
-        Follow a ``replacementOf`` outside the layer's folder (refused by default, before the
-        base is opened).
-    """
-    path = Path(stage_path).absolute()
-    base = replacement_base(path, allow_outside)
-    below: dict[str, str] = {}
-    if base is not None:
-        if depth >= MAX_LAYER_DEPTH:
-            raise StageError(path, "/", f"more than {MAX_LAYER_DEPTH} nested replacement layers")
-        below = original_selections(base, read_stage(base, check_checkpoints=False, allow_outside=allow_outside),
-                                    depth + 1, allow_outside)
-    out = {}
-    for iid, inst in scene.instances.items():
-        reg = inst.registration
-        out[iid] = reg.library_name if reg is not None and reg.library_name else below.get(iid, inst.library_name)
-    return out
-
-
-def replacement_base(stage_path: str | os.PathLike, allow_outside: bool = False) -> Path | None:
-    """The stage a replacement layer sits over, or None for a plain stage or package.
-
-    Raises
-    ------
-    StageError
-        ``replacementOf`` resolves outside the layer's folder (unless ``allow_outside``).
-    """
-    return _replacement_base(stage_path, allow_outside)
-
-
-def _load(stage: Path, prim: str, rec: FieldRecord, device: torch.device | str,
-          loaded: MutableMapping[str, Field] | None = None) -> Field:
-    """Load ``rec``'s checkpoint (from inside a package too) and check its ``to_world``."""
-    key = f"{rec.checkpoint}@{device}"
-    if loaded is not None and key in loaded:
-        return loaded[key]
-    try:
-        with checkpoint_file(rec.checkpoint) as ckpt:
-            field = load_field(ckpt, device)
-    except CheckpointError as exc:
-        raise StageError(rec.checkpoint, prim, f"checkpoint of {rec.name!r} in {stage}: {exc.problem}") from exc
-    got = field.to_world.detach().cpu().double().numpy()
-    err = float(np.abs(got - rec.to_world).max())
-    if err > TO_WORLD_ATOL:
-        raise StageError(stage, prim, f"the stage records a to_world for {rec.name!r} that differs from "
-                         f"its checkpoint's {rec.checkpoint} by {err:.3g}")
-    if loaded is not None:
-        loaded[key] = field
-    return field
 
 
 def _loader(
@@ -225,7 +154,7 @@ def _loader(
 
     def load(name: str) -> Field:
         if name not in cache:
-            cache[name] = _load(stage, f"{where} (library object {name!r})", scene.library[name], device, loaded)
+            cache[name] = load_record_field(stage, f"{where} (library object {name!r})", scene.library[name], device, loaded)
         return cache[name]
 
     return load

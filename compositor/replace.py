@@ -31,11 +31,12 @@ from regnf.scene_graph import (
     StageError,
     export_stage,
     make_replacement_layer,
+    original_selections,
     read_stage,
 )
 
 from .camera import Camera
-from .from_stage import composite_from_scene, composite_from_stage, original_selections
+from .from_stage import composite_from_scene, composite_from_stage
 from .nerfstudio import transforms_json
 from .render_folder import RenderConfig, RenderReport, check_cameras, check_sequence, render_views
 from .stage_config import StageCompositeConfig

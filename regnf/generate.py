@@ -262,11 +262,11 @@ _WORKER_CACHE: dict[str, Any] = {}
 
 def render_variant(task: VariantTask) -> VariantOutput:
     """Make one variant in a private temporary folder and return its files (runs in a worker)."""
-    from regnf.compositor.from_stage import composite_from_scene, original_selections
+    from regnf.compositor.from_stage import composite_from_scene
     from regnf.compositor.nerfstudio import transforms_json
     from regnf.compositor.render_folder import render_views
     from regnf.compositor.replace import pick_replacements, swapped
-    from regnf.scene_graph import read_stage
+    from regnf.scene_graph import original_selections, read_stage
 
     t0 = time.perf_counter()
     base = Path(task.base_stage)

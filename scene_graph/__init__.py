@@ -20,17 +20,22 @@ from .edit import (
     provenance_from_registration,
 )
 from .errors import StageError
-from .fields import ProxyConfig, field_record, proxy_from_trimesh
+from .fields import ProxyConfig, field_record, load_record_field, proxy_from_trimesh
+from .layout import INSTANCES as INSTANCES_PRIM
+from .layout import SCENE as SCENE_PRIM
+from .layout import instance_path
 from .locking import STAGE_LOCK_TIMEOUT_S, check_writable, stage_lock
 from .model import ComposedScene, FieldRecord, InstanceRecord, ProxyMesh, RegistrationProvenance
 from .package import export_stage
-from .replacement import make_replacement_layer
+from .replacement import make_replacement_layer, original_selections
 from .summary import summarize
-from .usd_read import read_stage
+from .usd_read import read_stage, replacement_base
 from .usd_write import write_stage
 from .validation import validate_stage
 
 __all__ = [
+    "INSTANCES_PRIM",
+    "SCENE_PRIM",
     "STAGE_LOCK_TIMEOUT_S",
     "ComposedScene",
     "FieldRecord",
@@ -45,12 +50,16 @@ __all__ = [
     "check_writable",
     "export_stage",
     "field_record",
+    "instance_path",
+    "load_record_field",
     "make_replacement_layer",
     "new_stage",
+    "original_selections",
     "parse_registration",
     "provenance_from_registration",
     "proxy_from_trimesh",
     "read_stage",
+    "replacement_base",
     "stage_lock",
     "summarize",
     "validate_stage",

@@ -3,16 +3,19 @@
 from __future__ import annotations
 
 import os
+from collections.abc import MutableMapping
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import torch
 import trimesh
 
 from regnf.neural_fields.checkpoint import CheckpointError, load_field, read_header
-from regnf.neural_fields.field import Symmetry
+from regnf.neural_fields.field import Field, Symmetry
 from regnf.neural_fields.meshing import extract_mesh
 
+from .embedded_checkpoint import checkpoint_file
 from .errors import StageError
 from .model import FieldRecord, ProxyMesh
 
@@ -101,3 +104,44 @@ def field_record(
     )
 
 
+TO_WORLD_ATOL = 1e-9
+"""A stage's recorded to_world must match its checkpoint's to this (absolute, per entry)."""
+
+
+def load_record_field(stage: Path, prim: str, rec: FieldRecord, device: torch.device | str,
+                      loaded: MutableMapping[str, Field] | None = None) -> Field:
+    """Load ``rec``'s checkpoint (from inside a package too) and check its ``to_world``.
+
+    Parameters
+    ----------
+    stage : Path
+        The stage ``rec`` was read from (named in errors).
+    prim : str
+        Where in the stage the record is (named in errors).
+    rec : FieldRecord
+    device : torch.device or str
+    loaded : mutable mapping, optional
+        Fields already loaded, by checkpoint and device: each checkpoint is loaded once.
+
+    Raises
+    ------
+    StageError
+        The checkpoint cannot be loaded, or its ``to_world`` differs from the stage's record by
+        more than :data:`TO_WORLD_ATOL`.
+    """
+    key = f"{rec.checkpoint}@{device}"
+    if loaded is not None and key in loaded:
+        return loaded[key]
+    try:
+        with checkpoint_file(rec.checkpoint) as ckpt:
+            field = load_field(ckpt, device)
+    except CheckpointError as exc:
+        raise StageError(rec.checkpoint, prim, f"checkpoint of {rec.name!r} in {stage}: {exc.problem}") from exc
+    got = field.to_world.detach().cpu().double().numpy()
+    err = float(np.abs(got - rec.to_world).max())
+    if err > TO_WORLD_ATOL:
+        raise StageError(stage, prim, f"the stage records a to_world for {rec.name!r} that differs from "
+                         f"its checkpoint's {rec.checkpoint} by {err:.3g}")
+    if loaded is not None:
+        loaded[key] = field
+    return field

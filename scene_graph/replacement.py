@@ -20,7 +20,7 @@ from .errors import StageError
 from .locking import stage_lock
 from .model import ComposedScene
 from .transaction import file_transaction
-from .usd_read import read_stage, regnf_data, root_layer_of
+from .usd_read import read_stage, regnf_data, replacement_base, root_layer_of
 
 
 def make_replacement_layer(
@@ -116,3 +116,40 @@ def _layer(base: Path, scene: ComposedScene, selections: Mapping[str, str], suff
             spec.referenceList.explicitItems = [Sdf.Reference("./" + L.slot_layer(new))]
         spec.variantSelections[L.VARIANT_SET] = name
     return layer
+
+
+MAX_LAYER_DEPTH = 16
+"""Longest chain of replacement layers followed to find an instance's original object."""
+
+
+def original_selections(stage_path: str | os.PathLike, scene: ComposedScene, depth: int = 0,
+                        allow_outside: bool = False) -> dict[str, str]:
+    """Instance id -> the library object that was REGISTERED (the one to remove).
+
+    The registration provenance's library name when recorded; otherwise, for a replacement
+    layer, the selection of the stage beneath it (recursively); otherwise the selection.
+
+    Parameters
+    ----------
+    stage_path : str or PathLike
+        The stage ``scene`` was read from.
+    scene : ComposedScene
+    depth : int
+        Replacement layers followed so far (at most :data:`MAX_LAYER_DEPTH`).
+    allow_outside : bool
+        Follow a ``replacementOf`` outside the layer's folder (refused by default, before the
+        base is opened).
+    """
+    path = Path(stage_path).absolute()
+    base = replacement_base(path, allow_outside)
+    below: dict[str, str] = {}
+    if base is not None:
+        if depth >= MAX_LAYER_DEPTH:
+            raise StageError(path, "/", f"more than {MAX_LAYER_DEPTH} nested replacement layers")
+        below = original_selections(base, read_stage(base, check_checkpoints=False, allow_outside=allow_outside),
+                                    depth + 1, allow_outside)
+    out = {}
+    for iid, inst in scene.instances.items():
+        reg = inst.registration
+        out[iid] = reg.library_name if reg is not None and reg.library_name else below.get(iid, inst.library_name)
+    return out

@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 from pxr import Sdf
 
-from regnf.compositor.from_stage import composite_from_stage, replacement_base
+from regnf.compositor.from_stage import composite_from_stage
 from regnf.compositor.stage_config import StageCompositeConfig
 from regnf.core.file_lock import LockBusy
 from regnf.scene_graph import (
@@ -34,6 +34,7 @@ from regnf.scene_graph import (
     locking,
     make_replacement_layer,
     read_stage,
+    replacement_base,
     stage_lock,
 )
 from tests.adversarial.disk import changes, snapshot

@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from regnf.compositor import Camera, look_at, render
-from regnf.compositor.from_stage import composite_from_stage, original_selections
+from regnf.compositor.from_stage import composite_from_stage
 from regnf.compositor.regions import OrientedBoxRegion, ShellRegion
 from regnf.compositor.stage_config import StageCompositeConfig
 from regnf.compositor.substitution import base_height, check_z_up, library_to_scene
@@ -24,6 +24,7 @@ from regnf.scene_graph import (
     export_stage,
     make_replacement_layer,
     new_stage,
+    original_selections,
     read_stage,
 )
 from tests.scene_graph.helpers import TINY, box_proxy, make_stage, registration_json, similarity
