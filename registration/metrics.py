@@ -133,9 +133,7 @@ def symmetry_rotations(
     """
     Rw, tw, sw = (np.asarray(a, dtype=np.float64) for a in decompose_similarity(library_to_world))
     th = np.asarray(thetas, dtype=np.float64).reshape(-1)
-    c, s = np.cos(th), np.sin(th)
-    Rz = np.zeros((len(th), 3, 3))
-    Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1], Rz[:, 2, 2] = c, -s, s, c, 1.0
+    Rz = Rotation.from_euler("z", th[:, None]).as_matrix().reshape(len(th), 3, 3)
     # x -> W^-1(Rz(W x)) = Rw^T Rz Rw x + Rw^T (Rz tw - tw) / sw
     R = Rw.T @ Rz @ Rw
     t = ((Rz @ tw - tw) @ Rw) / sw

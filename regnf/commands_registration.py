@@ -9,6 +9,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 from rich.console import Console
+from scipy.spatial.transform import Rotation
 
 from regnf.core.atomic_io import write_json
 from regnf.core.preflight import check_output_file
@@ -52,7 +53,7 @@ def load_box_metres(path: Path) -> np.ndarray:
             if not (size > 0).all():
                 raise ValueError(f"'size' must be positive on every axis, got {size.tolist()}")
             signs = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=np.float64)
-            R = np.array([[np.cos(yaw), -np.sin(yaw), 0.0], [np.sin(yaw), np.cos(yaw), 0.0], [0.0, 0.0, 1.0]])
+            R = Rotation.from_euler("z", yaw).as_matrix()
             corners = c + (signs * 0.5 * size) @ R.T
         ProposalBox.from_corners(corners)  # refuses degenerate, mirrored or non-box corners
     except KeyError as exc:

@@ -44,20 +44,11 @@ def ops_from_matrix(M: np.ndarray) -> XformOps:
     return XformOps(np.asarray(t, dtype=np.float64), q / np.linalg.norm(q), float(s))
 
 
-def quat_to_matrix(q: np.ndarray) -> np.ndarray:
-    """(3, 3) rotation of a quaternion ``(w, x, y, z)`` (normalised first)."""
-    w, x, y, z = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ])
-
-
 def matrix_from_ops(ops: XformOps) -> np.ndarray:
     """(4, 4) float64 ``T R S`` (column vectors) of the ops."""
     M = np.eye(4)
-    M[:3, :3] = quat_to_matrix(ops.orient) * float(ops.scale)
+    w, x, y, z = ops.orient
+    M[:3, :3] = Rotation.from_quat([x, y, z, w]).as_matrix() * float(ops.scale)  # normalised by scipy
     M[:3, 3] = ops.translate
     return M
 

@@ -100,6 +100,8 @@ def box_corners(bounds: np.ndarray, transform: np.ndarray) -> np.ndarray:
 
 def yaw_pose(yaw: float, translation: np.ndarray, scale: float = 1.0) -> np.ndarray:
     """(4, 4) float64 similarity: scale, then rotation by ``yaw`` about +Z, then translation."""
+    # Written out rather than scipy's Rotation.from_euler, which differs in the last bits: the
+    # rooms' geometry, and so every cached capture, stays bit-identical.
     c, s = np.cos(yaw), np.sin(yaw)
     pose = np.eye(4)
     pose[:3, :3] = scale * np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
