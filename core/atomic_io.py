@@ -30,6 +30,18 @@ def user_mode(path: str | os.PathLike, directory: bool = False) -> None:
     os.chmod(path, (0o777 if directory else 0o666) & ~umask)
 
 
+def temp_beside(dest: str | os.PathLike, suffix: str | None = None) -> Path:
+    """A new, empty temporary file (:data:`TEMP_PREFIX`, the user's permissions) in ``dest``'s
+    folder, to be renamed over ``dest``; ``suffix`` defaults to the destination's suffix, so
+    that libraries that pick a format from the file name (imageio, trimesh) still do."""
+    dest = Path(dest)
+    fd, tmp = tempfile.mkstemp(prefix=f"{TEMP_PREFIX}{dest.name}.",
+                               suffix=dest.suffix if suffix is None else suffix, dir=dest.parent)
+    os.close(fd)
+    user_mode(tmp)
+    return Path(tmp)
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; it replaces ``path`` only if the block succeeds.
@@ -39,13 +51,7 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
     """
     dest = Path(path)
     dest.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(
-        prefix=f"{TEMP_PREFIX}{dest.name}.", suffix=suffix if suffix is not None else "".join(dest.suffixes[-1:]),
-        dir=dest.parent,
-    )
-    os.close(fd)
-    tmp_path = Path(tmp)
-    user_mode(tmp_path)
+    tmp_path = temp_beside(dest, suffix)
     try:
         yield tmp_path
         os.replace(tmp_path, dest)

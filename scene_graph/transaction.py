@@ -24,7 +24,7 @@ import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
-from regnf.core.atomic_io import TEMP_PREFIX, user_mode
+from regnf.core.atomic_io import TEMP_PREFIX, temp_beside, user_mode
 
 
 class FileTransaction:
@@ -50,11 +50,9 @@ class FileTransaction:
         if any(d == dest for _, d in self._staged):
             raise ValueError(f"{dest} is written twice in one transaction")
         self._mkdirs(dest.parent)
-        fd, tmp = tempfile.mkstemp(prefix=f"{TEMP_PREFIX}{dest.name}.", suffix=dest.suffix, dir=dest.parent)
-        os.close(fd)
-        user_mode(tmp)
-        self._staged.append((Path(tmp), dest))
-        return Path(tmp)
+        tmp = temp_beside(dest)
+        self._staged.append((tmp, dest))
+        return tmp
 
     def write_bytes(self, dest: str | os.PathLike, data: bytes) -> None:
         """Stage ``data`` for ``dest``."""
