@@ -30,7 +30,6 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 import trimesh
-from tqdm import tqdm
 
 from regnf.neural_fields.field import FieldInfo
 from regnf.neural_fields.mesh_repair import UP_AXES, RepairReport, repair_mesh, up_rotation
@@ -41,7 +40,7 @@ from regnf.neural_fields.neural_sdf import (
     tetrahedral_combine,
     tetrahedral_points,
 )
-from regnf.neural_fields.optim import finest_voxel, lr_factor, make_optimizer
+from regnf.neural_fields.optim import finest_voxel, optimise
 
 DISTILL_VERSION = 2
 """Version of what a distilled field is for a given mesh and config (part of cache keys).
@@ -255,13 +254,9 @@ def distill_mesh(
     S_nrm = torch.from_numpy(nrm.astype(np.float32)).to(device)
     S_col = torch.from_numpy(col.astype(np.float32)).to(device)
     gen = torch.Generator().manual_seed(cfg.seed)
-    opt = make_optimizer(model, cfg.lr_grid, cfg.lr_mlp)
-    base = [g["lr"] for g in opt.param_groups]
-    losses = []
     nb, nu, ns = cfg.batch, cfg.batch // 2, cfg.batch // 2
-    for step in tqdm(range(cfg.steps), desc=f"distil {info.name or 'mesh'}", disable=not progress, leave=False):
-        for g, lr in zip(opt.param_groups, base):
-            g["lr"] = lr * lr_factor(step, cfg.steps)
+
+    def loss_at(step: int) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         ii = torch.cat([
             torch.randint(n_near, (nb,), generator=gen),
             n_near + torch.randint(pool.shape[0] - n_near, (nu,), generator=gen),
@@ -282,14 +277,10 @@ def distill_mesh(
         rgb = model.color_from(feat_s, F.normalize(g_s.detach(), dim=-1), None)
         loss_color = (rgb - S_col[si]).abs().mean()
         loss = loss_sdf + cfg.w_eikonal * loss_eik + cfg.w_normal * loss_normal + cfg.w_color * loss_color
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
-        if step % 50 == 0 or step == cfg.steps - 1:
-            losses.append({
-                "step": step, "loss": float(loss.detach()), "sdf": float(loss_sdf.detach()),
-                "eikonal": float(loss_eik.detach()), "color": float(loss_color.detach()),
-            })
+        return loss, {"sdf": loss_sdf, "eikonal": loss_eik, "color": loss_color}
+
+    losses = optimise(model, cfg.steps, loss_at, cfg.lr_grid, cfg.lr_mlp,
+                      desc=f"distil {info.name or 'mesh'}", progress=progress)
     seconds = time.perf_counter() - t0
     model.info.provenance = {
         **model.info.provenance,

@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import torch
+from tqdm import tqdm
 
 from regnf.neural_fields.neural_sdf import NeuralSDF
 
@@ -46,3 +48,61 @@ def finest_voxel(field: NeuralSDF) -> float:
     """Edge of a finest-level grid cell, in field units (the natural length scale of losses)."""
     extent = float((field.bounds[1] - field.bounds[0]).max())
     return extent / field.config.finest_resolution
+
+
+LOG_EVERY = 50
+"""Steps between two rows of a training log (the last step is always logged)."""
+
+
+def optimise(
+    field: NeuralSDF,
+    steps: int,
+    loss_at: Callable[[int], tuple[torch.Tensor, dict[str, torch.Tensor]]],
+    lr_grid: float,
+    lr_mlp: float,
+    grid_decay: float = 0.0,
+    desc: str = "train",
+    progress: bool = True,
+    postfix: dict[str, str] | None = None,
+) -> list[dict[str, float]]:
+    """The training loop of RGB-D training and mesh distillation: AdamW (:func:`make_optimizer`)
+    on the schedule :func:`lr_factor`, one step per call of ``loss_at``.
+
+    Parameters
+    ----------
+    field : NeuralSDF
+        Trained in place.
+    steps : int
+        Optimiser steps.
+    loss_at : callable
+        ``loss_at(step) -> (loss, parts)``: the scalar loss of that step's batch and the named
+        terms to log (scalar tensors).
+    lr_grid, lr_mlp, grid_decay : float
+        As for :func:`make_optimizer`.
+    desc, progress : str, bool
+        The progress bar's label, and whether it is shown.
+    postfix : dict of str to str, optional
+        Shown on the bar: label -> a logged term's name.
+
+    Returns
+    -------
+    list of dict
+        Every :data:`LOG_EVERY` steps and at the last: ``step``, ``loss`` and the terms.
+    """
+    opt = make_optimizer(field, lr_grid, lr_mlp, grid_decay)
+    base_lrs = [g["lr"] for g in opt.param_groups]
+    log: list[dict[str, float]] = []
+    bar = tqdm(range(steps), desc=desc, disable=not progress, leave=False)
+    for step in bar:
+        for g, lr in zip(opt.param_groups, base_lrs):
+            g["lr"] = lr * lr_factor(step, steps)
+        loss, parts = loss_at(step)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        if step % LOG_EVERY == 0 or step == steps - 1:
+            entry = {"step": step, "loss": float(loss.detach()), **{k: float(v.detach()) for k, v in parts.items()}}
+            log.append(entry)
+            if postfix:
+                bar.set_postfix({label: f"{entry[key]:.3f}" for label, key in postfix.items()})
+    return log

@@ -36,7 +36,6 @@ from pathlib import Path
 import numpy as np
 import torch
 import torch.nn.functional as F
-from tqdm import tqdm
 
 from regnf.neural_fields.field import FieldInfo
 from regnf.neural_fields.neural_sdf import (
@@ -45,7 +44,7 @@ from regnf.neural_fields.neural_sdf import (
     tetrahedral_combine,
     tetrahedral_points,
 )
-from regnf.neural_fields.optim import finest_voxel, lr_factor, make_optimizer
+from regnf.neural_fields.optim import finest_voxel, optimise
 from regnf.neural_fields.rgbd_samples import (
     CaptureLike,
     RGBDSamples,
@@ -282,8 +281,6 @@ def train_rgbd(
         raise ValueError("no depth pixel has a reliable normal; is the depth image constant?")
     m, k = s.points.shape[0], s.free_origins.shape[0]
     bounds_d = model.bounds
-    opt = make_optimizer(model, cfg.lr_grid, cfg.lr_mlp, cfg.grid_decay)
-    base_lrs = [g["lr"] for g in opt.param_groups]
     log = TrainLog()
 
     def rand(n: int) -> torch.Tensor:
@@ -292,10 +289,7 @@ def train_rgbd(
     def randint(high: int, n: int) -> torch.Tensor:
         return torch.randint(high, (n,), generator=gen).to(device)
 
-    bar = tqdm(range(cfg.steps), desc=f"train {info.name or 'field'}", disable=not progress, leave=False)
-    for step in bar:
-        for g, lr in zip(opt.param_groups, base_lrs):
-            g["lr"] = lr * lr_factor(step, cfg.steps)
+    def loss_at(step: int) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         # -- draw the batch -----------------------------------------------------------------
         ns = cfg.batch_surface
         si = ok_idx[randint(ok_idx.numel(), ns)]
@@ -368,19 +362,12 @@ def train_rgbd(
             )
             loss_volume = (rendered - s.colors[vi]).abs().mean()
             loss = loss + cfg.w_volume_color * loss_volume
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
-        if step % 50 == 0 or step == cfg.steps - 1:
-            entry = {
-                "step": step, "loss": float(loss.detach()), "surface": float(loss_surface.detach()),
-                "near": float(loss_near.detach()), "free": float(loss_free.detach()),
-                "eikonal": float(loss_eik.detach()),
-                "normal": float(loss_normal.detach()), "color": float(loss_color.detach()),
-                "volume_color": float(loss_volume.detach()),
-            }
-            log.losses.append(entry)
-            bar.set_postfix(surf=f"{entry['surface']:.3f}", col=f"{entry['color']:.3f}")
+        return loss, {"surface": loss_surface, "near": loss_near, "free": loss_free, "eikonal": loss_eik,
+                      "normal": loss_normal, "color": loss_color, "volume_color": loss_volume}
+
+    log.losses = optimise(model, cfg.steps, loss_at, cfg.lr_grid, cfg.lr_mlp, cfg.grid_decay,
+                          desc=f"train {info.name or 'field'}", progress=progress,
+                          postfix={"surf": "surface", "col": "color"})
     if cfg.visibility_resolution > 0:
         # Built by the same function as for a checkpoint that lacks it (Cache, attach_visibility),
         # so a field trained now and one given its grid later carry the same counts.
