@@ -166,8 +166,6 @@ def trace(
     field: Field,
     origins: torch.Tensor,
     dirs: torch.Tensor,
-    near: float = 0.0,
-    far: float = math.inf,
     config: SphereTracerConfig = SphereTracerConfig(),
     grid: DistanceGrid | None = None,
     pixel_angle: float = 0.0,
@@ -183,9 +181,9 @@ def trace(
         Field frame.
     dirs : (n, 3) float
         Unit directions, field frame.
-    near, far : float
-        Range of ``t`` searched, FIELD units.
     config : SphereTracerConfig
+        Its ``near`` and ``far`` (METRES, like every length a user sets) bound the search; they
+        are brought to field units by ``field.world_scale`` here.
     grid : DistanceGrid, optional
         Built from ``field``; built here (once per call) if None and
         ``config.grid_resolution > 0``. Pass one to amortise it over many calls.
@@ -197,6 +195,7 @@ def trace(
     TraceHits
         On the field's device.
     """
+    near, far = config.near / field.world_scale, config.far / field.world_scale
     check_rays(origins, dirs, near, far, unit=True)
     if grid is None and config.grid_resolution > 0:
         grid = DistanceGrid.build(
@@ -438,13 +437,10 @@ def render(
     rays = camera_rays(field, camera)
     if config.check_camera:
         check_camera_outside(field, rays.origin)
-    ws = field.world_scale
     hits = trace(
         field,
         rays.origins,
         rays.dirs,
-        config.near / ws,
-        config.far / ws,
         config,
         grid,
         rays.pixel_angle,

@@ -130,14 +130,14 @@ def integrate(
     field: Field,
     origins: torch.Tensor,
     dirs: torch.Tensor,
-    near: float = 0.0,
-    far: float = math.inf,
     config: VolumeRendererConfig = VolumeRendererConfig(),
 ) -> VolumeHits:
     """Volume-render rays ``origins``, ``dirs`` (n, 3) (field frame, unit directions).
 
-    ``near`` and ``far`` are FIELD units here. Computed ``config.chunk`` rays at a time.
+    ``config.near`` and ``config.far`` are METRES, brought to field units by
+    ``field.world_scale`` here. Computed ``config.chunk`` rays at a time.
     """
+    near, far = config.near / field.world_scale, config.far / field.world_scale
     check_rays(origins, dirs, near, far)
     gen = torch.Generator(device="cpu").manual_seed(config.seed) if config.jitter else None
     dev = field.device
@@ -245,7 +245,7 @@ def render_volume(
     if config.check_camera:
         check_camera_outside(field, rays.origin)
     ws = field.world_scale
-    vh = integrate(field, rays.origins, rays.dirs, config.near / ws, config.far / ws, config)
+    vh = integrate(field, rays.origins, rays.dirs, config)
     h, w = camera.height, camera.width
     mask = vh.opacity > config.mask_threshold
     depth = torch.where(mask, vh.t * rays.z_scale * ws, 0.0)
