@@ -29,7 +29,7 @@ class _Views:
     """The stage (.usda, .usdc, a replacement layer or a .usdz package)."""
     out: Path
     """Output folder: rgb_0000.png, ... (one per view), depth_*.png (16-bit mm), instance_*.png, contact_sheet.png,
-    sequence.gif|mp4 (with --sequence), render.json (replace adds replacement.usda over the stage,
+    sequence.gif|mp4 (with --render.sequence), render.json (replace adds replacement.usda over the stage,
     exported there, and transforms.json)."""
     capture: Path | None = None
     """Render the cameras of this capture folder (meta_data.json), posed in metres."""
