@@ -30,9 +30,9 @@ Procedure:
    :func:`regnf.registration.pipeline.initialise` then screens them by SDF evidence
    (:mod:`regnf.registration.screening`).
 
-Determinism: every RANSAC run seeds Open3D's global generator (``o3d.utility.random.seed``).
-Open3D's RANSAC is parallel (OpenMP); results are bit-reproducible for a seed with one thread
-(``OMP_NUM_THREADS=1``) and may differ slightly between runs with several threads.
+Determinism: every RANSAC run seeds Open3D's global generator (``o3d.utility.random.seed``),
+and the whole initialisation runs on one OpenMP thread (:func:`regnf.core.threads.one_thread`):
+Open3D's parallel RANSAC gives other hypotheses on other thread counts.
 """
 
 from __future__ import annotations
@@ -43,6 +43,8 @@ from typing import Literal, NamedTuple
 
 import numpy as np
 import open3d as o3d
+
+from regnf.core.threads import one_thread
 
 from .metrics import symmetric_angle
 from .sampling import SurfaceSamples
@@ -421,6 +423,18 @@ def initial_hypotheses(
     ValueError
         For malformed or too small sample sets, or when no run produced a usable transform.
     """
+    # One thread: Open3D's parallel RANSAC and ICP give other hypotheses on other thread counts
+    # (see regnf.core.threads.one_thread), and a registration must not depend on the machine.
+    with one_thread():
+        return _initial_hypotheses(scene, library, config, symmetry, upright, limit)
+
+
+def _initial_hypotheses(
+    scene: SurfaceSamples, library: SurfaceSamples, config: InitConfig = InitConfig(),
+    symmetry: ObjectSymmetry | None = None, upright: UprightPrior | None = None,
+    limit: int | None = None,
+) -> list[Hypothesis]:
+    """:func:`initial_hypotheses` on the calling thread's settings."""
     prep = _prepare(scene, library, config)
     runs = _ransac_runs(prep, config)
     if not runs and config.mutual_filter:

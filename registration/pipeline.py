@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from regnf.core.threads import one_thread
 from regnf.neural_fields.field import Field
 from regnf.registration.containment import containment
 from regnf.registration.initialisation import (
@@ -187,13 +188,17 @@ def register(
     check_fields(scene_field, library_field)
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
-    scene_samples, lib_samples = sample_pair(scene_field, library_field, proposal, cfg)
-    timings["sampling"] = time.perf_counter() - t0
+    # One thread for sampling and initialisation too (the refinement runs on one): their float
+    # sums and Open3D's parallel RANSAC come out differently on other thread counts, and the
+    # screening's ranking turns such last bits into other hypotheses (regnf.core.threads).
+    with one_thread():
+        scene_samples, lib_samples = sample_pair(scene_field, library_field, proposal, cfg)
+        timings["sampling"] = time.perf_counter() - t0
 
-    t1 = time.perf_counter()
-    hyps = initialise(scene_field, library_field, proposal, scene_samples, lib_samples, cfg)
-    A, B = sample_tensors(scene_samples, lib_samples, library_field.device)
-    timings["initialisation"] = time.perf_counter() - t1
+        t1 = time.perf_counter()
+        hyps = initialise(scene_field, library_field, proposal, scene_samples, lib_samples, cfg)
+        A, B = sample_tensors(scene_samples, lib_samples, library_field.device)
+        timings["initialisation"] = time.perf_counter() - t1
 
     t2 = time.perf_counter()
     refined = refine_many(scene_field, library_field, A, B, [h.transform for h in hyps], cfg.refine)

@@ -67,6 +67,7 @@ from typing import Literal, NamedTuple
 import numpy as np
 import torch
 
+from regnf.core.threads import one_thread
 from regnf.neural_fields.field import Field
 from regnf.registration.irls import (
     barron_curvature,
@@ -308,25 +309,6 @@ def _frozen(*modules: torch.nn.Module) -> Iterator[None]:
     finally:
         for k, p in params.items():
             p.requires_grad_(saved[k])
-
-
-@contextlib.contextmanager
-def _one_thread() -> Iterator[None]:
-    """Torch on one CPU thread inside (restored after).
-
-    With two threads the refinement was not repeatable: the same inputs refined three times in
-    one process ended at inlier fractions 0.8232, 0.8241 and 0.8241 (low-coverage ac-room,
-    chair c, 150 steps), while one thread gives the same bits every time and on any thread
-    count; without resampling two threads were repeatable too, so some kernel's result depends
-    on how the work is split, and the resampling's thresholds turn the last bit into different
-    sample sets. One thread is not slower here (the batches are a few thousand points: 5.6 s
-    against 5.7-6.4 s on two threads for the same refinement)."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(n)
 
 
 def _skew(w: torch.Tensor) -> torch.Tensor:
@@ -980,7 +962,7 @@ def refine_many(
         _check_transform(T, k)
 
     start = time.perf_counter()
-    with _frozen(scene_field, library_field), _one_thread():
+    with _frozen(scene_field, library_field), one_thread():
         batch = _Batch(scene_field, library_field, A, B if cfg.bidirectional else None, inits, cfg)
         K = len(inits)
         histories: list[list[dict]] = [[] for _ in range(K)]
