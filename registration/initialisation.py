@@ -391,6 +391,9 @@ def _select(cands: list[Hypothesis], config: InitConfig,
     return kept
 
 
+# One thread: Open3D's parallel RANSAC and ICP give other hypotheses on other thread counts
+# (see regnf.core.threads.one_thread), and a registration must not depend on the machine.
+@one_thread()
 def initial_hypotheses(
     scene: SurfaceSamples, library: SurfaceSamples, config: InitConfig = InitConfig(),
     symmetry: ObjectSymmetry | None = None, upright: UprightPrior | None = None,
@@ -423,18 +426,6 @@ def initial_hypotheses(
     ValueError
         For malformed or too small sample sets, or when no run produced a usable transform.
     """
-    # One thread: Open3D's parallel RANSAC and ICP give other hypotheses on other thread counts
-    # (see regnf.core.threads.one_thread), and a registration must not depend on the machine.
-    with one_thread():
-        return _initial_hypotheses(scene, library, config, symmetry, upright, limit)
-
-
-def _initial_hypotheses(
-    scene: SurfaceSamples, library: SurfaceSamples, config: InitConfig = InitConfig(),
-    symmetry: ObjectSymmetry | None = None, upright: UprightPrior | None = None,
-    limit: int | None = None,
-) -> list[Hypothesis]:
-    """:func:`initial_hypotheses` on the calling thread's settings."""
     prep = _prepare(scene, library, config)
     runs = _ransac_runs(prep, config)
     if not runs and config.mutual_filter:

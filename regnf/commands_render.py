@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING, Annotated
 from rich.console import Console
 from tyro.conf import Positional, arg
 
-from regnf.compositor.render_folder import RenderConfig
+from regnf.compositor.render_folder import MAX_PIXELS, RenderConfig
 from regnf.compositor.stage_config import StageCompositeConfig
 from regnf.core.preflight import check_image_size, check_output_dir
 
@@ -87,8 +87,6 @@ class _Views:
         for option, value in (("--width", self.width), ("--height", self.height)):
             if value is not None and value < 1:
                 raise SystemExit(f"{option} must be at least 1, got {value}")
-        from regnf.compositor.render_folder import MAX_PIXELS
-
         if self.capture is None:  # orbit and USD cameras: the size is known now
             check_image_size(self.width or 320, self.height or self.width or 240, MAX_PIXELS)
         elif self.width is not None and self.height is not None:
@@ -102,7 +100,6 @@ class _Views:
             field_bounds_metres,
             orbit_around_bounds,
         )
-        from regnf.compositor.render_folder import MAX_PIXELS
         from regnf.compositor.usd_cameras import cameras_from_usd
 
         self.check_options()

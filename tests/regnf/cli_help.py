@@ -9,6 +9,10 @@ import itertools
 import textwrap
 import typing
 
+import pytest
+
+from regnf.cli import main
+
 
 def field_docs(cls: type) -> dict[str, str]:
     """Field name -> the docstring written under it in the source of dataclass ``cls``."""
@@ -22,14 +26,15 @@ def field_docs(cls: type) -> dict[str, str]:
 
 
 def leaf_settings(cls: type, prefix: str) -> list[tuple[str, str | None]]:
-    """(option, docstring) of every leaf field of the nested dataclass ``cls``."""
+    """(option, docstring) of every leaf field of the nested dataclass ``cls``, each option
+    ``prefix`` + its dotted path (``prefix``: ``"--"`` at the top, ``"--registration."`` nested)."""
     hints = typing.get_type_hints(cls)
     docs = field_docs(cls)
     out = []
     for f in dataclasses.fields(cls):
-        option = f"{prefix}.{f.name.replace('_', '-')}"
+        option = f"{prefix}{f.name.replace('_', '-')}"
         if dataclasses.is_dataclass(hints[f.name]):
-            out += leaf_settings(hints[f.name], option)
+            out += leaf_settings(hints[f.name], option + ".")
         else:
             out.append((option, docs.get(f.name)))
     return out
@@ -41,3 +46,12 @@ def assert_documented(settings: list[tuple[str, str | None]], help_text: str) ->
         assert option in help_text, option
         if doc:  # the help is the docstring (its first words: the help text wraps the rest)
             assert " ".join(doc.split()[:6]) in help_text, (option, doc)
+
+
+def help_text(command: str, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch) -> str:
+    """What ``regnf COMMAND --help`` prints (wide, box drawing and line wrapping undone)."""
+    monkeypatch.setenv("COLUMNS", "200")
+    with pytest.raises(SystemExit) as done:
+        main([command, "--help"])
+    assert done.value.code == 0
+    return " ".join(capsys.readouterr().out.replace("│", " ").split())

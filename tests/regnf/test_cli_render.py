@@ -204,13 +204,9 @@ def test_help_lists_every_render_and_composite_setting(command: str, capsys: pyt
     from regnf.compositor.render_folder import RenderConfig
     from regnf.compositor.stage_config import StageCompositeConfig
 
-    from .cli_help import assert_documented, leaf_settings
+    from .cli_help import assert_documented, help_text, leaf_settings
 
-    monkeypatch.setenv("COLUMNS", "200")
-    with pytest.raises(SystemExit) as done:
-        main([command, "--help"])
-    assert done.value.code == 0
-    text = " ".join(capsys.readouterr().out.replace("│", " ").split())
-    settings = leaf_settings(RenderConfig, "--render") + leaf_settings(StageCompositeConfig, "--composite")
+    text = help_text(command, capsys, monkeypatch)
+    settings = leaf_settings(RenderConfig, "--render.") + leaf_settings(StageCompositeConfig, "--composite.")
     assert len(settings) > 35  # both renderers, the folder, the composite
     assert_documented(settings, text)

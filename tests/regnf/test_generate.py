@@ -236,14 +236,9 @@ def test_help_lists_every_generation_setting_with_its_documentation(
         capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch) -> None:
     from regnf.generate import GenerateConfig
 
-    from .cli_help import assert_documented, leaf_settings
+    from .cli_help import assert_documented, help_text, leaf_settings
 
-    monkeypatch.setenv("COLUMNS", "200")
-    with pytest.raises(SystemExit) as done:
-        main(["generate", "--help"])
-    assert done.value.code == 0
-    text = " ".join(capsys.readouterr().out.replace("│", " ").split())
-    settings = [(option.replace("--generate.", "--"), doc)
-                for option, doc in leaf_settings(GenerateConfig, "--generate")]
+    text = help_text("generate", capsys, monkeypatch)
+    settings = leaf_settings(GenerateConfig, "--")
     assert len(settings) > 50  # cameras, composite, renderers, executor, the rest
     assert_documented(settings, text)
