@@ -28,17 +28,17 @@ import torch
 from tqdm import tqdm
 
 from regnf.compositor import Camera, look_at, render, render_volume
-from regnf.compositor.distance_grid import DistanceGrid
-from regnf.compositor.oriented_box import OrientedBox
-from regnf.compositor.sphere_tracer import SphereTracerConfig
 from regnf.compositor.stage_config import StageCompositeConfig
 from regnf.compositor.substitution import SubstitutedInstance, build_composite
 from regnf.compositor.volume_renderer import VolumeRendererConfig
+from regnf.core.image_io import rgb_to_uint8
 from regnf.neural_fields.cache import Cache
 from regnf.neural_fields.checkpoint import load_field
+from regnf.neural_fields.distance_grid import DistanceGrid
 from regnf.neural_fields.evaluation import psnr, world_to_field
 from regnf.neural_fields.field import Field
 from regnf.neural_fields.meshing import extract_mesh
+from regnf.neural_fields.sphere_tracer import SphereTracerConfig
 from regnf.registration.ground_truth import proposal_from_instance
 from regnf.registration.pipeline import register
 from regnf.synthetic.capture import RoomCaptureConfig
@@ -111,8 +111,7 @@ def substituted_composite(scene: Field, library: dict[str, Field], instances: Se
         res = register(scene, lib, proposal)
         L = lib.to_world.detach().cpu().double().numpy()
         O = S @ res.transform.inverse().matrix() @ np.linalg.inv(L)
-        box = OrientedBox(proposal.center, proposal.half_extents, proposal.rotation)
-        specs.append(SubstitutedInstance(len(specs) + 1, lib, lib, O, box, inst.id))
+        specs.append(SubstitutedInstance(len(specs) + 1, lib, lib, O, proposal, inst.id))
         records.append({"instance": inst.id, "object": inst.library, "confidence": res.confidence,
                         "accepted": res.accepted, "seconds": time.perf_counter() - t0,
                         "max_abs_error_vs_truth": float(np.abs(O - inst.object_to_world).max())})
@@ -183,16 +182,16 @@ def speed_rows(cache: Cache, library: dict[str, Field], config: RenderBenchConfi
                 C = capture.camtoworld_metres(i)
                 K = capture.frames[i].intrinsics
                 cam = Camera(K, capture.width, capture.height, C)
-                gt = ref.render(C, K)
+                gt = rgb_to_uint8(ref.render(C, K).rgb)
                 out, dt = _render_both(field, cam, config, grid, renderer)
                 rgb = out.rgb.detach().cpu().numpy()
                 evals.append(float(out.evals_per_pixel.double().mean()))
                 secs.append(dt)
-                psnrs.append(psnr(rgb, gt.rgb / 255.0))
+                psnrs.append(psnr(rgb, gt / 255.0))
                 if i == picks[0]:
                     images.append((rgb * 255).round().astype(np.uint8))
                     if renderer == "sphere":
-                        images.insert(0, gt.rgb)
+                        images.insert(0, gt)
             rows.append({"scene": f"{ROOM} (composite)", "renderer": renderer, "width": capture.width,
                          "height": capture.height, "views": len(picks),
                          "evals_per_pixel": float(np.mean(evals)), "seconds": float(np.mean(secs)),
@@ -224,8 +223,9 @@ def completion(cache: Cache, library: dict[str, Field], config: RenderBenchConfi
             cams = unseen_cameras(room, centre, config, free=scene)
             for j, cam in enumerate(tqdm(cams, desc=f"complete {inst.id}",
                                          disable=not progress)):
-                gt = ref.render(cam.camera_to_world, cam.K, with_ids=True)
-                region = gt.instance_ids == k
+                gt = ref.render(cam.camera_to_world, cam.K)
+                gt_rgb, gt_depth = rgb_to_uint8(gt.rgb), gt.depth.numpy()
+                region = gt.instance_id.numpy() == k
                 if not region.any():
                     continue
                 row = []
@@ -233,11 +233,11 @@ def completion(cache: Cache, library: dict[str, Field], config: RenderBenchConfi
                     out = render(f, cam, config.sphere, grid=grid)
                     rgb = out.rgb.detach().cpu().numpy()
                     depth = out.depth.detach().cpu().numpy()
-                    stats[tag].append((psnr(rgb[region], gt.rgb[region] / 255.0),
-                                       float(np.abs(depth[region] - gt.depth[region]).mean())))
+                    stats[tag].append((psnr(rgb[region], gt_rgb[region] / 255.0),
+                                       float(np.abs(depth[region] - gt_depth[region]).mean())))
                     row.append((rgb * 255).round().astype(np.uint8))
                 if j == 0:
-                    images.append(np.concatenate([*row, gt.rgb], axis=1))
+                    images.append(np.concatenate([*row, gt_rgb], axis=1))
             per_object.append({
                 "instance": inst.id, "object": inst.library, "views": len(stats["after"]),
                 "psnr_before": float(np.mean([s[0] for s in stats["before"]])),
@@ -316,10 +316,10 @@ def replacement(cache: Cache, library: dict[str, Field], config: RenderBenchConf
         cams += unseen_cameras(room, meshes[k].bounds.mean(axis=0), dataclasses.replace(config, completion_views=2),
                                free=scene)
     with reference_renderer(room) as ref:  # one GL context at a time
-        gts = [ref.render(c.camera_to_world, c.K, with_ids=True) for c in cams]
+        gts = [ref.render(c.camera_to_world, c.K) for c in cams]
     with RGBDRenderer([shaded_copy(room.mesh)], WIDTH, HEIGHT) as empty:
-        empties = [empty.render(c.camera_to_world, c.K).depth for c in cams]
-    removed_masks = [g.instance_ids >= 0 for g in gts]
+        empties = [empty.render(c.camera_to_world, c.K).depth.numpy() for c in cams]
+    removed_masks = [g.instance_id.numpy() >= 0 for g in gts]
     per_seed, images = [], []
     for seed in seeds:
         rng = np.random.default_rng(seed)

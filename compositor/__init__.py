@@ -14,35 +14,37 @@ from typing import TYPE_CHECKING
 from regnf.core.lazy_exports import lazy_exports
 
 _EXPORTS = {
-    "Camera": "camera",
-    "look_at": "camera",
-    "orbit_cameras": "camera",
+    "Camera": "regnf.neural_fields.camera",
+    "look_at": "regnf.core.cameras",
+    "orbit_cameras": "regnf.neural_fields.camera",
     "CompositeField": "composite_field",
     "CompositeConfig": "composite_field",
     "build_composite": "substitution",
     "composite_from_stage": "from_stage",
     "StageCompositeConfig": "stage_config",
-    "render": "sphere_tracer",
-    "SphereTracerConfig": "sphere_tracer",
+    "render": "regnf.neural_fields.sphere_tracer",
+    "SphereTracerConfig": "regnf.neural_fields.sphere_tracer",
     "render_volume": "volume_renderer",
     "VolumeRendererConfig": "volume_renderer",
     "render_views": "render_folder",
     "RenderConfig": "render_folder",
     "replace_and_render": "replace",
     "ReplaceConfig": "replace",
-    "Render": "render_result",
+    "Render": "regnf.core.render_result",
 }
 __all__ = list(_EXPORTS)
 __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
 
 if TYPE_CHECKING:  # static analysers see the real names
-    from .camera import Camera, look_at, orbit_cameras
+    from regnf.core.cameras import look_at
+    from regnf.core.render_result import Render
+    from regnf.neural_fields.camera import Camera, orbit_cameras
+    from regnf.neural_fields.sphere_tracer import SphereTracerConfig, render
+
     from .composite_field import CompositeConfig, CompositeField
     from .from_stage import composite_from_stage
     from .render_folder import RenderConfig, render_views
-    from .render_result import Render
     from .replace import ReplaceConfig, replace_and_render
-    from .sphere_tracer import SphereTracerConfig, render
     from .stage_config import StageCompositeConfig
     from .substitution import build_composite
     from .volume_renderer import VolumeRendererConfig, render_volume

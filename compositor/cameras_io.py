@@ -4,7 +4,7 @@ A capture (:func:`regnf.synthetic.sdfstudio_format.load_capture`) stores OpenCV 
 poses in its normalised frame and the pinhole ``K`` of its images (pixel centres at
 ``u + 0.5``); :meth:`~regnf.synthetic.sdfstudio_format.Capture.camtoworld_metres` brings the poses
 to metres, the frame of a scene field trained from that capture. Both conventions are the
-compositor's own (:mod:`regnf.compositor.camera`), so nothing is flipped here. Resizing scales the
+compositor's own (:mod:`regnf.neural_fields.camera`), so nothing is flipped here. Resizing scales the
 rows of ``K`` by the size ratios: with pixel-centre sampling this keeps every ray through the
 same point of the image plane.
 """
@@ -19,10 +19,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from regnf.core.cameras import look_at
+from regnf.neural_fields.camera import Camera
 from regnf.neural_fields.field import Field
 from regnf.synthetic.sdfstudio_format import load_capture
-
-from .camera import Camera
 
 
 def resized(camera: Camera, width: int, height: int) -> Camera:
@@ -67,7 +66,7 @@ def cameras_from_capture(
     regnf.synthetic.sdfstudio_format.CaptureError
         A missing or malformed capture (the message names the file and the frame): poses and
         intrinsics are checked by :func:`~regnf.synthetic.sdfstudio_format.load_capture` with the
-        rules :class:`~regnf.compositor.camera.Camera` applies, so a capture that trains renders.
+        rules :class:`~regnf.neural_fields.camera.Camera` applies, so a capture that trains renders.
     ValueError
         An index out of range.
     """

@@ -18,20 +18,17 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import NamedTuple
 
 import numpy as np
 import torch
 
-from regnf.neural_fields.field import Field, FieldInfo, check_points
+from regnf.neural_fields.field import Field, FieldInfo, FieldSample, check_points
 
 from .placement import PlacedObject, Placement
 from .regions import RemovalRegion
 
 SCENE_ID = 0
 """Winner id of the scene field."""
-BACKGROUND_ID = -1
-"""Instance id of a pixel that hit nothing."""
 MAX_COMPONENTS = 1024
 """Most placed objects, and most removal regions, one composite takes. Every query loops over
 its components (vectorised over the points), so a frame's cost grows with their number: at
@@ -51,30 +48,6 @@ class CompositeConfig:
     def __post_init__(self) -> None:
         if not (np.isfinite(self.cull_pad) and self.cull_pad > 0):
             raise ValueError(f"cull_pad must be finite and > 0, got {self.cull_pad}")
-
-
-class CompositeSample(NamedTuple):
-    """What one query of a field costs and finds, point by point."""
-
-    sdf: torch.Tensor
-    """(n,) float: signed distance in field units."""
-    winner: torch.Tensor
-    """(n,) int64: component at the min, 0 = scene (any plain field), i = instance id."""
-    evals: torch.Tensor
-    """(n,) int64: underlying field evaluations spent on each point."""
-
-
-def sample_field(field: Field, x: torch.Tensor) -> CompositeSample:
-    """SDF, winning component and cost of points ``x`` (n, 3) of ANY field.
-
-    A :class:`CompositeField` reports its own; any other field is one component (id 0)
-    costing one evaluation per point.
-    """
-    if isinstance(field, CompositeField):
-        return field.evaluate(x)
-    s = field.sdf(x)
-    ones = torch.ones(x.shape[0], dtype=torch.long, device=s.device)
-    return CompositeSample(s, torch.zeros_like(ones), ones)
 
 
 class CompositeField(Field):
@@ -145,11 +118,11 @@ class CompositeField(Field):
         self.config = config
         self.to(scene.device)
 
-    def scene_masked(self, x: torch.Tensor) -> CompositeSample:
+    def scene_masked(self, x: torch.Tensor) -> FieldSample:
         """``max(S_scene, -M)`` (n,) at points ``x`` (n, 3); winner 0 everywhere."""
         check_points(x, self)
-        # Through sample_field so that a composite used as a scene reports its full cost.
-        s, _, evals = sample_field(self.scene, x)
+        # Through evaluate() so that a composite used as a scene reports its full cost.
+        s, _, evals = self.scene.evaluate(x)
         if len(self.removals) > 0:
             # A running min, not a stack: memory stays one value per point however many regions.
             m = None
@@ -158,9 +131,9 @@ class CompositeField(Field):
                 m = r.sdf.to(s.dtype) if m is None else torch.minimum(m, r.sdf.to(s.dtype))
                 evals = evals + r.evals
             s = torch.maximum(s, -m)
-        return CompositeSample(s, torch.zeros_like(evals), evals)
+        return FieldSample(s, torch.zeros_like(evals), evals)
 
-    def evaluate(self, x: torch.Tensor) -> CompositeSample:
+    def evaluate(self, x: torch.Tensor) -> FieldSample:
         """Composite SDF (n,), winning component (n,) and evaluations (n,) at ``x`` (n, 3).
 
         Ties go to the scene (then to the earlier object), so a library object replaces the
@@ -175,7 +148,7 @@ class CompositeField(Field):
             best = torch.where(closer, v, best)
             winner = torch.where(closer, torch.full_like(winner, iid), winner)
             evals = evals + sample.evals
-        return CompositeSample(best, winner, evals)
+        return FieldSample(best, winner, evals)
 
     def sdf(self, x: torch.Tensor) -> torch.Tensor:
         """Composite signed distance (n,) in scene field units of points ``x`` (n, 3)."""

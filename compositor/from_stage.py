@@ -20,6 +20,7 @@ from typing import NamedTuple
 import torch
 
 from regnf.neural_fields.field import Field
+from regnf.neural_fields.oriented_box import OrientedBox
 from regnf.scene_graph import (
     INSTANCES_PRIM,
     SCENE_PRIM,
@@ -33,7 +34,6 @@ from regnf.scene_graph import (
 )
 
 from .composite_field import CompositeField
-from .oriented_box import OrientedBox
 from .stage_config import DEFAULT_STAGE_COMPOSITE, StageCompositeConfig
 from .substitution import SubstitutedInstance, build_composite, check_z_up
 

@@ -14,8 +14,8 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 from regnf.core.cameras import opencv_to_opengl
+from regnf.neural_fields.camera import Camera
 
-from .camera import Camera
 from .render_folder import ViewFiles
 
 

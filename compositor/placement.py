@@ -24,8 +24,7 @@ import torch
 
 from regnf.neural_fields.analytic import Transformed
 from regnf.neural_fields.field import Field
-
-from .oriented_box import ArrayLike, OrientedBox, as_float64
+from regnf.neural_fields.oriented_box import ArrayLike, OrientedBox, as_float64
 
 
 class PlacedObject(NamedTuple):

@@ -23,8 +23,8 @@ import numpy as np
 import torch
 
 from regnf.neural_fields.field import Field
+from regnf.neural_fields.oriented_box import ArrayLike, OrientedBox
 
-from .oriented_box import ArrayLike, OrientedBox
 from .placement import Placement
 
 DEFAULT_FLOOR_MARGIN = 0.01

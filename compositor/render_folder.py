@@ -2,7 +2,7 @@
 
 Per view ``k`` (4 digits): ``rgb_k.png`` (8-bit), ``depth_k.png`` (16-bit millimetres, 0 no
 hit) and ``instance_k.png`` (16-bit ``id + 1``: 0 background, 1 scene, ``i + 1`` instance
-``i``); see :mod:`regnf.compositor.image_io`. Then ``contact_sheet.png`` (the RGB views tiled),
+``i``); see :mod:`regnf.core.image_io`. Then ``contact_sheet.png`` (the RGB views tiled),
 optionally ``sequence.gif`` or ``sequence.mp4`` (the RGB views in order, see
 :mod:`regnf.compositor.sequence_io`), and ``render.json`` (cameras, settings, timings, field
 evaluations per pixel).
@@ -44,17 +44,17 @@ from tqdm import tqdm
 
 from regnf.core.atomic_io import write_json
 from regnf.core.file_lock import folder_lock
+from regnf.core.image_io import rgb_to_uint8, write_depth_png, write_instance_png, write_rgb_png
 from regnf.core.output_dir import remove_leftovers, staging_dir, staging_prefix
+from regnf.core.render_result import Render
+from regnf.neural_fields.camera import Camera
+from regnf.neural_fields.distance_grid import DistanceGrid
 from regnf.neural_fields.field import Field
+from regnf.neural_fields.shading import check_camera_outside
+from regnf.neural_fields.sphere_tracer import SphereTracerConfig, render
 
-from .camera import Camera
 from .contact_sheets import contact_sheet
-from .distance_grid import DistanceGrid
-from .image_io import rgb_to_uint8, write_depth_png, write_instance_png, write_rgb_png
-from .render_result import Render
 from .sequence_io import SEQUENCE_FORMATS, require_mp4, write_sequence
-from .shading import check_camera_outside
-from .sphere_tracer import SphereTracerConfig, render
 from .volume_renderer import VolumeRendererConfig, render_volume
 
 RENDERERS = ("sphere", "volume")

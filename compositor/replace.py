@@ -26,6 +26,7 @@ import numpy as np
 import torch
 
 from regnf.core.atomic_io import write_json
+from regnf.neural_fields.camera import Camera
 from regnf.scene_graph import (
     ComposedScene,
     StageError,
@@ -35,7 +36,6 @@ from regnf.scene_graph import (
     read_stage,
 )
 
-from .camera import Camera
 from .from_stage import composite_from_scene, composite_from_stage
 from .nerfstudio import transforms_json
 from .render_folder import RenderConfig, RenderReport, check_cameras, check_sequence, render_views

@@ -1,6 +1,6 @@
 """Image sequences (the RGB views of a render, in order) as an animated GIF or an MP4 video.
 
-Both writers are atomic like :mod:`regnf.compositor.image_io`: the file is written to a
+Both writers are atomic like :mod:`regnf.core.image_io`: the file is written to a
 temporary file in the destination folder, flushed and renamed over the destination; on
 any error the temporary file is removed and an existing destination is left untouched.
 
@@ -28,8 +28,7 @@ import torch
 from PIL import Image
 
 from regnf.core.atomic_io import atomic_path
-
-from .image_io import rgb_to_uint8
+from regnf.core.image_io import rgb_to_uint8
 
 SEQUENCE_FORMATS = ("none", "gif", "mp4")
 """Values of the ``sequence`` settings: no sequence, an animated GIF, an MP4 video."""

@@ -30,10 +30,10 @@ import numpy as np
 import torch
 
 from regnf.neural_fields.field import Field
+from regnf.neural_fields.oriented_box import OrientedBox
 from regnf.neural_fields.similarity import decompose_similarity
 
 from .composite_field import CompositeConfig, CompositeField
-from .oriented_box import OrientedBox
 from .placement import PlacedObject
 from .regions import OrientedBoxRegion, RemovalRegion, ShellRegion
 from .stage_config import DEFAULT_STAGE_COMPOSITE, StageCompositeConfig
@@ -123,12 +123,7 @@ def removal_box(
 ) -> OrientedBox:
     """The library bounds (2, 3) mapped by ``lib_to_scene`` (4, 4), half extents times ``1 + box_pad``."""
     box = OrientedBox.from_bounds(torch.as_tensor(np.asarray(bounds, dtype=np.float64)), lib_to_scene)
-    return grown(box, box_pad)
-
-
-def grown(box: OrientedBox, pad: float) -> OrientedBox:
-    """A copy of ``box`` with its half extents times ``1 + pad``."""
-    return OrientedBox(box.center, box.half_extents * (1.0 + pad), box.rotation)
+    return box.inflated(box_pad)
 
 
 def removal_regions(
@@ -153,7 +148,7 @@ def removal_regions(
         ]
     boxes = [removal_box(inst.original.bounds.detach().cpu().numpy(), M_orig, config.box_pad)]
     if config.use_proposal and inst.proposal is not None:
-        boxes.append(grown(inst.proposal, config.box_pad))
+        boxes.append(inst.proposal.inflated(config.box_pad))
     return [
         OrientedBoxRegion(b.center, b.half_extents, b.rotation, keep_floor=floor, floor_margin=margin)
         for b in boxes

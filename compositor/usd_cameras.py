@@ -1,7 +1,7 @@
 """Cameras from ``UsdGeom.Camera`` prims, and compositor cameras authored as such prims.
 
 USD's camera looks down its local -Z with +Y up and x right; the compositor's
-(:mod:`regnf.compositor.camera`) looks down +Z with y down (OpenCV), so the camera axes differ by
+(:mod:`regnf.neural_fields.camera`) looks down +Z with y down (OpenCV), so the camera axes differ by
 a flip of y and z: ``opencv_to_world = usd_camera_to_world @ diag(1, -1, -1, 1)``.
 
 Intrinsics: ``focalLength``, ``horizontalAperture``, ``verticalAperture`` and the aperture
@@ -36,10 +36,9 @@ from pxr import Gf, Sdf, Usd, UsdGeom
 
 from regnf.core.atomic_io import atomic_path
 from regnf.core.cameras import OPENCV_TO_OPENGL, opencv_to_opengl
+from regnf.neural_fields.camera import Camera
 from regnf.scene_graph import StageError
 from regnf.scene_graph.usd_read import open_stage
-
-from .camera import Camera
 
 DEFAULT_HORIZONTAL_APERTURE = float(Gf.Camera.DEFAULT_HORIZONTAL_APERTURE)
 """Horizontal aperture authored by :func:`camera_to_usd` (USD's default, 35 mm academy)."""

@@ -26,14 +26,12 @@ from typing import NamedTuple
 import torch
 
 from regnf.core.cameras import ray_aabb
+from regnf.core.render_result import Render
+from regnf.neural_fields.camera import Camera, camera_rays
 from regnf.neural_fields.field import Field
-from regnf.neural_fields.raycast import by_chunks, check_rays
+from regnf.neural_fields.shading import check_camera_outside, world_rotation
+from regnf.neural_fields.sphere_tracer import BACKGROUND_ID, by_chunks, check_rays
 from regnf.neural_fields.volume_render import neus_weights
-
-from .camera import Camera, camera_rays
-from .composite_field import BACKGROUND_ID, sample_field
-from .render_result import Render
-from .shading import check_camera_outside, world_rotation
 
 
 @dataclass(frozen=True)
@@ -100,7 +98,7 @@ class VolumeHits(NamedTuple):
 
 
 def _sdf_checked(field: Field, p: torch.Tensor):
-    s = sample_field(field, p)
+    s = field.evaluate(p)
     bad = ~torch.isfinite(s.sdf)
     if bool(bad.any()):
         k = int(bad.nonzero()[0, 0])
@@ -235,7 +233,7 @@ def render_volume(
 ) -> Render:
     """Volume-render one view of ``field`` from ``camera`` (posed in the field's metres).
 
-    Same outputs and conventions as :func:`regnf.compositor.sphere_tracer.render`: depth is the
+    Same outputs and conventions as :func:`regnf.neural_fields.sphere_tracer.render`: depth is the
     opacity-normalised expected z-depth in metres (0 off the mask), normals in the world
     frame, instance id of the heaviest interval (-1 off the mask), no grid look-ups.
     Raises ``ValueError`` for a camera inside matter or non-finite field values; an empty

@@ -1,9 +1,12 @@
-"""Camera poses, the OpenCV / OpenGL axis flip and the ray-box slab test: one of each.
+"""Camera poses, pinhole rays, the OpenCV / OpenGL axis flip and the ray-box slab test: one of
+each.
 
 Conventions: our cameras and captures use OpenCV axes (x right, y down, z forward); nerfstudio's
 ``transforms.json``, pyrender and USD cameras use OpenGL axes (x right, y up, z backward). The
 two differ by a flip of y and z, ``c2w_gl = c2w_cv @ OPENCV_TO_OPENGL`` (the flip is its own
-inverse). Poses are (4, 4) float64 camera -> world matrices acting on column vectors.
+inverse). Poses are (4, 4) float64 camera -> world matrices acting on column vectors. Pixel ``(u, v)``
+(column, row) has its centre at ``(u + 0.5, v + 0.5)`` for the intrinsics ``K`` (as in
+nerfstudio and sdfstudio).
 """
 
 from __future__ import annotations
@@ -86,3 +89,97 @@ def ray_aabb(
     tmin = torch.where(zero, torch.where(inside, -inf, inf), tmin)
     tmax = torch.where(zero, torch.where(inside, inf, -inf), tmax)
     return tmin.max(dim=-1).values, tmax.min(dim=-1).values
+
+
+def check_pinhole(
+    K: torch.Tensor | np.ndarray, camtoworld: torch.Tensor | np.ndarray, width: int, height: int
+) -> tuple[torch.Tensor, torch.Tensor]:
+    Kt = (
+        torch.as_tensor(
+            np.asarray(K) if not isinstance(K, torch.Tensor) else K, dtype=torch.float64
+        )
+        .detach()
+        .cpu()
+    )
+    C = (
+        torch.as_tensor(
+            np.asarray(camtoworld) if not isinstance(camtoworld, torch.Tensor) else camtoworld,
+            dtype=torch.float64,
+        )
+        .detach()
+        .cpu()
+    )
+    if (
+        Kt.shape != (3, 3)
+        or not bool(torch.isfinite(Kt).all())
+        or abs(float(torch.linalg.det(Kt))) < 1e-12
+    ):
+        raise ValueError(f"K must be a finite invertible 3x3 matrix, got {Kt.tolist()}")
+    if C.shape != (4, 4) or not bool(torch.isfinite(C).all()):
+        raise ValueError(f"camtoworld must be a finite 4x4 matrix, got shape {tuple(C.shape)}")
+    if abs(float(torch.linalg.det(C[:3, :3]))) < 1e-12:
+        raise ValueError("camtoworld has a singular rotation part")
+    if int(width) != width or int(height) != height or width < 1 or height < 1:
+        raise ValueError(f"width and height must be positive integers, got {width} x {height}")
+    return Kt, C
+
+
+def rays_through(
+    Kt: torch.Tensor, C: torch.Tensor, u: torch.Tensor, v: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """float64 rays through image points ``(u, v)`` (n,) each, in continuous pixel coordinates."""
+    pix = torch.stack([u, v, torch.ones_like(u)], dim=-1)  # (n, 3)
+    d_cam = pix @ torch.linalg.inv(Kt).T
+    R = C[:3, :3]
+    dirs = torch.nn.functional.normalize(d_cam @ R.T, dim=-1)
+    forward = torch.nn.functional.normalize(R[:, 2], dim=0)
+    z_scale = dirs @ forward
+    origins = C[:3, 3].expand_as(dirs)
+    return origins, dirs, z_scale
+
+
+def pinhole_rays(
+    K: torch.Tensor | np.ndarray,
+    camtoworld: torch.Tensor | np.ndarray,
+    width: int,
+    height: int,
+    stride: int = 1,
+    device: torch.device | str | None = None,
+    dtype: torch.dtype = torch.float32,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Rays through the centres of (every ``stride``-th) pixel of a pinhole camera.
+
+    Pixel ``(u, v)`` (column, row) is sampled at ``(u + 0.5, v + 0.5)``; rays are ordered
+    row-major (``v`` outer, ``u`` inner), ``u = 0, stride, 2 stride, ...``.
+
+    Parameters
+    ----------
+    K : (3, 3) float
+        Intrinsics.
+    camtoworld : (4, 4) float
+        Camera -> field-frame pose, OpenCV axes (x right, y down, z forward).
+    width, height : int
+        Image size in pixels.
+    stride : int
+        Keep every ``stride``-th pixel along both axes.
+    device : torch.device or str, optional
+        CPU by default.
+    dtype : torch.dtype
+        Of the outputs; rays are computed in float64 first.
+
+    Returns
+    -------
+    origins : (n, 3) float
+    dirs : (n, 3) float
+        Unit directions.
+    z_scale : (n,) float
+        ``dot(dir, camera forward)``, so that z-depth = ``t * z_scale``.
+    """
+    Kt, C = check_pinhole(K, camtoworld, width, height)
+    if int(stride) != stride or stride < 1:
+        raise ValueError(f"stride must be a positive integer, got {stride}")
+    us = torch.arange(0, int(width), int(stride), dtype=torch.float64) + 0.5
+    vs = torch.arange(0, int(height), int(stride), dtype=torch.float64) + 0.5
+    v, u = torch.meshgrid(vs, us, indexing="ij")
+    o, d, z = rays_through(Kt, C, u.reshape(-1), v.reshape(-1))
+    return tuple(a.to(device=device, dtype=dtype) for a in (o, d, z))  # type: ignore[return-value]

@@ -26,13 +26,16 @@ def lazy_exports(package: str, exports: Mapping[str, str]
     package : str
         The package's ``__name__``.
     exports : mapping of str to str
-        Exported name -> the package's module (relative name) that defines it.
+        Exported name -> the package's module (relative name) that defines it, or an absolute
+        module name (``regnf.``...) for a name a lower package defines and this one re-exports.
     """
 
     def __getattr__(name: str) -> Any:
         if name not in exports:
             raise AttributeError(f"module {package!r} has no attribute {name!r}")
-        value = getattr(importlib.import_module(f"{package}.{exports[name]}"), name)
+        module = exports[name]
+        absolute = module.startswith("regnf.")
+        value = getattr(importlib.import_module(module if absolute else f"{package}.{module}"), name)
         vars(sys.modules[package])[name] = value  # later look-ups skip __getattr__
         return value
 

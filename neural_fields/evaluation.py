@@ -15,9 +15,10 @@ import torch
 import trimesh
 from scipy.spatial import cKDTree
 
+from regnf.neural_fields.camera import Camera
 from regnf.neural_fields.field import Field
 from regnf.neural_fields.meshing import extract_mesh
-from regnf.neural_fields.raycast import render_field
+from regnf.neural_fields.sphere_tracer import SphereTracerConfig, render
 
 
 class SurfaceError(NamedTuple):
@@ -111,20 +112,26 @@ def heldout_psnr(
 ) -> tuple[float, list[np.ndarray]]:
     """Mean PSNR of field renders against the capture's held-out frames, and the renders.
 
-    Renders are supersampled (``supersample``^2 rays per pixel, box filtered) because the
-    ground-truth colour images are multisample anti-aliased.
+    Renders are supersampled (``supersample``^2 rays per pixel through a regular sub-grid,
+    box filtered) because the ground-truth colour images are multisample anti-aliased. Each
+    view is rendered by :func:`~regnf.neural_fields.sphere_tracer.render` from the frame's
+    camera in metres (so any field of the object, in any frame, can be measured).
     """
     idx = list(capture.test_indices() if indices is None else indices)
     if not idx:
         raise ValueError("the capture has no held-out frames")
+    if int(supersample) != supersample or supersample < 1:
+        raise ValueError(f"supersample must be a positive integer, got {supersample}")
+    s, w, h = int(supersample), capture.width, capture.height
+    config = SphereTracerConfig(background=tuple(background), check_camera=False)
+    # Rendering s times larger with K scaled by s samples each pixel (u, v) at the centres of an
+    # s x s sub-grid, u + (j + 0.5) / s: the box filter is then a mean over s x s blocks.
+    scale = np.diag([float(s), float(s), 1.0])
     scores, images = [], []
     for i in idx:
-        frame = capture.frames[i]
-        out = render_field(
-            field, frame.intrinsics, frame.camtoworld, capture.width, capture.height,
-            background=background, supersample=supersample,
-        )
-        img = out.rgb.detach().cpu().numpy()
+        cam = Camera(scale @ capture.frames[i].intrinsics, w * s, h * s, capture.camtoworld_metres(i))
+        out = render(field, cam, config)
+        img = out.rgb.detach().cpu().double().reshape(h, s, w, s, 3).mean(dim=(1, 3)).numpy()
         images.append(img)
         scores.append(psnr(img, capture.rgb(i)))
     return float(np.mean(scores)), images

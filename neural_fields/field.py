@@ -11,7 +11,7 @@ from __future__ import annotations
 import abc
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NamedTuple
 
 import torch
 
@@ -20,6 +20,17 @@ if TYPE_CHECKING:
 
 DEFAULT_CHUNK = 65536
 """Points evaluated per batch by the chunked helpers (bounded memory, still vectorised)."""
+
+
+class FieldSample(NamedTuple):
+    """What one query of a field finds and costs, point by point (:meth:`Field.evaluate`)."""
+
+    sdf: torch.Tensor
+    """(n,) float: signed distance in field units."""
+    winner: torch.Tensor
+    """(n,) int64: component at the minimum, 0 for a plain field (a composite: its instance)."""
+    evals: torch.Tensor
+    """(n,) int64: evaluations of underlying neural or analytic fields spent on each point."""
 
 
 @dataclass(frozen=True)
@@ -150,6 +161,16 @@ class Field(torch.nn.Module, metaclass=abc.ABCMeta):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return self.sdf(x)
+
+    def evaluate(self, x: torch.Tensor) -> FieldSample:
+        """SDF, winning component and cost at points ``x`` (n, 3): what a renderer traces.
+
+        A plain field is one component (0) costing one evaluation per point; a composite
+        (:class:`regnf.compositor.composite_field.CompositeField`) reports its own.
+        """
+        s = self.sdf(x)
+        ones = torch.ones(x.shape[0], dtype=torch.long, device=s.device)
+        return FieldSample(s, torch.zeros_like(ones), ones)
 
     def sdf_and_gradient(
         self, x: torch.Tensor, create_graph: bool = False

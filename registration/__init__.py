@@ -16,7 +16,7 @@ _EXPORTS = {
     "register": "pipeline",
     "RegistrationConfig": "pipeline",
     "RegistrationResult": "result",
-    "ProposalBox": "proposal",
+    "OrientedBox": "regnf.neural_fields.oriented_box",
     "SimilarityTransform": "transform",
     "registration_errors": "metrics",
     "RegistrationErrors": "metrics",
@@ -25,8 +25,9 @@ __all__ = list(_EXPORTS)
 __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
 
 if TYPE_CHECKING:  # static analysers see the real names
+    from regnf.neural_fields.oriented_box import OrientedBox
+
     from .metrics import RegistrationErrors, registration_errors
     from .pipeline import RegistrationConfig, register
-    from .proposal import ProposalBox
     from .result import RegistrationResult
     from .transform import SimilarityTransform

@@ -23,6 +23,7 @@ from collections.abc import Callable
 import numpy as np
 
 from regnf.neural_fields.field import Field
+from regnf.neural_fields.oriented_box import OrientedBox
 from regnf.registration.initialisation import Hypothesis, fgr_baseline
 from regnf.registration.pipeline import (
     RegistrationConfig,
@@ -32,7 +33,6 @@ from regnf.registration.pipeline import (
     sample_tensors,
     scored,
 )
-from regnf.registration.proposal import ProposalBox
 from regnf.registration.refinement import RefineResult, refine, without_steps
 from regnf.registration.result import HypothesisReport, RegistrationResult
 from regnf.registration.sampling import SurfaceSamples
@@ -40,7 +40,7 @@ from regnf.registration.transform import SimilarityTransform
 
 
 def _result(method: str, T: SimilarityTransform, evaluated: RefineResult, cfg: RegistrationConfig,
-            proposal: ProposalBox, timings: dict, *, samples: tuple[np.ndarray, np.ndarray],
+            proposal: OrientedBox, timings: dict, *, samples: tuple[np.ndarray, np.ndarray],
             fitness: float = float("nan"), initial: SimilarityTransform | None = None) -> RegistrationResult:
     confidence, inside = scored(evaluated, samples[1], proposal, cfg)
     return RegistrationResult(
@@ -67,7 +67,7 @@ def _score(scene: Field, library: Field, A, B, T: SimilarityTransform, cfg: Regi
     return refine(scene, library, A, B, T, without_steps(cfg.refine))
 
 
-def _one_hypothesis(method: str, scene: Field, library: Field, proposal: ProposalBox,
+def _one_hypothesis(method: str, scene: Field, library: Field, proposal: OrientedBox,
                     cfg: RegistrationConfig, make: Callable[[SurfaceSamples, SurfaceSamples], Hypothesis],
                     ) -> RegistrationResult:
     """Sample, make one hypothesis with ``make``, score it without refining."""
@@ -83,7 +83,7 @@ def _one_hypothesis(method: str, scene: Field, library: Field, proposal: Proposa
                    cfg, proposal, timings, fitness=float(hyp.fitness), samples=(ss.points, ls.points))
 
 
-def register_init_only(scene: Field, library: Field, proposal: ProposalBox,
+def register_init_only(scene: Field, library: Field, proposal: OrientedBox,
                        config: RegistrationConfig | None = None) -> RegistrationResult:
     """Reg-NF-init: the best initial hypothesis, not refined."""
     cfg = config or RegistrationConfig()
@@ -92,7 +92,7 @@ def register_init_only(scene: Field, library: Field, proposal: ProposalBox,
                            lambda ss, ls: initialise(scene, library, proposal, ss, ls, one)[0])
 
 
-def register_fgr(scene: Field, library: Field, proposal: ProposalBox,
+def register_fgr(scene: Field, library: Field, proposal: OrientedBox,
                  config: RegistrationConfig | None = None) -> RegistrationResult:
     """FGR on the same samples and features (rigid; scale from the radius pre-estimate)."""
     cfg = config or RegistrationConfig()
@@ -121,7 +121,7 @@ def kabsch(src: np.ndarray, dst: np.ndarray) -> SimilarityTransform:
     return SimilarityTransform(R, cd - R @ cs, 1.0)
 
 
-def register_nerf2nerf(scene: Field, library: Field, proposal: ProposalBox,
+def register_nerf2nerf(scene: Field, library: Field, proposal: OrientedBox,
                        config: RegistrationConfig | None, truth: SimilarityTransform,
                        library_surface: np.ndarray, n_keypoints: int = 4,
                        keypoint_noise_rel: float = 0.02, seed: int = 0) -> RegistrationResult:

@@ -17,11 +17,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from regnf.registration.proposal import ProposalBox
+from regnf.neural_fields.oriented_box import OrientedBox
 from regnf.registration.transform import SimilarityTransform
 
 
-def containment(library_points: np.ndarray, transform: SimilarityTransform, region: ProposalBox) -> float:
+def containment(library_points: np.ndarray, transform: SimilarityTransform, region: OrientedBox) -> float:
     """Fraction of library surface points that ``transform`` maps into ``region``.
 
     Parameters
@@ -30,7 +30,7 @@ def containment(library_points: np.ndarray, transform: SimilarityTransform, regi
         Points spread over the library object's surface, library field frame (m >= 1).
     transform : SimilarityTransform
         Scene field frame -> library field frame, ``y = s R x + t``.
-    region : ProposalBox
+    region : OrientedBox
         Where the object must lie, scene field frame.
 
     Returns

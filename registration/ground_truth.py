@@ -9,8 +9,8 @@ import numpy as np
 import trimesh
 
 from regnf.neural_fields.field import Field
+from regnf.neural_fields.oriented_box import OrientedBox
 from regnf.registration.metrics import registration_errors
-from regnf.registration.proposal import ProposalBox
 from regnf.registration.result import RegistrationResult
 from regnf.registration.transform import SimilarityTransform
 from regnf.synthetic.instance import Instance
@@ -32,11 +32,11 @@ def true_scene_to_library(
     return SimilarityTransform.from_matrix(M)
 
 
-def proposal_from_instance(instance: Instance, scene_to_world: np.ndarray) -> ProposalBox:
+def proposal_from_instance(instance: Instance, scene_to_world: np.ndarray) -> OrientedBox:
     """The instance's ground-truth oriented box, in the scene field frame (the paper's proposal)."""
     if instance.box_corners is None:
         raise ValueError(f"instance {instance.id!r} has no box corners")
-    box_m = ProposalBox.from_corners(np.asarray(instance.box_corners, dtype=np.float64))
+    box_m = OrientedBox.from_corners(np.asarray(instance.box_corners, dtype=np.float64))
     return box_m.transformed(np.linalg.inv(scene_to_world))
 
 
@@ -64,7 +64,7 @@ class PairTruth(NamedTuple):
 
     truth: SimilarityTransform
     """True scene field frame -> library field frame."""
-    proposal: ProposalBox
+    proposal: OrientedBox
     """The instance's true box as a proposal (scene field frame)."""
     surface_lib: np.ndarray
     """(2000, 3) points on the library object's true surface, library field frame."""

@@ -29,6 +29,7 @@ import torch
 
 from regnf.core.threads import one_thread
 from regnf.neural_fields.field import Field
+from regnf.neural_fields.oriented_box import OrientedBox
 from regnf.registration.containment import containment
 from regnf.registration.initialisation import (
     Hypothesis,
@@ -39,7 +40,6 @@ from regnf.registration.initialisation import (
     initial_hypotheses,
 )
 from regnf.registration.metrics import symmetry_axis
-from regnf.registration.proposal import ProposalBox
 from regnf.registration.refinement import RefineConfig, RefineResult, refine_many
 from regnf.registration.result import HypothesisReport, RegistrationResult
 from regnf.registration.sampling import SamplingConfig, SurfaceSamples, sample_surface
@@ -83,7 +83,7 @@ def check_fields(scene: Field, library: Field) -> None:
 
 
 def sample_pair(
-    scene_field: Field, library_field: Field, proposal: ProposalBox, config: RegistrationConfig
+    scene_field: Field, library_field: Field, proposal: OrientedBox, config: RegistrationConfig
 ) -> tuple[SurfaceSamples, SurfaceSamples]:
     """Stage 1: the scene's surface inside the proposal and the whole library object's."""
     scene = sample_surface(scene_field, proposal, config.scene_sampling, side="scene")
@@ -97,7 +97,7 @@ def library_symmetry(library_field: Field) -> ObjectSymmetry:
     return ObjectSymmetry(int(library_field.info.symmetry.order), symmetry_axis(W))
 
 
-def upright_prior(scene_field: Field, library_field: Field, proposal: ProposalBox,
+def upright_prior(scene_field: Field, library_field: Field, proposal: OrientedBox,
                   config: RegistrationConfig) -> UprightPrior | None:
     """The up axes of both frames and the box centre, or None when ``config.upright`` is off."""
     if not config.upright:
@@ -120,7 +120,7 @@ def hypotheses_or_fallback(
         return [centroid_hypothesis(scene, library, config)]
 
 
-def initialise(scene_field: Field, library_field: Field, proposal: ProposalBox, scene: SurfaceSamples,
+def initialise(scene_field: Field, library_field: Field, proposal: OrientedBox, scene: SurfaceSamples,
                library: SurfaceSamples, config: RegistrationConfig) -> list[Hypothesis]:
     """Stage 2: up to ``config.init.top_k`` hypotheses, best first.
 
@@ -134,13 +134,13 @@ def initialise(scene_field: Field, library_field: Field, proposal: ProposalBox, 
     return screen_hypotheses(scene_field, library_field, A, B, hyps, config.refine, config.init.top_k)
 
 
-def object_region(proposal: ProposalBox, config: RegistrationConfig) -> ProposalBox:
+def object_region(proposal: OrientedBox, config: RegistrationConfig) -> OrientedBox:
     """The box the registered object must lie in: the proposal as the scene was sampled in it
     (grown by ``config.scene_sampling.box_inflate``)."""
     return proposal.inflated(config.scene_sampling.box_inflate)
 
 
-def scored(refined: RefineResult, library_points: np.ndarray, proposal: ProposalBox,
+def scored(refined: RefineResult, library_points: np.ndarray, proposal: OrientedBox,
            config: RegistrationConfig) -> tuple[float, float]:
     """(confidence, containment) of a refined hypothesis.
 
@@ -165,7 +165,7 @@ def sample_tensors(
 def register(
     scene_field: Field,
     library_field: Field,
-    proposal: ProposalBox,
+    proposal: OrientedBox,
     config: RegistrationConfig | None = None,
     method: str = "regnf",
 ) -> RegistrationResult:
@@ -175,7 +175,7 @@ def register(
     ----------
     scene_field, library_field : Field
         On the same device.
-    proposal : ProposalBox
+    proposal : OrientedBox
         Oriented box around the object, in the scene field's frame.
     config : RegistrationConfig
 

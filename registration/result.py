@@ -6,7 +6,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from regnf.registration.proposal import ProposalBox
+from regnf.neural_fields.oriented_box import OrientedBox
 from regnf.registration.transform import SimilarityTransform
 
 
@@ -55,7 +55,7 @@ class RegistrationResult:
     """Seconds per stage: sampling, initialisation, refinement, total."""
     hypotheses: list[HypothesisReport] = field(default_factory=list)
     """Every hypothesis tried, best first."""
-    proposal: ProposalBox | None = None
+    proposal: OrientedBox | None = None
     """The proposal box in the scene field frame."""
     thresholds: dict = field(default_factory=dict)
     """``inlier_threshold`` and ``acceptance_threshold`` used."""

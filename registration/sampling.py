@@ -13,6 +13,7 @@ absolute distance, which breaks for fields of another scale).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 from typing import Literal, NamedTuple
@@ -20,19 +21,27 @@ from typing import Literal, NamedTuple
 import numpy as np
 import torch
 
-from regnf.core.cameras import ray_aabb
+from regnf.core.cameras import pinhole_rays, ray_aabb
 from regnf.neural_fields.field import DEFAULT_CHUNK, Field
-from regnf.neural_fields.raycast import SphereTraceConfig, pinhole_rays, sphere_trace
-
-from .proposal import ProposalBox
+from regnf.neural_fields.oriented_box import OrientedBox
+from regnf.neural_fields.sphere_tracer import SphereTracerConfig, trace
 
 Side = Literal["scene", "library"]
+
+SAMPLING_TRACE = SphereTracerConfig(
+    omega=0.9, adaptive=False, grid_resolution=0, refine="bisection", max_refine=20,
+    footprint_fraction=0.0, check_camera=False,
+)
+"""The tracer's settings for surface sampling: under-relaxed plain steps (0.9 of the SDF, for
+neural fields that overestimate their distance), no empty-space grid (one trace per field
+and box: building a grid would cost more than it saves), bisection of a crossing to an
+absolute tolerance of 1e-5 field units: a surface point, not a pixel, is wanted."""
 
 
 @dataclass(frozen=True)
 class SamplingConfig:
     """Settings of :func:`sample_surface`: distances relative to the proposal box, except
-    ``trace`` (field units)."""
+    ``trace`` (field units; its ``near`` and ``far`` are set per ray here)."""
 
     n_views: int = 5
     """Cameras (paper: 5 = +x, -x, +y, -y, top-down; <= 6 adds bottom-up; > 6: Fibonacci)."""
@@ -76,8 +85,8 @@ class SamplingConfig:
     """Cap on the returned points (paper: 5000); a seeded random subset beyond it."""
     seed: int = 0
     """Seed of the floor RANSAC and of the subsampling (the result is deterministic)."""
-    trace: SphereTraceConfig = field(default_factory=SphereTraceConfig)
-    """Sphere tracing and bisection settings (field units)."""
+    trace: SphereTracerConfig = field(default_factory=lambda: SAMPLING_TRACE)
+    """The sphere tracer's settings (:data:`SAMPLING_TRACE`)."""
 
     def __post_init__(self) -> None:
         if self.views not in ("multi", "single"):
@@ -163,7 +172,7 @@ def view_directions(config: SamplingConfig) -> np.ndarray:
     return np.stack([rho * np.cos(phi), rho * np.sin(phi), z], axis=1)
 
 
-def camera_rig(box: ProposalBox, config: SamplingConfig = SamplingConfig()) -> CameraRig:
+def camera_rig(box: OrientedBox, config: SamplingConfig = SamplingConfig()) -> CameraRig:
     """Cameras around ``box`` (already inflated as wanted), looking at its centre.
 
     Each camera sits at ``distance_factor * box.radius`` from the centre, and the field of
@@ -204,7 +213,7 @@ def _rig_rays(rig: CameraRig) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]
 def fit_floor(
     points: np.ndarray,
     normals: np.ndarray,
-    box: ProposalBox,
+    box: OrientedBox,
     config: SamplingConfig = SamplingConfig(),
 ) -> FloorPlane | None:
     """Fit the supporting floor among the lowest upward-facing hits, or ``None`` if there is none.
@@ -218,7 +227,7 @@ def fit_floor(
     ----------
     points, normals : (n, 3) float
         Hits and unit normals in the field frame.
-    box : ProposalBox
+    box : OrientedBox
         The proposal (sets the tolerances).
     config : SamplingConfig
 
@@ -310,7 +319,7 @@ def _voxel_downsample(points: np.ndarray, voxel: float) -> np.ndarray:
 @torch.no_grad()
 def sample_surface(
     field: Field,
-    box: ProposalBox | None = None,
+    box: OrientedBox | None = None,
     config: SamplingConfig = SamplingConfig(),
     side: Side = "scene",
     device: torch.device | str | None = None,
@@ -321,7 +330,7 @@ def sample_surface(
     ----------
     field : Field
         Any field (neural, analytic, composite).
-    box : ProposalBox, optional
+    box : OrientedBox, optional
         The proposal in the FIELD frame; required on the scene side, the field's bounds by
         default on the library side.
     config : SamplingConfig
@@ -348,7 +357,7 @@ def sample_surface(
         if side == "scene":
             raise ValueError("the scene side needs a proposal box (the object's box in the field)")
         lo, hi = field.bounds.detach().cpu().double().numpy()
-        box = ProposalBox.from_aabb(lo, hi)
+        box = OrientedBox.from_aabb(lo, hi)
     dev = field.device
     if device is not None and not _same_device(torch.device(device), dev):
         raise ValueError(f"field is on {dev}, not on the requested device {device}; move it first")
@@ -373,9 +382,9 @@ def sample_surface(
     if len(entry):
         _finite_check(field, field.sdf_chunked(entry.to(device=dev, dtype=dtype)), "SDF")
 
-    tr = sphere_trace(
-        field, o.to(device=dev, dtype=dtype), d.to(device=dev, dtype=dtype), 0.0, far, config.trace
-    )
+    # The tracer takes its range in metres (a user's unit); ``far`` is in field units here.
+    tracer = dataclasses.replace(config.trace, near=0.0, far=far * field.world_scale)
+    tr = trace(field, o.to(device=dev, dtype=dtype), d.to(device=dev, dtype=dtype), tracer)
     hit = tr.hit.cpu()
     pts = tr.points[tr.hit.to(tr.points.device)]
     ids = ids[hit]
@@ -428,6 +437,6 @@ def _empty_message(field: Field, why: str) -> str:
     name = field.name or type(field).__name__
     return (
         f"scene field {name!r}: the proposal box contains no surface ({why}); check that the "
-        "box is in the scene FIELD frame (use ProposalBox.transformed(inverse(to_world)) for a "
+        "box is in the scene FIELD frame (use OrientedBox.transformed(inverse(to_world)) for a "
         "box in metres)"
     )

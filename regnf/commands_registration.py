@@ -30,7 +30,7 @@ def load_box_metres(path: Path) -> np.ndarray:
     A box of zero or negative size, a mirrored one or corners that form no box are refused
     with a message naming the file (``SystemExit``, before anything is loaded).
     """
-    from regnf.registration.proposal import ProposalBox
+    from regnf.neural_fields.oriented_box import OrientedBox
 
     try:
         data = json.loads(path.read_text())
@@ -55,7 +55,7 @@ def load_box_metres(path: Path) -> np.ndarray:
             signs = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=np.float64)
             R = Rotation.from_euler("z", yaw).as_matrix()
             corners = c + (signs * 0.5 * size) @ R.T
-        ProposalBox.from_corners(corners)  # refuses degenerate, mirrored or non-box corners
+        OrientedBox.from_corners(corners)  # refuses degenerate, mirrored or non-box corners
     except KeyError as exc:
         raise SystemExit(f"{path}: expected 'corners' or 'center' + 'size' (+ 'yaw'), got {sorted(data)}") from exc
     except (TypeError, ValueError) as exc:
@@ -131,8 +131,8 @@ class Register:
         return np.asarray(inst.box_corners, dtype=np.float64)
 
     def run(self) -> None:
+        from regnf.neural_fields.oriented_box import OrientedBox
         from regnf.registration.pipeline import register
-        from regnf.registration.proposal import ProposalBox
 
         # Everything that can be checked is checked before the registration's seconds of work.
         check_output_file(self.out, "--out")
@@ -144,7 +144,7 @@ class Register:
         scene = load_field(self.scene, device=self.device)
         library = load_field(self.library, device=self.device)
         S = scene.to_world.detach().cpu().double().numpy()
-        proposal = ProposalBox.from_corners(corners).transformed(np.linalg.inv(S))
+        proposal = OrientedBox.from_corners(corners).transformed(np.linalg.inv(S))
         result = register(scene, library, proposal, self.registration)
         payload = registration_payload(result, scene, library, self.scene, self.library)
         write_json(self.out, payload)

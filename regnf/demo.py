@@ -55,8 +55,8 @@ from regnf.neural_fields.cache import Cache, default_cache_dir
 from regnf.registration.metrics import BARS
 
 if TYPE_CHECKING:
-    from regnf.compositor.camera import Camera
     from regnf.core.output_dir import OutputFolder
+    from regnf.neural_fields.camera import Camera
     from regnf.scene_graph.validation import ValidationReport
     from regnf.synthetic.rooms import Room
     from regnf.synthetic.sdfstudio_format import Capture
@@ -220,13 +220,13 @@ def _register_all(stage: Path, out: Path, scene_path: Path, library_paths: dict[
 def _completion(stage: Path, room: Room, config: DemoConfig, out: Path) -> dict[str, Any]:
     """Per object, one view from a side the capture never saw: truth | scene field | substituted."""
     from regnf.benchmarks.render import RenderBenchConfig, reference_renderer, unseen_cameras
-    from regnf.compositor.distance_grid import DistanceGrid
     from regnf.compositor.from_stage import composite_from_stage
-    from regnf.compositor.image_io import rgb_to_uint8, write_rgb_png
     from regnf.compositor.render_folder import RenderConfig
-    from regnf.compositor.sphere_tracer import render
     from regnf.compositor.stage_config import StageCompositeConfig
+    from regnf.core.image_io import rgb_to_uint8, write_rgb_png
+    from regnf.neural_fields.distance_grid import DistanceGrid
     from regnf.neural_fields.evaluation import psnr
+    from regnf.neural_fields.sphere_tracer import render
 
     sphere = RenderConfig().sphere
     fields = {mode: composite_from_stage(stage, StageCompositeConfig(mode=mode, box_pad=config.completion_box_pad),
@@ -241,13 +241,13 @@ def _completion(stage: Path, room: Room, config: DemoConfig, out: Path) -> dict[
             if not cams:
                 continue
             cam = cams[0]
-            gt = ref.render(cam.camera_to_world, cam.K, with_ids=True)
-            region = gt.instance_ids == k
-            row, scores = [gt.rgb], {}
+            gt = ref.render(cam.camera_to_world, cam.K)
+            gt_rgb, region = rgb_to_uint8(gt.rgb), gt.instance_id.numpy() == k
+            row, scores = [gt_rgb], {}
             for mode in ("scene", "substitute"):
                 r = render(fields[mode], cam, sphere, grid=grids[mode])
                 rgb = r.rgb.detach().cpu().numpy()
-                scores[mode] = psnr(rgb[region], gt.rgb[region] / 255.0) if region.any() else float("nan")
+                scores[mode] = psnr(rgb[region], gt_rgb[region] / 255.0) if region.any() else float("nan")
                 row.append(rgb_to_uint8(rgb))
             rows.append(np.concatenate(row, axis=1))
             per_object.append({"instance": inst.id, "object": inst.library,

@@ -60,7 +60,6 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from regnf.compositor.camera import Camera
 from regnf.compositor.cameras_io import OrbitConfig, orbit_around_bounds
 from regnf.compositor.render_folder import RENDER_JSON, RenderConfig, check_image_size
 from regnf.compositor.stage_config import StageCompositeConfig
@@ -74,6 +73,7 @@ from regnf.core.output_dir import (
     replace_entry,
     staging_dir,
 )
+from regnf.neural_fields.camera import Camera
 
 from .manifest import MANIFEST_NAME, append_row, read_manifest, sealed, sha256_file, write_manifest
 
@@ -602,7 +602,7 @@ def tile_sheet(out: str | os.PathLike, seeds: Sequence[int] | None = None, colum
         A run is writing into ``out`` now.
     """
     from regnf.compositor.contact_sheets import contact_sheet
-    from regnf.compositor.image_io import read_rgb_png, write_rgb_png
+    from regnf.core.image_io import read_rgb_png, write_rgb_png
 
     out = Path(out)
     wanted = None if seeds is None else set(seeds)

@@ -3,7 +3,7 @@
 The writer (:func:`regnf.scene_graph.write_stage`, and through it every edit) and the reader
 (:func:`regnf.scene_graph.read_stage`) apply the same functions, so that whatever is written can be
 read back, and whatever is read can be rendered: the compositor builds each instance's
-removal box from the recorded proposal box (``regnf.compositor.oriented_box.OrientedBox``) and maps
+removal box from the recorded proposal box (``regnf.neural_fields.oriented_box.OrientedBox``) and maps
 each library field by ``object_to_scene``. Each check raises ``ValueError`` with a one-line
 message; callers turn it into a :class:`~scene_graph.StageError` naming the file and prim.
 """
@@ -21,8 +21,7 @@ from .model import RegistrationProvenance
 
 BOX_ROTATION_ATOL = 1e-6
 """Largest ``|R^T R - I|`` entry of a proposal box's axes. Stricter than the 1e-5 of
-``regnf.compositor.oriented_box.OrientedBox`` (and ``regnf.registration.proposal.ProposalBox``), so that a
-box that passes here passes there too, whatever rounding either computation makes."""
+``regnf.neural_fields.oriented_box.OrientedBox``, so that a box that passes here passes there too, whatever rounding either computation makes."""
 
 
 def _fmt(a: np.ndarray) -> str:

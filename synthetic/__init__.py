@@ -24,7 +24,6 @@ _EXPORTS: dict[str, str] = {
     "library_object_names": "library",
     "make_library_object": "library",
     "RGBDRenderer": "render",
-    "RenderOutput": "render",
     "ROOM_NAMES": "rooms",
     "Room": "rooms",
     "make_room": "rooms",
@@ -56,7 +55,7 @@ if TYPE_CHECKING:  # static analysers see the real names
         library_object_names,
         make_library_object,
     )
-    from regnf.synthetic.render import RenderOutput, RGBDRenderer
+    from regnf.synthetic.render import RGBDRenderer
     from regnf.synthetic.rooms import ROOM_NAMES, Room, make_room
     from regnf.synthetic.sdfstudio_format import (
         Capture,

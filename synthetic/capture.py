@@ -15,6 +15,7 @@ import trimesh
 from tqdm import tqdm
 
 from regnf.core.atomic_io import atomic_path
+from regnf.core.image_io import rgb_to_uint8
 from regnf.synthetic.instance import Instance
 from regnf.synthetic.library import make_library_object
 from regnf.synthetic.render import VOID_GREY, RGBDRenderer
@@ -112,8 +113,8 @@ def _render_all(
     rgbs, depths = [], []
     for pose in tqdm(poses, desc=desc, disable=not progress, leave=False):  # per frame
         out = renderer.render(pose, K)
-        rgbs.append(out.rgb)
-        depths.append(out.depth)
+        rgbs.append(rgb_to_uint8(out.rgb))
+        depths.append(out.depth.numpy())
     return rgbs, depths
 
 

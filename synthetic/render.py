@@ -18,31 +18,20 @@ import os
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")  # headless; must precede the pyrender import
 
 from collections.abc import Sequence
-from dataclasses import dataclass
 
 import numpy as np
 import pyrender
+import torch
 import trimesh
 
 from regnf.core.cameras import opencv_to_opengl
+from regnf.core.render_result import Render
 
 VOID_GREY = (0.5, 0.5, 0.5)
 """Background colour of library captures ("in a void")."""
 
 _BACKGROUND_CODE = 0
 _UNLABELLED_CODE = 1  # geometry without an instance id (floor, walls, clutter)
-
-
-@dataclass
-class RenderOutput:
-    """One rendered frame."""
-
-    rgb: np.ndarray
-    """(H, W, 3) uint8 colour."""
-    depth: np.ndarray
-    """(H, W) float32 z-depth in the mesh units (metres); 0 where nothing was hit."""
-    instance_ids: np.ndarray | None = None
-    """(H, W) int32 instance index, -1 for background or unlabelled geometry."""
 
 
 def _code_to_color(code: int) -> np.ndarray:
@@ -117,8 +106,8 @@ class RGBDRenderer:
         self.camera_node = self.scene.add(self.camera, pose=np.eye(4))
         self.renderer = pyrender.OffscreenRenderer(self.width, self.height)
 
-    def render(self, camtoworld: np.ndarray, K: np.ndarray, with_ids: bool = False) -> RenderOutput:
-        """Render one frame.
+    def render(self, camtoworld: np.ndarray, K: np.ndarray) -> Render:
+        """Render one frame: colour, depth, mask and instance ids (CPU tensors; no normals).
 
         Parameters
         ----------
@@ -126,8 +115,15 @@ class RGBDRenderer:
             OpenCV cam-to-world pose (x right, y down, z forward).
         K : (3, 3) float
             Pinhole intrinsics; pixel centres at (u + 0.5, v + 0.5).
-        with_ids : bool
-            Also return the instance-id mask.
+
+        Returns
+        -------
+        Render
+            CPU tensors: ``rgb`` (H, W, 3) float32 ``uint8 / 255``
+            (:func:`regnf.core.image_io.rgb_to_uint8` recovers the 8-bit image exactly),
+            ``depth`` (H, W) float32 metres (0: nothing hit), ``mask`` ``depth > 0``,
+            ``instance_id`` (H, W) int64 (-1: background or unlabelled geometry); no normals
+            and no evaluation counts (None).
         """
         camtoworld = np.asarray(camtoworld, dtype=np.float64)
         K = np.asarray(K, dtype=np.float64)
@@ -142,11 +138,18 @@ class RGBDRenderer:
         seg, depth = self.renderer.render(
             self.scene, flags=pyrender.RenderFlags.SEG, seg_node_map=self.seg_map
         )
-        ids = None
-        if with_ids:
-            ids = (_color_to_code(seg) - 2).astype(np.int32)
-            ids[ids < 0] = -1
-        return RenderOutput(np.ascontiguousarray(rgb[..., :3]), depth.astype(np.float32), ids)
+        ids = _color_to_code(seg) - 2
+        ids[ids < 0] = -1
+        depth_t = torch.from_numpy(depth.astype(np.float32))
+        return Render(
+            rgb=torch.from_numpy(np.ascontiguousarray(rgb[..., :3])).float() / 255.0,
+            depth=depth_t,
+            normals=None,
+            instance_id=torch.from_numpy(ids),
+            mask=depth_t > 0,
+            evals_per_pixel=None,
+            lookups_per_pixel=None,
+        )
 
     def delete(self) -> None:
         """Release the GL context (safe to call twice)."""

@@ -22,7 +22,7 @@ whose one-line message names the file and the frame.
 
 The pose rules live here, at the bottom of the package graph (``synthetic`` ->
 ``neural_fields`` -> ... -> ``compositor``), so that training and rendering share them: the
-compositor's :class:`~regnf.compositor.camera.Camera` and
+renderer's :class:`~regnf.neural_fields.camera.Camera` and
 :func:`regnf.neural_fields.similarity.decompose_similarity` call the same functions.
 """
 
@@ -124,7 +124,7 @@ def check_rigid_pose(M: np.ndarray, rtol: float = POSE_RTOL) -> None:
     """Refuse a camera-to-world ``M`` (4, 4) that is not a rotation plus a translation.
 
     The one rule for camera poses: training (:func:`load_capture`) and rendering
-    (:class:`regnf.compositor.camera.Camera`) both call it, so a pose one accepts the other does.
+    (:class:`regnf.neural_fields.camera.Camera`) both call it, so a pose one accepts the other does.
 
     Raises
     ------
@@ -142,7 +142,7 @@ def check_intrinsics(K: np.ndarray) -> None:
 
     ``K = [[fx, skew, cx], [0, fy, cy], [0, 0, 1]]`` with finite entries and ``fx, fy > 0``
     (which also makes it invertible). Shared by :func:`load_capture` and
-    :class:`regnf.compositor.camera.Camera`.
+    :class:`regnf.neural_fields.camera.Camera`.
 
     Raises
     ------

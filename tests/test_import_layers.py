@@ -87,10 +87,10 @@ def test_every_module_imports_only_from_below() -> None:
 
 @pytest.mark.parametrize(("module", "source", "expected"), [
     ("regnf.neural_fields.training", "from regnf.registration.pipeline import register\n", 1),
-    ("regnf.neural_fields.training", "def f():\n    import regnf.compositor.camera\n", 1),
+    ("regnf.neural_fields.training", "def f():\n    import regnf.compositor.composite_field\n", 1),
     ("regnf.registration.metrics", "from regnf.benchmarks import registration\n", 1),
     ("regnf.registration.metrics", "from regnf import demo\n", 1),
-    ("regnf.compositor.camera", "from . import sphere_tracer\nfrom ..scene_graph import read_stage\n", 0),
+    ("regnf.compositor.placement", "from . import substitution\nfrom ..scene_graph import read_stage\n", 0),
     ("regnf.core.atomic_io", "from ..synthetic import rooms\n", 1),
     ("regnf.scene_graph.fields", "import compositor.camera\n", 1),
     ("regnf.benchmarks.registration", "from regnf.registration.pipeline import register\n", 0),

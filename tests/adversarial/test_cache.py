@@ -14,9 +14,10 @@ import pytest
 
 from regnf.neural_fields import cache as cache_module
 from regnf.neural_fields.cache import Cache
+from regnf.neural_fields.camera import Camera
 from regnf.neural_fields.checkpoint import verify_checkpoint
 from regnf.neural_fields.neural_sdf import NeuralSDFConfig
-from regnf.neural_fields.raycast import render_field
+from regnf.neural_fields.sphere_tracer import render
 from regnf.neural_fields.training import RGBDTrainConfig
 from regnf.synthetic.sdfstudio_format import load_capture, write_capture
 from tests.neural_fields import capture_helpers as C
@@ -40,7 +41,7 @@ def views() -> tuple[list[np.ndarray], list[np.ndarray], np.ndarray]:
     field, poses = C.analytic_object(), C.camera_poses()[:VIEWS]
     rgbs, depths = [], []
     for c2w in poses:
-        out = render_field(field, C.K, c2w, C.WIDTH, C.HEIGHT, background=(0.0, 0.0, 0.0), config=C.TRACE)
+        out = render(field, Camera(C.K, C.WIDTH, C.HEIGHT, c2w), C.TRACE)  # to_world = I
         rgbs.append(np.round(out.rgb.numpy() * 255.0).astype(np.uint8))
         depths.append(out.depth.numpy().astype(np.float64) * C.WORLD_SCALE)
     return rgbs, depths, C.poses_in_metres(poses)

@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from regnf.compositor.camera import Camera
 from regnf.compositor.cameras_io import cameras_from_capture
 from regnf.core.cameras import look_at
+from regnf.neural_fields.camera import Camera
 from regnf.neural_fields.neural_sdf import NeuralSDFConfig
 from regnf.neural_fields.training import RGBDTrainConfig, train_rgbd
 from regnf.synthetic import sdfstudio_format

@@ -26,7 +26,8 @@ import numpy as np
 import torch
 
 from regnf.compositor import Camera, SphereTracerConfig, VolumeRendererConfig, render, render_volume
-from regnf.compositor.image_io import (
+from regnf.compositor.stage_config import StageCompositeConfig
+from regnf.core.image_io import (
     depth_to_mm,
     read_instance_png,
     read_rgb_png,
@@ -35,7 +36,6 @@ from regnf.compositor.image_io import (
     write_instance_png,
     write_rgb_png,
 )
-from regnf.compositor.stage_config import StageCompositeConfig
 from regnf.neural_fields.field import Field
 
 from . import golden_scenes as G
@@ -109,7 +109,7 @@ def paths(name: str, folder: Path = G.GOLDEN_DIR) -> dict[str, Path]:
 
 
 def write_images(images: Images, name: str, kinds: tuple[str, ...] = KINDS, folder: Path = G.GOLDEN_DIR) -> None:
-    """Write the ``kinds`` of ``images`` (atomically, see regnf.compositor.image_io)."""
+    """Write the ``kinds`` of ``images`` (atomically, see regnf.core.image_io)."""
     p = paths(name, folder)
     if "rgb" in kinds:
         write_rgb_png(p["rgb"], images.rgb)

@@ -8,7 +8,6 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from regnf.compositor import CompositeConfig, CompositeField
-from regnf.compositor.composite_field import sample_field
 from regnf.compositor.placement import PlacedObject
 from regnf.compositor.regions import OrientedBoxRegion, ShellRegion
 from regnf.neural_fields.analytic import Box, Sphere, Union
@@ -91,7 +90,7 @@ def test_winner_ids() -> None:
     on_floor = np.column_stack([rng.uniform(-1.8, -1.0, size=(200, 2)), np.full(200, 1e-4)])
     assert bool((comp.evaluate(H.tensor(on_ball)).winner == H.INSTANCE).all())
     assert bool((comp.evaluate(H.tensor(on_floor)).winner == 0).all())
-    plain = sample_field(H.scene_field(), H.tensor(on_floor))
+    plain = H.scene_field().evaluate(H.tensor(on_floor))
     assert bool((plain.winner == 0).all() and (plain.evals == 1).all())
 
 
@@ -234,9 +233,10 @@ def test_invalid_inputs_are_refused() -> None:
         CompositeField(scene, removals=[object()])  # type: ignore[list-item]
 
 
-def test_existing_meshing_and_rendering_accept_a_composite() -> None:
+def test_meshing_and_plain_sphere_tracing_accept_a_composite() -> None:
+    from regnf.neural_fields.camera import Camera
     from regnf.neural_fields.meshing import extract_mesh
-    from regnf.neural_fields.raycast import render_field
+    from regnf.neural_fields.sphere_tracer import SphereTracerConfig, render
 
     comp = make_composite()
     box = np.stack([H.PLACED_CENTER - 0.3, H.PLACED_CENTER + 0.3])
@@ -248,5 +248,5 @@ def test_existing_meshing_and_rendering_accept_a_composite() -> None:
     pose = np.eye(4)  # OpenCV axes looking along +y: x right = +x, y down = -z, z = +y
     pose[:3, :3] = np.column_stack([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
     pose[:3, 3] = H.PLACED_CENTER + np.array([0.0, -1.5, 0.0])
-    out = render_field(comp, K, pose, 16, 16)
+    out = render(comp, Camera(K, 16, 16, pose), SphereTracerConfig.plain())  # to_world = I
     assert bool(out.mask[8, 8]) and float(out.depth[8, 8]) == pytest.approx(1.3, abs=1e-3)

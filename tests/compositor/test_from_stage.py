@@ -80,9 +80,9 @@ def test_frames_and_removal_box_from_a_stage(stage: Path) -> None:
     # spared below the base (canonical z = 0 -> scene field z = -0.5) plus 1 cm (1/3 cm units).
     region = comp.field.removals[0]
     assert isinstance(region, OrientedBoxRegion)
-    np.testing.assert_allclose(region.box.center.numpy(), M[:3, 3], atol=1e-12)
-    np.testing.assert_allclose(region.box.half_extents.numpy(), [0.252] * 3, atol=1e-12)
-    np.testing.assert_allclose(region.box.rotation.numpy(), rz(0.5), atol=1e-12)
+    np.testing.assert_allclose(region.box.center, M[:3, 3], atol=1e-12)
+    np.testing.assert_allclose(region.box.half_extents, [0.252] * 3, atol=1e-12)
+    np.testing.assert_allclose(region.box.rotation, rz(0.5), atol=1e-12)
     assert region.keep_floor == pytest.approx(-0.5) and region.floor_margin == pytest.approx(0.01 / 3.0)
     c = M[:3, 3]
     pts = torch.tensor(np.array([c, [c[0], c[1], -0.5 - 0.001], [c[0], c[1], -0.5 + 0.002],
@@ -114,8 +114,8 @@ def test_replacement_removes_the_registered_object_and_shows_the_new(tmp_path: P
     # Box removal adds the registration's proposal box (scene field frame) for c_1 only.
     boxes = composite_from_stage(layer, StageCompositeConfig(removal="box", box_pad=0.0)).field.removals
     assert len(boxes) == 3
-    np.testing.assert_allclose(boxes[1].box.center.numpy(), [1.0, 2.0, 0.4])
-    np.testing.assert_allclose(boxes[1].box.half_extents.numpy(), [0.3, 0.3, 0.45])
+    np.testing.assert_allclose(boxes[1].box.center, [1.0, 2.0, 0.4])
+    np.testing.assert_allclose(boxes[1].box.half_extents, [0.3, 0.3, 0.45])
 
 
 def test_a_package_composes_like_its_stage(stage: Path, tmp_path: Path) -> None:

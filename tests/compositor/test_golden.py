@@ -17,9 +17,9 @@ from collections.abc import Iterator
 import pytest
 import torch
 
-import regnf.compositor.sphere_tracer as tracer
+import regnf.neural_fields.sphere_tracer as tracer
 from regnf.compositor import CompositeField
-from regnf.compositor.shading import Shaded
+from regnf.neural_fields.shading import Shaded
 
 from . import golden as GD
 

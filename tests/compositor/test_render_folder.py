@@ -13,11 +13,11 @@ import regnf.compositor.render_folder as RV
 from regnf.compositor import Camera, look_at
 from regnf.compositor.cameras_io import OrbitConfig, orbit_around_bounds
 from regnf.compositor.contact_sheets import contact_sheet
-from regnf.compositor.image_io import read_depth_png, read_instance_png, read_rgb_png
 from regnf.compositor.nerfstudio import opencv_to_opengl, transforms_json
 from regnf.compositor.render_folder import RenderConfig, ViewFiles, render_views
 from regnf.compositor.stage_config import StageCompositeConfig
 from regnf.core.file_lock import LOCK_NAME
+from regnf.core.image_io import read_depth_png, read_instance_png, read_rgb_png
 
 from . import golden_scenes as G
 

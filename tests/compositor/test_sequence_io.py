@@ -13,11 +13,11 @@ import regnf.compositor.render_folder as RV
 import regnf.compositor.sequence_io as SIO
 from regnf.compositor import Camera
 from regnf.compositor.cameras_io import OrbitConfig, orbit_around_bounds
-from regnf.compositor.image_io import read_rgb_png
 from regnf.compositor.render_folder import RenderConfig, render_views
 from regnf.compositor.sequence_io import SequenceBackendError, write_gif, write_mp4
 from regnf.compositor.stage_config import StageCompositeConfig
 from regnf.core.file_lock import LOCK_NAME
+from regnf.core.image_io import read_rgb_png
 
 from . import golden_scenes as G
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from regnf.core.cameras import OPENCV_TO_OPENGL, look_at, opencv_to_opengl, ray_aabb
+from regnf.core.cameras import OPENCV_TO_OPENGL, look_at, opencv_to_opengl, pinhole_rays, ray_aabb
 
 
 def test_look_at_is_opencv() -> None:
@@ -61,3 +61,33 @@ def test_ray_aabb_diagonal_hand_computed() -> None:
     d = torch.tensor([[1 / s2, 1 / s2, 0.0]], dtype=torch.float64)
     t_in, t_out = ray_aabb(o, d, -torch.ones(3, dtype=torch.float64), torch.ones(3, dtype=torch.float64))
     assert t_in.item() == pytest.approx(s2) and t_out.item() == pytest.approx(3 * s2)
+
+
+def test_pinhole_rays_pass_through_pixel_centres() -> None:
+    K = np.array([[100.0, 0.0, 32.0], [0.0, 120.0, 24.0], [0.0, 0.0, 1.0]])
+    C = look_at(np.array([1.0, -2.0, 0.5]), np.array([0.0, 0.3, 0.1]))
+    o, d, z = pinhole_rays(K, C, 64, 48, device="cpu", dtype=torch.float64)
+    assert o.shape == (64 * 48, 3) and d.shape == (64 * 48, 3) and z.shape == (64 * 48,)
+    assert o.device == torch.device("cpu")
+    # Pixel (u=5, v=7) by hand: centre (5.5, 7.5), row-major index 7 * 64 + 5.
+    d_cam = np.array([(5.5 - 32.0) / 100.0, (7.5 - 24.0) / 120.0, 1.0])
+    d_cam /= np.linalg.norm(d_cam)
+    i = 7 * 64 + 5
+    np.testing.assert_allclose(d[i].numpy(), C[:3, :3] @ d_cam, atol=1e-12)
+    np.testing.assert_allclose(o[i].numpy(), C[:3, 3], atol=1e-12)
+    np.testing.assert_allclose(float(z[i]), d_cam[2], atol=1e-12)
+    np.testing.assert_allclose(torch.linalg.vector_norm(d, dim=-1).numpy(), 1.0, atol=1e-12)
+    # Stride: every 4th pixel, still through the kept pixels' centres.
+    _, d4, _ = pinhole_rays(K, C, 64, 48, stride=4, dtype=torch.float64)
+    assert d4.shape == (16 * 12, 3)
+    np.testing.assert_allclose(d4[1].numpy(), d[4].numpy(), atol=1e-12)
+    np.testing.assert_allclose(d4[16].numpy(), d[4 * 64].numpy(), atol=1e-12)
+    assert pinhole_rays(K, C, 64, 48)[0].dtype == torch.float32
+    with pytest.raises(ValueError, match="stride"):
+        pinhole_rays(K, C, 64, 48, stride=0)
+    with pytest.raises(ValueError, match="K"):
+        pinhole_rays(np.zeros((3, 3)), C, 64, 48)
+    with pytest.raises(ValueError, match="width"):
+        pinhole_rays(K, C, 0, 48)
+    with pytest.raises(ValueError, match="camtoworld"):
+        pinhole_rays(K, np.eye(3), 64, 48)

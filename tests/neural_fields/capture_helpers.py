@@ -3,7 +3,7 @@
 The object is the union of an axis-aligned box (flat faces, sharp edges) and a sphere
 sitting on it, both with constant colours. It fills the normalised frame like a library
 object does (longest extent ~1.5 of the [-1, 1] box). Forty 64 x 64 views on a sphere
-around it are sphere-traced with :func:`regnf.neural_fields.raycast.render_field` (OpenCV
+around it are sphere-traced with :func:`regnf.neural_fields.sphere_tracer.render` (OpenCV
 cameras, z-depth in the normalised frame) and written with
 :func:`regnf.synthetic.sdfstudio_format.write_capture` in METRES through a known similarity
 ``WORLDTOGT``, so loading the capture exercises the metres -> normalised conversion too.
@@ -19,7 +19,8 @@ import torch
 
 from regnf.core.cameras import look_at
 from regnf.neural_fields.analytic import Box, Sphere, Union
-from regnf.neural_fields.raycast import SphereTraceConfig, render_field
+from regnf.neural_fields.camera import Camera
+from regnf.neural_fields.sphere_tracer import SphereTracerConfig, render
 from regnf.synthetic.sdfstudio_format import Capture, load_capture, write_capture
 from regnf.synthetic.trajectories import fibonacci_directions, viewing_distance
 
@@ -48,9 +49,9 @@ WORLDTOGT[:3, 3] = WORLD_OFFSET
 """Normalised -> metres: metres = 0.4 * normalised + (1, -2, 0.5)."""
 
 
-TRACE = SphereTraceConfig(max_steps=1024)
-"""Rays grazing a box face need ~700 steps to converge; with the default 256 a few dozen
-pixels would come out empty although their rays enter the box (by up to 0.014)."""
+TRACE = SphereTracerConfig(max_steps=1024, background=(0.0, 0.0, 0.0))
+"""Rays grazing a box face need many steps to converge; with the default 256 some pixels could
+come out empty although their rays enter the box."""
 
 
 def analytic_object() -> Union:
@@ -78,7 +79,7 @@ def rendered_views() -> tuple[tuple[np.ndarray, ...], tuple[np.ndarray, ...], np
     poses = camera_poses()
     rgbs, depths = [], []
     for c2w in poses:
-        out = render_field(field, K, c2w, WIDTH, HEIGHT, background=(0.0, 0.0, 0.0), config=TRACE)
+        out = render(field, Camera(K, WIDTH, HEIGHT, c2w), TRACE)  # to_world = I: metres = normalised
         rgbs.append(np.round(out.rgb.numpy() * 255.0).astype(np.uint8))
         depths.append(out.depth.numpy().astype(np.float64))
     return tuple(rgbs), tuple(depths), poses

@@ -13,8 +13,8 @@ import numpy as np
 
 from regnf.neural_fields.analytic import Box, Cylinder, Sphere, Transformed, Union
 from regnf.neural_fields.field import Field
+from regnf.neural_fields.oriented_box import OrientedBox
 from regnf.neural_fields.similarity import similarity_matrix
-from regnf.registration.proposal import ProposalBox
 
 OBJECT_LO = np.array([-0.4, -0.25, 0.0])
 """Canonical AABB of :func:`make_object` (exact: the union of the parts' boxes)."""
@@ -30,9 +30,9 @@ def make_object() -> Field:
     return Union(base, back, ball, post, label="chair", name="testobj")
 
 
-def object_box() -> ProposalBox:
+def object_box() -> OrientedBox:
     """The object's canonical AABB as a proposal."""
-    return ProposalBox.from_aabb(OBJECT_LO, OBJECT_HI)
+    return OrientedBox.from_aabb(OBJECT_LO, OBJECT_HI)
 
 
 def rot(axis: np.ndarray | list[float], angle: float) -> np.ndarray:

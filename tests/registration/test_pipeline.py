@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from regnf.neural_fields.analytic import Box, Cylinder, Transformed, Union
+from regnf.neural_fields.oriented_box import OrientedBox
 from regnf.neural_fields.similarity import similarity_matrix
 from regnf.registration.baselines import (
     kabsch,
@@ -18,7 +19,6 @@ from regnf.registration.baselines import (
 )
 from regnf.registration.metrics import geodesic_angle
 from regnf.registration.pipeline import RegistrationConfig, register
-from regnf.registration.proposal import ProposalBox
 from regnf.registration.transform import SimilarityTransform
 
 from .fixtures import OBJECT_HI, OBJECT_LO, make_object, make_scene, placement, rot
@@ -36,7 +36,7 @@ def scene_and_truth(yaw: float, factor: float):
     """A scene with the object placed by a yaw + translation, and T_gt scene -> library."""
     M = placement([0, 0, 1], yaw, [0.7, -0.4, 0.0], 1.0)
     scene = make_scene(M)
-    proposal = ProposalBox.from_corners(
+    proposal = OrientedBox.from_corners(
         (np.array([[x, y, z] for x in (OBJECT_LO[0], OBJECT_HI[0]) for y in (OBJECT_LO[1], OBJECT_HI[1])
                    for z in (OBJECT_LO[2], OBJECT_HI[2])]) @ M[:3, :3].T) + M[:3, 3]
     )
@@ -72,7 +72,7 @@ def test_wrong_object_is_detected() -> None:
     table = Union(Box(half_extents=(0.4, 0.4, 0.03), center=(0.0, 0.0, 0.72)),
                   Cylinder(radius=0.06, half_height=0.35, center=(0.0, 0.0, 0.35)),
                   Box(half_extents=(3.0, 3.0, 0.05), center=(0.0, 0.0, -0.05)))
-    proposal = ProposalBox.from_aabb(np.array([-0.4, -0.4, 0.0]), np.array([0.4, 0.4, 0.75]))
+    proposal = OrientedBox.from_aabb(np.array([-0.4, -0.4, 0.0]), np.array([0.4, 0.4, 0.75]))
     result = register(table, library_at_scale(1.0), proposal)
     assert not result.accepted
     assert result.confidence < RegistrationConfig().acceptance_threshold
@@ -80,7 +80,7 @@ def test_wrong_object_is_detected() -> None:
 
 def test_empty_proposal_box_raises() -> None:
     scene, _, _ = scene_and_truth(0.5, 1.0)
-    empty = ProposalBox.from_aabb(np.array([2.0, 2.0, 0.5]), np.array([2.5, 2.5, 1.0]))
+    empty = OrientedBox.from_aabb(np.array([2.0, 2.0, 0.5]), np.array([2.5, 2.5, 1.0]))
     with pytest.raises(ValueError, match="no surface"):
         register(scene, library_at_scale(1.0), empty)
 

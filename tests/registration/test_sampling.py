@@ -10,8 +10,8 @@ import torch
 
 from regnf.neural_fields.analytic import Transformed
 from regnf.neural_fields.field import Field
+from regnf.neural_fields.oriented_box import OrientedBox
 from regnf.neural_fields.similarity import similarity_matrix
-from regnf.registration.proposal import ProposalBox
 from regnf.registration.sampling import (
     SamplingConfig,
     SurfaceSamples,
@@ -39,7 +39,7 @@ def fd_normals(field: Field, p: np.ndarray, h: float = 1e-6) -> np.ndarray:
 
 
 @pytest.fixture(scope="module")
-def scene_samples() -> tuple[Field, ProposalBox, SurfaceSamples]:
+def scene_samples() -> tuple[Field, OrientedBox, SurfaceSamples]:
     scene = make_scene(M_PLACE)
     box = object_box().transformed(M_PLACE)
     return scene, box, sample_surface(scene, box, SamplingConfig(), side="scene")
@@ -104,8 +104,8 @@ def test_library_covers_the_whole_object() -> None:
 
 def test_camera_distance_and_fov_scale_with_the_box() -> None:
     cfg = SamplingConfig()
-    box = ProposalBox(np.array([1.0, 2.0, 0.5]), np.array([0.3, 0.2, 0.5]), rot([0, 0, 1], 0.3))
-    big = ProposalBox(box.center, 3.0 * box.half_extents, box.rotation)
+    box = OrientedBox(np.array([1.0, 2.0, 0.5]), np.array([0.3, 0.2, 0.5]), rot([0, 0, 1], 0.3))
+    big = OrientedBox(box.center, 3.0 * box.half_extents, box.rotation)
     for b in (box, big):
         rig = camera_rig(b, cfg)
         eyes = rig.camtoworld[:, :3, 3]
@@ -142,7 +142,7 @@ def test_view_directions() -> None:
 
 def test_empty_box_raises() -> None:
     scene = make_scene(M_PLACE)
-    empty = ProposalBox(np.array([2.0, 2.0, 1.5]), np.array([0.2, 0.2, 0.2]))
+    empty = OrientedBox(np.array([2.0, 2.0, 1.5]), np.array([0.2, 0.2, 0.2]))
     with pytest.raises(ValueError, match="contains no surface"):
         sample_surface(scene, empty, SamplingConfig(rays_per_side=16), "scene")
     with pytest.raises(ValueError, match="proposal box"):
@@ -185,7 +185,7 @@ class NaNField(Field):
 
 
 def test_non_finite_field_raises() -> None:
-    box = ProposalBox.from_aabb(-0.5 * np.ones(3), 0.5 * np.ones(3))
+    box = OrientedBox.from_aabb(-0.5 * np.ones(3), 0.5 * np.ones(3))
     with pytest.raises(ValueError, match="non-finite"):
         sample_surface(NaNField(), box, SamplingConfig(rays_per_side=8), "scene")
 

@@ -13,10 +13,10 @@ from pxr import Usd, UsdGeom
 
 from regnf.cli import main
 from regnf.compositor import Camera
-from regnf.compositor.image_io import read_depth_png, read_instance_png, read_rgb_png
 from regnf.compositor.replace import pick_replacements
 from regnf.compositor.usd_cameras import camera_to_usd, write_cameras_usd
 from regnf.core.file_lock import LOCK_NAME
+from regnf.core.image_io import read_depth_png, read_instance_png, read_rgb_png
 from regnf.scene_graph import add_instance, export_stage, read_stage
 from tests.regnf.cli_helpers import assert_fails
 from tests.scene_graph.helpers import make_stage, similarity

@@ -25,12 +25,12 @@ from pxr import Gf, Sdf
 from regnf.cli import main
 from regnf.compositor.cameras_io import OrbitConfig, field_bounds_metres
 from regnf.compositor.from_stage import composite_from_stage
-from regnf.compositor.image_io import read_depth_png, read_instance_png, read_rgb_png
 from regnf.compositor.replace import ReplaceConfig, pick_replacements, replace_and_render
 from regnf.compositor.stage_config import StageCompositeConfig
 from regnf.core.atomic_io import TEMP_PREFIX
 from regnf.core.executors import ExecutorConfig
 from regnf.core.file_lock import LOCK_NAME
+from regnf.core.image_io import read_depth_png, read_instance_png, read_rgb_png
 from regnf.generate import GenerateConfig, generate, load_rows, prepare_output, variant_cameras
 from regnf.manifest import MANIFEST_NAME
 from regnf.scene_graph import add_instance, read_stage

@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import torch
 
 from regnf.core.cameras import look_at
+from regnf.core.image_io import rgb_to_uint8
 from regnf.synthetic.library import make_library_object
 from regnf.synthetic.render import VOID_GREY, RGBDRenderer
 from regnf.synthetic.rooms import make_room
@@ -39,14 +41,17 @@ def test_object_depth_matches_raycast(name: str) -> None:
     poses = object_capture_poses(c, 0.5 * np.linalg.norm(mesh.extents), 4, K, W, H)
     with RGBDRenderer([shaded_copy(mesh)], W, H) as renderer:
         for pose in poses:
-            out = renderer.render(pose, K, with_ids=True)
-            assert out.rgb.shape == (H, W, 3) and out.rgb.dtype == np.uint8
-            assert out.depth.shape == (H, W) and out.depth.dtype == np.float32
+            out = renderer.render(pose, K)
+            assert out.rgb.shape == (H, W, 3) and out.rgb.dtype == torch.float32
+            assert out.depth.shape == (H, W) and out.depth.dtype == torch.float32
+            assert out.normals is None and out.evals_per_pixel is None
             t_hit, _gid = raycast([mesh], pose, K, W, H)
-            _compare_depth(out.depth, t_hit)
-            assert np.all(out.depth[~np.isfinite(t_hit) & erode(~np.isfinite(t_hit))] == 0)
+            depth = out.depth.numpy()
+            _compare_depth(depth, t_hit)
+            assert np.all(depth[~np.isfinite(t_hit) & erode(~np.isfinite(t_hit))] == 0)
+            assert np.array_equal(out.mask.numpy(), depth > 0)
             # Unlabelled geometry and background are both -1.
-            assert np.all(out.instance_ids == -1)
+            assert bool((out.instance_id == -1).all())
 
 
 def test_flat_colours_are_the_baked_face_colours_and_background_is_grey() -> None:
@@ -54,6 +59,9 @@ def test_flat_colours_are_the_baked_face_colours_and_background_is_grey() -> Non
     pose = look_at([1.8, 1.2, 1.6], mesh.bounds.mean(axis=0))
     with RGBDRenderer([mesh], W, H) as renderer:
         out = renderer.render(pose, K)
+    rgb = rgb_to_uint8(out.rgb)
+    # The float colours are exactly the 8-bit ones over 255.
+    assert torch.equal(out.rgb, torch.from_numpy(rgb).float() / 255.0)
     t_hit, _ = raycast([mesh], pose, K, W, H)
     o3d_scene_faces = _face_ids(mesh, pose)
     hit = np.isfinite(t_hit)
@@ -66,10 +74,10 @@ def test_flat_colours_are_the_baked_face_colours_and_background_is_grey() -> Non
     for k in np.unique(code[hit]):
         inner &= erode(code == k) | (code != k)
     assert inner.sum() > 200
-    diff = np.abs(out.rgb[inner].astype(int) - expected[inner]).max(axis=1)
+    diff = np.abs(rgb[inner].astype(int) - expected[inner]).max(axis=1)
     assert np.mean(diff <= 1) > 0.99
     background = erode(~np.isfinite(t_hit), 2)
-    assert np.all(np.abs(out.rgb[background].astype(int) - 255 * np.array(VOID_GREY)) <= 1)
+    assert np.all(np.abs(rgb[background].astype(int) - 255 * np.array(VOID_GREY)) <= 1)
 
 
 def _face_ids(mesh, pose) -> np.ndarray:
@@ -99,17 +107,18 @@ def test_room_depth_and_instance_ids_match_raycast() -> None:
     ) as renderer:
         for eye in ([2.5, -2.0, 2.0], [-2.6, 2.1, 1.4]):
             pose = look_at(eye, [0.0, 0.0, 0.3])
-            out = renderer.render(pose, K, with_ids=True)
+            out = renderer.render(pose, K)
+            ids = out.instance_id.numpy()
             t_hit, gid = raycast(world, pose, K, W, H)
-            _compare_depth(out.depth, t_hit)
+            _compare_depth(out.depth.numpy(), t_hit)
             expected = gid - 1  # geometry 0 is the room shell: -1
             expected[gid < 0] = -1
             # Ids agree away from the boundaries between differently labelled regions.
             same = np.ones_like(expected, dtype=bool)
             for k in np.unique(expected):
                 same &= erode(expected == k) | (expected != k)
-            assert np.all(out.instance_ids[same] == expected[same])
-            assert len(np.unique(out.instance_ids)) >= 3
+            assert np.all(ids[same] == expected[same])
+            assert len(np.unique(ids)) >= 3
 
 
 def test_renderer_validates_inputs() -> None:

@@ -134,7 +134,7 @@ def test_poses_agree_with_rendered_images(tmp_path: Path, name: str, coverage: s
         for i in range(len(cap.frames)):
             pose_m = cap.camtoworld_metres(i)
             K = cap.frames[i].intrinsics
-            ids = renderer.render(pose_m, K, with_ids=True).instance_ids
+            ids = renderer.render(pose_m, K).instance_id.numpy()
             depth_m = cap.depth(i) * cap.scale
             pts = backproject(depth_m, pose_m, K)
             hit = depth_m > 0

@@ -1,6 +1,6 @@
 """Pinhole cameras posed in metres, and their rays in a field's frame.
 
-Convention: the one of :func:`regnf.neural_fields.raycast.pinhole_rays`, OpenCV axes (x right,
+Convention: the one of :func:`regnf.core.cameras.pinhole_rays`, OpenCV axes (x right,
 y down, z forward), pixel ``(u, v)`` sampled at its centre ``(u + 0.5, v + 0.5)``, rays
 row-major. ``camera_to_world`` is a RIGID pose in the world (metres) of the field: the
 renderers map it into the field frame with ``inverse(field.to_world)``.
@@ -15,12 +15,10 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from regnf.core.cameras import look_at
+from regnf.core.cameras import look_at, pinhole_rays
 from regnf.neural_fields.field import Field
-from regnf.neural_fields.raycast import pinhole_rays
+from regnf.neural_fields.oriented_box import ArrayLike
 from regnf.synthetic.sdfstudio_format import check_intrinsics, check_rigid_pose
-
-from .oriented_box import ArrayLike
 
 
 @dataclass(frozen=True, eq=False)

@@ -1,10 +1,10 @@
-"""Sphere tracing of any field, with the composite's extra outputs.
+"""The one sphere tracer: of any field, with a composite's extra outputs.
 
 Per ray (vectorised over rays; the loops are over STEPS, each touching only the rays still
 active):
 
 1. Rays are clipped to the field's bounds (and ``[near, far]``).
-2. Empty-space skipping: where the coarse :class:`~regnf.compositor.distance_grid.DistanceGrid`
+2. Empty-space skipping: where the coarse :class:`~regnf.neural_fields.distance_grid.DistanceGrid`
    guarantees at least ``grid_skip_cells`` cells of free space, the ray steps that far for
    one table look-up and no field evaluation. Not from the landing point of an unverified
    relaxed step, though, unless the grid's free sphere there overlaps the last safe sphere
@@ -40,21 +40,23 @@ is a hit at its start; a ray that leaves the bounds (or ``far``) or runs out of
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import NamedTuple, TypeVar
 
 import torch
 
 from regnf.core.cameras import ray_aabb
-from regnf.neural_fields.field import DEFAULT_CHUNK, Field
-from regnf.neural_fields.raycast import by_chunks, check_rays
+from regnf.core.render_result import Render
+from regnf.neural_fields.camera import Camera, CameraRays, camera_rays
+from regnf.neural_fields.distance_grid import DistanceGrid
+from regnf.neural_fields.field import DEFAULT_CHUNK, Field, FieldSample
+from regnf.neural_fields.shading import check_camera_outside, shade_hits
 
-from .camera import Camera, CameraRays, camera_rays
-from .composite_field import BACKGROUND_ID, CompositeSample, sample_field
-from .distance_grid import DistanceGrid
-from .render_result import Render
-from .shading import check_camera_outside, shade_hits
+Rays = TypeVar("Rays", bound=tuple)
+"""A named tuple of per-ray tensors (first dimension: the ray)."""
+BACKGROUND_ID = -1
+"""Instance id (winner) of a ray or pixel that hit nothing."""
 
 REFINE_METHODS = ("illinois", "bisection")
 """Root refinements of a bracketed crossing."""
@@ -71,7 +73,9 @@ class SphereTracerConfig:
     max_steps: int = 256
     """Marching iterations per ray (look-ups and evaluations) before it counts as a miss."""
     omega: float = 1.6
-    """Over-relaxation factor of the steps (the cap when adaptive), in [1, 2); 1 is plain."""
+    """Relaxation factor of the steps (the cap when adaptive), in (0, 2): above 1 over-relaxed
+    (verified steps, see the module), 1 plain, below 1 under-relaxed for fields that overestimate
+    their distance (registration's surface sampling takes 0.9 on neural fields)."""
     adaptive: bool = True
     """Adapt the relaxation to the SDF's slope along the ray (see the module); False: Keinert's
     fixed ``omega``, dropped to 1 for good after the first failed step."""
@@ -110,8 +114,8 @@ class SphereTracerConfig:
     def __post_init__(self) -> None:
         if self.max_steps < 1 or self.max_refine < 0 or self.chunk < 1:
             raise ValueError("max_steps and chunk must be >= 1 and max_refine >= 0")
-        if not 1.0 <= self.omega < 2.0:
-            raise ValueError(f"omega must be in [1, 2), got {self.omega}")
+        if not 0.0 < self.omega < 2.0:
+            raise ValueError(f"omega must be in (0, 2), got {self.omega}")
         if not (self.tol > 0 and self.min_step >= 0 and self.footprint_fraction >= 0):
             raise ValueError("tol must be > 0, min_step and footprint_fraction >= 0")
         if self.refine not in REFINE_METHODS:
@@ -131,6 +135,53 @@ class SphereTracerConfig:
         return SphereTracerConfig(omega=1.0, adaptive=False, grid_resolution=0, refine="bisection")
 
 
+def check_rays(origins: torch.Tensor, dirs: torch.Tensor, near: float, far: float,
+               unit: bool = False) -> None:
+    """Raise ``ValueError`` unless ``origins``, ``dirs`` are both (n, 3), ``0 <= near < far``
+    and (with ``unit``) every direction has unit length."""
+    if origins.ndim != 2 or origins.shape[-1] != 3 or origins.shape != dirs.shape:
+        raise ValueError(
+            "origins and dirs must both be (n, 3), got "
+            f"{tuple(origins.shape)} and {tuple(dirs.shape)}"
+        )
+    if not (near >= 0 and far > near):
+        raise ValueError(f"need 0 <= near < far, got near={near}, far={far}")
+    if unit and dirs.shape[0] > 0:
+        norm_err = float((torch.linalg.vector_norm(dirs, dim=-1) - 1.0).abs().max())
+        if not norm_err < 1e-4:
+            raise ValueError(f"dirs must be unit vectors (largest |norm - 1| = {norm_err:.3g})")
+
+
+def by_chunks(
+    origins: torch.Tensor,
+    dirs: torch.Tensor,
+    chunk: int,
+    device: torch.device | str,
+    per_chunk: Callable[[torch.Tensor, torch.Tensor], Rays],
+    empty: Callable[[], Rays],
+) -> Rays:
+    """``per_chunk`` on ``chunk`` rays at a time (moved to ``device``), results concatenated.
+
+    Parameters
+    ----------
+    origins, dirs : (n, 3) float
+        The rays.
+    chunk : int
+        Rays per call (bounds the memory of one call).
+    device : torch.device or str
+        Where each chunk is computed (the field's device).
+    per_chunk : callable
+        ``(origins, dirs) -> named tuple`` of tensors whose first dimension is the chunk's rays.
+    empty : callable
+        The result for no ray at all.
+    """
+    parts = [per_chunk(origins[i : i + chunk].to(device), dirs[i : i + chunk].to(device))
+             for i in range(0, origins.shape[0], chunk)]
+    if not parts:
+        return empty()
+    return type(parts[0])(*(torch.cat(list(per_ray)) for per_ray in zip(*parts, strict=True)))
+
+
 class TraceHits(NamedTuple):
     """What :func:`trace` found for each of ``n`` rays (field frame)."""
 
@@ -148,8 +199,8 @@ class TraceHits(NamedTuple):
     """(n,) int64: distance-grid look-ups."""
 
 
-def _sample_checked(field: Field, p: torch.Tensor) -> CompositeSample:
-    s = sample_field(field, p)
+def _sample_checked(field: Field, p: torch.Tensor) -> FieldSample:
+    s = field.evaluate(p)
     bad = ~torch.isfinite(s.sdf)
     if bool(bad.any()):
         k = int(bad.nonzero()[0, 0])
@@ -175,8 +226,9 @@ def trace(
     Parameters
     ----------
     field : Field
-        Any field; a :class:`~regnf.compositor.composite_field.CompositeField` also reports the
-        winning component and its per-point evaluation cost.
+        Any field: what is traced is :meth:`~regnf.neural_fields.field.Field.evaluate`, so a
+        :class:`~regnf.compositor.composite_field.CompositeField` also reports the winning
+        component and its per-point evaluation cost.
     origins : (n, 3) float
         Field frame.
     dirs : (n, 3) float

@@ -1,18 +1,49 @@
-"""An object proposal: an oriented box around one object in a field's frame.
+"""Oriented boxes: an object proposal, a placed object's culling volume, a removal region.
 
-In a scene it comes from a detector or, as in the paper, from the data set's ground-truth
-box; in a library field it is the whole object. Surface sampling (``sampling.py``) aims its
-cameras at the box and, on the scene side, keeps only the surface inside it.
+A box is ``{c + R u : |u_k| <= h_k}`` in some outer frame (a field's frame): centre ``c``
+(3,), half extents ``h`` (3,) and axes ``R`` (3, 3), whose COLUMNS are the box axes in the
+outer frame. In a scene it comes from a detector or, as in the paper, from the data set's
+ground-truth box; in a library field it is the whole object. Registration's surface sampling
+aims its cameras at it; the compositor culls placed fields to it and cuts removal regions
+with its SDF, which is exact (Euclidean distance outside, minus the distance to the nearest
+face inside), so 1-Lipschitz and a lower bound of the distance to anything the box contains.
+The numbers are float64 numpy arrays; :meth:`OrientedBox.local` and :meth:`OrientedBox.sdf`
+take torch points on any device.
 """
 
 from __future__ import annotations
 
 import itertools
+from collections.abc import Sequence
 from typing import NamedTuple
 
 import numpy as np
+import torch
 
+from regnf.neural_fields.analytic import box_sdf
 from regnf.neural_fields.similarity import decompose_similarity
+
+ArrayLike = torch.Tensor | np.ndarray | Sequence[float] | Sequence[Sequence[float]]
+
+
+def as_float64(value: ArrayLike, shape: tuple[int, ...], what: str) -> torch.Tensor:
+    """``value`` as a finite CPU float64 tensor of ``shape``, or a clear ``ValueError``."""
+    t = torch.as_tensor(
+        value.detach().cpu() if isinstance(value, torch.Tensor) else np.asarray(value),
+        dtype=torch.float64,
+    )
+    if tuple(t.shape) != shape:
+        raise ValueError(f"{what} must have shape {shape}, got {tuple(t.shape)}")
+    if not bool(torch.isfinite(t).all()):
+        raise ValueError(f"{what} has non-finite entries: {t.tolist()}")
+    return t.clone()
+
+
+def _numpy(value: ArrayLike | None) -> np.ndarray | None:
+    if isinstance(value, torch.Tensor):
+        return value.detach().cpu().double().numpy()
+    return None if value is None else np.asarray(value, dtype=np.float64)
+
 
 CORNER_RTOL = 1e-6
 """Corners must match a box to this fraction of its diagonal (float32 input passes)."""
@@ -20,7 +51,7 @@ CORNER_RTOL = 1e-6
 _SIGNS = np.array(list(itertools.product((-1.0, 1.0), repeat=3)))  # (8, 3), x slowest
 
 
-class _ProposalBoxFields(NamedTuple):
+class _OrientedBoxFields(NamedTuple):
     center: np.ndarray
     """(3,) float64: the box centre."""
     half_extents: np.ndarray
@@ -29,7 +60,7 @@ class _ProposalBoxFields(NamedTuple):
     """(3, 3) float64: columns are the box axes (a proper rotation, box -> frame)."""
 
 
-class ProposalBox(_ProposalBoxFields):
+class OrientedBox(_OrientedBoxFields):
     """An oriented box ``{c + R u : |u_i| <= h_i}`` in a field's frame.
 
     Construction validates: finite entries, positive half extents, ``rotation`` a proper
@@ -40,13 +71,13 @@ class ProposalBox(_ProposalBoxFields):
 
     def __new__(  # noqa: PYI034 (typing.Self needs Python 3.11)
         cls,
-        center: np.ndarray,
-        half_extents: np.ndarray,
-        rotation: np.ndarray | None = None,
-    ) -> ProposalBox:
-        c = np.asarray(center, dtype=np.float64).reshape(-1)
-        h = np.asarray(half_extents, dtype=np.float64).reshape(-1)
-        R = np.eye(3) if rotation is None else np.asarray(rotation, dtype=np.float64)
+        center: ArrayLike,
+        half_extents: ArrayLike,
+        rotation: ArrayLike | None = None,
+    ) -> OrientedBox:
+        c = _numpy(center).reshape(-1)
+        h = _numpy(half_extents).reshape(-1)
+        R = np.eye(3) if rotation is None else _numpy(rotation)
         if c.shape != (3,) or not np.isfinite(c).all():
             raise ValueError(f"box center must be 3 finite numbers, got {c.tolist()}")
         if h.shape != (3,) or not np.isfinite(h).all() or not (h > 0).all():
@@ -60,17 +91,17 @@ class ProposalBox(_ProposalBoxFields):
 
     # -- constructors -------------------------------------------------------------------------
     @staticmethod
-    def from_aabb(lo: np.ndarray, hi: np.ndarray) -> ProposalBox:
+    def from_aabb(lo: np.ndarray, hi: np.ndarray) -> OrientedBox:
         """The axis-aligned box ``[lo, hi]`` (each (3,)); raises if any ``hi <= lo``."""
         lo_, hi_ = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
         if lo_.shape != (3,) or hi_.shape != (3,):
             raise ValueError(f"lo and hi must be (3,), got {lo_.shape} and {hi_.shape}")
         if not (hi_ > lo_).all():
             raise ValueError(f"an AABB needs hi > lo on every axis, got lo={lo_}, hi={hi_}")
-        return ProposalBox(0.5 * (lo_ + hi_), 0.5 * (hi_ - lo_), np.eye(3))
+        return OrientedBox(0.5 * (lo_ + hi_), 0.5 * (hi_ - lo_), np.eye(3))
 
     @staticmethod
-    def from_corners(corners: np.ndarray) -> ProposalBox:
+    def from_corners(corners: np.ndarray) -> OrientedBox:
         """The oriented box whose 8 corners are ``corners`` (8, 3), in any order.
 
         The three edges at one corner are found among its 7 difference vectors as the only
@@ -105,14 +136,14 @@ class ProposalBox(_ProposalBoxFields):
             gen = P[0] + (_SIGNS * 0.5 + 0.5) @ edges  # (8, 3): all subset sums
             dist = np.linalg.norm(gen[:, None, :] - P[None, :, :], axis=-1)
             if (dist.min(axis=1) <= tol).all() and (dist.min(axis=0) <= tol).all():
-                return ProposalBox._from_edges(P.mean(axis=0), edges)
+                return OrientedBox._from_edges(P.mean(axis=0), edges)
         raise ValueError(
             "corners are not the 8 corners of a non-degenerate rectangular box "
             "(repeated or coplanar points, or the angles are not right angles)"
         )
 
     @staticmethod
-    def _from_edges(center: np.ndarray, edges: np.ndarray) -> ProposalBox:
+    def _from_edges(center: np.ndarray, edges: np.ndarray) -> OrientedBox:
         lengths = np.linalg.norm(edges, axis=1)
         axes = edges / lengths[:, None]  # rows: unit box axes
         # Pick the permutation and signs that bring the axes closest to x, y, z.
@@ -129,7 +160,18 @@ class ProposalBox(_ProposalBoxFields):
         # Re-orthonormalise (the corners may be float32): polar decomposition by SVD.
         U, _, Vt = np.linalg.svd(R)
         R = U @ Vt
-        return ProposalBox(center, 0.5 * lengths[list(best)], R)
+        return OrientedBox(center, 0.5 * lengths[list(best)], R)
+
+    @staticmethod
+    def from_bounds(bounds: torch.Tensor, matrix: ArrayLike) -> OrientedBox:
+        """The image of the AABB ``bounds`` (2, 3) under the similarity ``matrix`` (4, 4).
+
+        A similarity maps a box to a box: centre ``s R c + t``, half extents ``s h``, axes ``R``.
+        """
+        M = as_float64(matrix, (4, 4), "similarity matrix")
+        R, t, s = decompose_similarity(M)
+        lo, hi = bounds.detach().cpu().double()
+        return OrientedBox(s * (R @ (0.5 * (lo + hi))) + t, s * 0.5 * (hi - lo), R)
 
     # -- derived quantities ------------------------------------------------------------------
     @property
@@ -146,20 +188,20 @@ class ProposalBox(_ProposalBoxFields):
         """(8, 3) float64 corners, box-axis signs in ``itertools.product`` order."""
         return self.center + (_SIGNS * self.half_extents) @ self.rotation.T
 
-    def inflated(self, pad_rel: float) -> ProposalBox:
+    def inflated(self, pad_rel: float) -> OrientedBox:
         """The same box with every half extent grown by the fraction ``pad_rel`` (> -1)."""
         if not np.isfinite(pad_rel) or pad_rel <= -1:
             raise ValueError(f"pad_rel must be finite and > -1, got {pad_rel}")
-        return ProposalBox(self.center, self.half_extents * (1.0 + pad_rel), self.rotation)
+        return OrientedBox(self.center, self.half_extents * (1.0 + pad_rel), self.rotation)
 
-    def transformed(self, M: np.ndarray) -> ProposalBox:
+    def transformed(self, M: np.ndarray) -> OrientedBox:
         """The box mapped by the 4x4 similarity ``M`` (for example metres -> scene field frame).
 
         Raises ``ValueError`` if ``M`` is not a similarity (shear, reflection, ...).
         """
         R, t, s = decompose_similarity(np.asarray(M, dtype=np.float64))
         R = np.asarray(R)
-        return ProposalBox(
+        return OrientedBox(
             float(s) * (R @ self.center) + np.asarray(t),
             float(s) * self.half_extents,
             R @ self.rotation,
@@ -168,6 +210,23 @@ class ProposalBox(_ProposalBoxFields):
     def to_local(self, points: np.ndarray) -> np.ndarray:
         """Box coordinates ``R^T (x - c)`` (n, 3) of ``points`` (n, 3)."""
         return (np.asarray(points, dtype=np.float64) - self.center) @ self.rotation
+
+    def local(self, x: torch.Tensor) -> torch.Tensor:
+        """Box coordinates ``R^T (x - c)`` (n, 3) of torch points ``x`` (n, 3), in their dtype."""
+        c = torch.as_tensor(self.center, dtype=x.dtype, device=x.device)
+        return (x - c) @ torch.as_tensor(self.rotation, dtype=x.dtype, device=x.device)
+
+    def sdf(self, x: torch.Tensor) -> torch.Tensor:
+        """Exact signed distance (n,) of torch points ``x`` (n, 3) to the box, outer-frame units."""
+        return box_sdf(self.local(x), torch.as_tensor(self.half_extents, dtype=x.dtype,
+                                                      device=x.device))
+
+    def aabb(self) -> torch.Tensor:
+        """(2, 3) float64 axis-aligned bounds of the box in the outer frame (a CPU tensor)."""
+        # The half size of a rotated box along outer axis k is sum_j |R_kj| h_j.
+        half = torch.from_numpy(self.rotation).abs() @ torch.from_numpy(self.half_extents)
+        c = torch.from_numpy(self.center)
+        return torch.stack([c - half, c + half])
 
     def contains(self, points: np.ndarray, pad_rel: float = 0.0) -> np.ndarray:
         """(n,) bool: ``points`` (n, 3) inside the box with half extents grown by ``pad_rel``."""
@@ -184,8 +243,8 @@ class ProposalBox(_ProposalBoxFields):
         }
 
     @staticmethod
-    def from_json(data: dict) -> ProposalBox:
-        return ProposalBox(
+    def from_json(data: dict) -> OrientedBox:
+        return OrientedBox(
             np.asarray(data["center"]),
             np.asarray(data["half_extents"]),
             np.asarray(data["rotation"]),

@@ -11,8 +11,8 @@ import pytest
 import torch
 from PIL import Image
 
-import regnf.compositor.image_io as io
-from regnf.compositor.image_io import (
+import regnf.core.image_io as io
+from regnf.core.image_io import (
     read_depth_png,
     read_instance_png,
     read_rgb_png,

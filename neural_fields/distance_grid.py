@@ -21,8 +21,6 @@ import torch
 
 from regnf.neural_fields.field import DEFAULT_CHUNK, Field
 
-from .composite_field import sample_field
-
 
 class DistanceGrid(NamedTuple):
     """Cell-centre SDF samples of a field over its bounds, in the field frame."""
@@ -63,7 +61,7 @@ class DistanceGrid(NamedTuple):
         centres = lo + torch.stack([gx, gy, gz], dim=-1).reshape(-1, 3) * cell
         values, evals = [], 0
         for i in range(0, centres.shape[0], chunk):  # a loop over chunks bounds memory
-            s = sample_field(field, centres[i : i + chunk])
+            s = field.evaluate(centres[i : i + chunk])
             values.append(s.sdf.to(lo.dtype))
             evals += int(s.evals.sum())
         v = torch.cat(values)

@@ -1,4 +1,4 @@
-"""What both renderers do around the ray marching: camera sanity and shading of hits."""
+"""What every renderer does around its ray marching: camera sanity and shading of hits."""
 
 from __future__ import annotations
 
@@ -9,8 +9,6 @@ from typing import NamedTuple
 import torch
 
 from regnf.neural_fields.field import Field
-
-from .composite_field import sample_field
 
 
 def world_rotation(field: Field, dtype: torch.dtype) -> torch.Tensor:
@@ -29,7 +27,7 @@ def check_camera_outside(field: Field, origin: torch.Tensor) -> None:
     p = origin.reshape(1, 3).to(device=field.device, dtype=field.bounds.dtype)
     if not bool(field.contains(p)[0]):
         return
-    s = sample_field(field, p)
+    s = field.evaluate(p)
     v = float(s.sdf[0])
     if not math.isfinite(v):
         raise ValueError(
