@@ -14,10 +14,10 @@ $(VENV)/.installed: pyproject.toml
 	$(PY) -m pip install --quiet -e '.[dev]'
 	touch $@
 
-# Open3D needs libusb at import time.
+# Open3D needs libusb at import time; the viewer's browser tests need Chromium and its driver.
 system-deps:
-	@ldconfig -p | grep -q 'libusb-1.0.so.0' || \
-	  ($(SUDO) apt-get update -qq && $(SUDO) apt-get install -y -qq libusb-1.0-0)
+	@(ldconfig -p | grep -q 'libusb-1.0.so.0' && command -v chromium >/dev/null && command -v chromedriver >/dev/null) || \
+	  ($(SUDO) apt-get update -qq && $(SUDO) apt-get install -y -qq libusb-1.0-0 chromium chromium-driver)
 
 setup: $(VENV)/.installed system-deps
 

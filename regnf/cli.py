@@ -54,6 +54,7 @@ def _commands() -> dict[str, type]:
     from regnf.commands_registration import Register
     from regnf.commands_render import RenderStage, ReplaceInstances
     from regnf.commands_stage import StageAddInstance, StageExport, StageNew, StageShow
+    from regnf.commands_view import View
 
     return {
         "demo": Demo,
@@ -69,6 +70,7 @@ def _commands() -> dict[str, type]:
         "stage export": StageExport,
         "render": RenderStage,
         "replace": ReplaceInstances,
+        "view": View,
         "bench fields": BenchFields,
         "bench registration": BenchRegistration,
         "bench render": BenchRender,

@@ -358,6 +358,7 @@ def _run_demo(folder: OutputFolder, config: DemoConfig, cache: Cache | None) -> 
     write_json(out / "summary.json", summary)
     report = write_report(out, summary)
     console.print(f"[green]demo done[/] in {summary['total_seconds']:.0f} s: open {report}")
+    console.print(f"look around and fix registrations in the viewer: regnf view {stage}")
     return report
 
 

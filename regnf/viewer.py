@@ -1,0 +1,415 @@
+"""``regnf view``: a local web viewer of a stage (viser), with field renders from the compositor.
+
+What it shows (all in room metres, +Z up):
+
+- the stage's proxies: the scene's mesh and each instance's library proxy placed by its
+  ``object_to_scene``; a side panel lists every instance with its class, library object,
+  confidence and how its transform was found, and draws the selected instance's proposal box;
+- a render of the viewer's own camera, from the project's compositor: the scene field alone, the
+  substitution (every instance replaced by its library field) or a random replacement (seed
+  chosen in the panel), as RGB, depth or instance ids. Progressive: a coarse image as soon as
+  the camera moves, the full-size one once it rests (``ViewerConfig.rest_seconds``).
+
+Rendering runs on one worker thread, never on viser's event loop or in a GUI callback: a busy
+render delays only the next image, not the panel. A newer camera supersedes a queued request;
+an image whose camera moved while it rendered is dropped.
+
+The stage is read (and refused with the same one-line error as ``regnf stage show``) before
+any server starts.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import numpy as np
+import torch
+from scipy.spatial.transform import Rotation
+
+from regnf.compositor.from_stage import StageComposite, composite_from_scene
+from regnf.compositor.replace import pick_replacements, swapped
+from regnf.compositor.stage_config import StageCompositeConfig
+from regnf.core.image_io import rgb_to_uint8
+from regnf.neural_fields.camera import Camera
+from regnf.neural_fields.distance_grid import DistanceGrid
+from regnf.neural_fields.sphere_tracer import SphereTracerConfig, render
+from regnf.scene_graph import ComposedScene, original_selections, read_stage
+
+VIEWS = ("proxies", "scene field", "substitution", "replacement")
+"""What the viewport shows: the stage's proxy meshes, or a field render of one composite."""
+CHANNELS = ("rgb", "depth", "instance id")
+"""Which image of a field render is shown."""
+
+_MODE_OF_VIEW = {"scene field": "scene", "substitution": "substitute", "replacement": "substitute"}
+
+
+@dataclass(frozen=True)
+class ViewerConfig:
+    """Settings of :func:`serve`."""
+
+    port: int = 8080
+    """TCP port of the viewer's web page."""
+    host: str = "127.0.0.1"
+    """Interface to listen on; the default serves this machine only (``0.0.0.0``: every one)."""
+    device: str = "cpu"
+    """Where the fields are loaded and rendered (``cpu`` or ``cuda``)."""
+    coarse_pixels: int = 96 * 72
+    """Pixels of the image rendered as soon as the camera moves (about 0.1 s for a room's
+    substitution on 2 CPU cores)."""
+    refined_pixels: int = 320 * 240
+    """Pixels of the image rendered once the camera rests."""
+    rest_seconds: float = 0.4
+    """The camera counts as resting when it has not moved for this long."""
+    sphere: SphereTracerConfig = field(default_factory=lambda: SphereTracerConfig(footprint_fraction=0.05))
+    """The sphere tracer's settings (``regnf render``'s defaults: stop at 5 % of a pixel's
+    footprint)."""
+    allow_outside: bool = False
+    """Open asset paths of the stage that lie outside its folder (refused by default, as in
+    ``regnf stage show``)."""
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.port <= 65535:
+            raise ValueError(f"port must be in [0, 65535], got {self.port}")
+        if self.coarse_pixels < 1 or self.refined_pixels < self.coarse_pixels:
+            raise ValueError("need 1 <= coarse_pixels <= refined_pixels, got "
+                             f"{self.coarse_pixels} and {self.refined_pixels}")
+        if not (math.isfinite(self.rest_seconds) and self.rest_seconds >= 0):
+            raise ValueError(f"rest_seconds must be finite and >= 0, got {self.rest_seconds}")
+
+
+class ViewRequest(NamedTuple):
+    """What one client wants to see: a camera and the panel's choices."""
+
+    camera_to_world: np.ndarray
+    """(4, 4) float64 OpenCV camera -> room metres."""
+    fov_y: float
+    """Vertical field of view, radians."""
+    aspect: float
+    """Width over height of the client's viewport."""
+    view: str
+    """One of :data:`VIEWS`."""
+    channel: str
+    """One of :data:`CHANNELS`."""
+    seed: int
+    """The replacement's seed (``view == "replacement"``)."""
+
+
+def viewer_camera(request: ViewRequest, pixels: int) -> Camera:
+    """The pinhole camera of ``request`` with about ``pixels`` square pixels, centred."""
+    w = max(1, round(math.sqrt(pixels * request.aspect)))
+    h = max(1, round(w / request.aspect))
+    f = 0.5 * h / math.tan(0.5 * request.fov_y)
+    K = np.array([[f, 0.0, 0.5 * w], [0.0, f, 0.5 * h], [0.0, 0.0, 1.0]])
+    return Camera(K, w, h, request.camera_to_world)
+
+
+def client_pose(position: np.ndarray, wxyz: np.ndarray) -> np.ndarray:
+    """(4, 4) camera -> world of a viser camera (OpenCV axes: +Z forward, +Y down)."""
+    q = np.asarray(wxyz, dtype=np.float64)
+    pose = np.eye(4)
+    pose[:3, :3] = Rotation.from_quat([q[1], q[2], q[3], q[0]]).as_matrix()  # scipy: x, y, z, w
+    pose[:3, 3] = np.asarray(position, dtype=np.float64)
+    return pose
+
+
+def colourise(image: Any, channel: str) -> np.ndarray:
+    """(h, w, 3) uint8 picture of one channel of a :class:`~regnf.core.render_result.Render`."""
+    if channel == "rgb":
+        return rgb_to_uint8(image.rgb)
+    if channel == "depth":
+        d = image.depth.detach().cpu().double().numpy()
+        hit = image.mask.detach().cpu().numpy()
+        lo, hi = (float(d[hit].min()), float(d[hit].max())) if hit.any() else (0.0, 1.0)
+        v = np.where(hit, 1.0 - (d - lo) / max(hi - lo, 1e-9), 0.0)  # near is bright
+        return rgb_to_uint8(np.repeat(v[..., None], 3, axis=-1))
+    ids = image.instance_id.detach().cpu().numpy()
+    return instance_palette(ids)
+
+
+def instance_palette(ids: np.ndarray) -> np.ndarray:
+    """(h, w, 3) uint8 colours of instance ids (h, w): black background, grey scene, hues."""
+    golden = (np.maximum(ids, 0) * 0.618034) % 1.0
+    hue = np.stack([golden, (golden + 1 / 3) % 1.0, (golden + 2 / 3) % 1.0], axis=-1)
+    rgb = 0.35 + 0.6 * np.abs(np.sin(np.pi * hue))
+    rgb = np.where((ids == 0)[..., None], 0.5, rgb)
+    rgb = np.where((ids < 0)[..., None], 0.0, rgb)
+    return rgb_to_uint8(rgb)
+
+
+class Composites:
+    """The composites of one stage, built on first use and kept (fields loaded once)."""
+
+    def __init__(self, stage: Path, scene: ComposedScene, config: ViewerConfig) -> None:
+        self.stage, self.scene, self.config = stage, scene, config
+        self._loaded: dict[str, Any] = {}
+        self._built: dict[tuple[str, int], tuple[StageComposite, DistanceGrid | None]] = {}
+        self._originals: dict[str, str] | None = None
+
+    def get(self, view: str, seed: int) -> tuple[StageComposite, DistanceGrid | None]:
+        """The composite (and its empty-space grid) shown by ``view``."""
+        key = (view, seed if view == "replacement" else 0)
+        if key not in self._built:
+            mode = StageCompositeConfig(mode=_MODE_OF_VIEW[view])
+            scene = self.scene
+            if view == "replacement":
+                # Every instance swapped for a random object of its class; the one it shows
+                # now is what is removed.
+                originals = {iid: inst.library_name for iid, inst in scene.instances.items()}
+                scene = swapped(scene, pick_replacements(scene, seed))
+            elif view == "substitution":
+                if self._originals is None:
+                    self._originals = original_selections(self.stage, self.scene,
+                                                          allow_outside=self.config.allow_outside)
+                originals = self._originals
+            else:
+                originals = {}
+            comp = composite_from_scene(scene, originals, self.stage, mode, self.config.device,
+                                        loaded=self._loaded)
+            sphere = self.config.sphere
+            grid = (DistanceGrid.build(comp.field, sphere.grid_resolution, sphere.grid_lipschitz)
+                    if sphere.grid_resolution > 0 else None)
+            self._built[key] = (comp, grid)
+        return self._built[key]
+
+
+class RenderWorker:
+    """One thread that renders the newest request of every client, coarse then refined.
+
+    ``show(client_id, image)`` is called from the worker thread with a (h, w, 3) uint8 picture.
+    """
+
+    def __init__(self, composites: Composites, config: ViewerConfig, show) -> None:
+        self.composites, self.config, self.show = composites, config, show
+        self._lock = threading.Condition()
+        self._requests: dict[int, tuple[int, float, ViewRequest]] = {}  # id -> (version, time, req)
+        self._done: dict[int, tuple[int, str]] = {}  # id -> (version, "coarse" | "refined")
+        self._stop = False
+        self.errors: list[str] = []
+        self._thread = threading.Thread(target=self._loop, name="regnf-view-render", daemon=True)
+        self._thread.start()
+
+    def request(self, client_id: int, req: ViewRequest) -> None:
+        """Ask for ``req`` (a newer request of the same client supersedes it)."""
+        with self._lock:
+            version = self._requests.get(client_id, (0, 0.0, None))[0] + 1
+            self._requests[client_id] = (version, time.monotonic(), req)
+            self._lock.notify()
+
+    def forget(self, client_id: int) -> None:
+        with self._lock:
+            self._requests.pop(client_id, None)
+            self._done.pop(client_id, None)
+
+    def stop(self) -> None:
+        with self._lock:
+            self._stop = True
+            self._lock.notify()
+        self._thread.join(timeout=30.0)
+
+    def current(self, client_id: int) -> int:
+        with self._lock:
+            return self._requests.get(client_id, (0, 0.0, None))[0]
+
+    def _next(self) -> tuple[int, int, ViewRequest, str] | None:
+        """The next job (client, version, request, level), or None (caller waits)."""
+        now = time.monotonic()
+        for cid, (version, since, req) in self._requests.items():
+            if req.view == "proxies":
+                continue
+            done = self._done.get(cid)
+            if done is None or done[0] != version:
+                return cid, version, req, "coarse"
+            if done[1] == "coarse" and now - since >= self.config.rest_seconds:
+                return cid, version, req, "refined"
+        return None
+
+    def _loop(self) -> None:
+        while True:
+            with self._lock:
+                job = None
+                while not self._stop and (job := self._next()) is None:
+                    self._lock.wait(timeout=0.05)
+                if self._stop:
+                    return
+            cid, version, req, level = job
+            try:
+                image = self._render(req, level)
+            except Exception as exc:  # noqa: BLE001 (shown in the panel; the viewer keeps running)
+                self.errors.append(f"{type(exc).__name__}: {exc}")
+                image = None
+            with self._lock:
+                if self._requests.get(cid, (None,))[0] != version:
+                    continue  # the camera or the panel moved on while this rendered
+                self._done[cid] = (version, level)
+            if image is not None:
+                self.show(cid, image, level)
+
+    def _render(self, req: ViewRequest, level: str) -> np.ndarray:
+        comp, grid = self.composites.get(req.view, req.seed)
+        pixels = self.config.coarse_pixels if level == "coarse" else self.config.refined_pixels
+        cam = viewer_camera(req, pixels)
+        # A viewer camera may sit inside an object (flying through a room): show what it sees.
+        config = dataclasses.replace(self.config.sphere, check_camera=False)
+        with torch.no_grad():
+            out = render(comp.field, cam, config, grid=grid)
+        return colourise(out, req.channel)
+
+
+def instance_table(scene: ComposedScene) -> str:
+    """Markdown table of the stage's instances: id, class, library object, confidence, source."""
+    rows = ["| instance | class | object | confidence | found by |", "|---|---|---|---|---|"]
+    for iid, inst in scene.instances.items():
+        label = scene.library[inst.library_name].label if inst.library_name in scene.library else "?"
+        reg = inst.registration
+        if reg is None:
+            conf, how = "-", "placed by hand"
+        else:
+            conf = f"{reg.confidence:.3f}"
+            how = f"{reg.method}, {'accepted' if reg.accepted else 'forced' if reg.forced else 'rejected'}"
+        rows.append(f"| {iid} | {label} | {inst.library_name} | {conf} | {how} |")
+    if not scene.instances:
+        rows.append("| (no instances) | | | | |")
+    return "\n".join(rows)
+
+
+class StageViewer:
+    """A running viewer of one stage: the viser server, its panel and the render worker."""
+
+    def __init__(self, stage: str | Path, config: ViewerConfig = ViewerConfig()) -> None:
+        import viser
+
+        self.stage = Path(stage)
+        # Read (and refuse) the stage before any socket is opened.
+        self.scene = read_stage(self.stage, allow_outside=config.allow_outside)
+        self.config = config
+        self.composites = Composites(self.stage, self.scene, config)
+        self.server = viser.ViserServer(host=config.host, port=config.port, verbose=False)
+        self.server.scene.set_up_direction("+z")
+        self._meshes: list[Any] = []
+        self._box = None
+        self._add_proxies()
+        self._add_panel()
+        self.worker = RenderWorker(self.composites, config, self._show)
+        self.server.on_client_connect(self._on_connect)
+        self.server.on_client_disconnect(lambda client: self.worker.forget(client.client_id))
+
+    @property
+    def port(self) -> int:
+        return int(self.server.get_port())
+
+    # -- the stage ---------------------------------------------------------------------------
+    def _add_proxies(self) -> None:
+        proxy = self.scene.scene.proxy
+        self._meshes.append(self.server.scene.add_mesh_simple(
+            "/stage/scene", proxy.points, proxy.faces, color=(180, 180, 180), side="double"))
+        for iid, inst in self.scene.instances.items():
+            rec = self.scene.library.get(inst.library_name)
+            if rec is None:
+                continue
+            M = inst.object_to_scene
+            pts = rec.proxy.points.astype(np.float64) @ M[:3, :3].T + M[:3, 3]
+            colour = tuple(int(c) for c in (instance_palette(np.array([[len(self._meshes)]]))[0, 0]))
+            self._meshes.append(self.server.scene.add_mesh_simple(
+                f"/stage/instances/{iid}", pts.astype(np.float32), rec.proxy.faces, color=colour))
+
+    def _add_panel(self) -> None:
+        gui = self.server.gui
+        with gui.add_folder("View"):
+            self.view = gui.add_dropdown("show", VIEWS, initial_value="substitution")
+            self.channel = gui.add_dropdown("channel", CHANNELS, initial_value="rgb")
+            self.seed = gui.add_number("replacement seed", initial_value=0, min=0, step=1)
+            self.status = gui.add_markdown("")
+        with gui.add_folder("Instances"):
+            gui.add_markdown(instance_table(self.scene))
+            ids = list(self.scene.instances) or ["(none)"]
+            self.selected = gui.add_dropdown("selected", ids, initial_value=ids[0])
+            self.details = gui.add_markdown("")
+        self.view.on_update(lambda _: self._show_proxies())
+        for handle in (self.view, self.channel, self.seed):
+            handle.on_update(lambda _: self._request_all())
+        self.selected.on_update(lambda _: self._select())
+        self._select()
+        self._show_proxies()
+
+    def _show_proxies(self) -> None:
+        visible = self.view.value == "proxies"
+        for mesh in self._meshes:
+            mesh.visible = visible
+        if visible:
+            for client in self.server.get_clients().values():
+                client.scene.set_background_image(None)
+
+    def _select(self) -> None:
+        inst = self.scene.instances.get(self.selected.value)
+        if self._box is not None:
+            self._box.remove()
+            self._box = None
+        if inst is None:
+            self.details.content = ""
+            return
+        reg = inst.registration
+        lines = [f"**{inst.id}**: `{inst.library_name}`"]
+        if reg is not None:
+            lines.append(f"method {reg.method}, confidence {reg.confidence:.3f}, "
+                         f"{'accepted' if reg.accepted else 'not accepted'}"
+                         f"{' (forced)' if reg.forced else ''}")
+            lines += [f"{k}: {v:.4g}" for k, v in sorted(reg.timings.items())]
+            if reg.proposal_center is not None and reg.proposal_half_extents is not None:
+                S = self.scene.scene.to_world
+                s = float(np.cbrt(abs(np.linalg.det(S[:3, :3]))))
+                R_box = np.eye(3) if reg.proposal_rotation is None else reg.proposal_rotation
+                R = (S[:3, :3] / s) @ R_box
+                centre = S[:3, :3] @ reg.proposal_center + S[:3, 3]
+                wxyz = np.roll(Rotation.from_matrix(R).as_quat(), 1)
+                self._box = self.server.scene.add_box(
+                    "/selection/proposal", color=(255, 200, 0),
+                    dimensions=tuple(2.0 * s * reg.proposal_half_extents), wireframe=True,
+                    position=tuple(centre), wxyz=tuple(wxyz))
+        else:
+            lines.append("placed by hand")
+        self.details.content = "\n\n".join(lines)
+
+    # -- clients and renders -----------------------------------------------------------------
+    def _on_connect(self, client: Any) -> None:
+        client.camera.on_update(lambda _: self._request(client))
+        self._request(client)
+
+    def _request_all(self) -> None:
+        for client in self.server.get_clients().values():
+            self._request(client)
+
+    def _request(self, client: Any) -> None:
+        cam = client.camera
+        aspect = float(cam.aspect) if cam.aspect and cam.aspect > 0 else 4.0 / 3.0
+        req = ViewRequest(client_pose(cam.position, cam.wxyz), float(cam.fov), aspect,
+                          self.view.value, self.channel.value, int(self.seed.value))
+        self.worker.request(client.client_id, req)
+
+    def _show(self, client_id: int, image: np.ndarray, level: str) -> None:
+        client = self.server.get_clients().get(client_id)
+        if client is None or self.view.value == "proxies":
+            return
+        client.scene.set_background_image(image, format="png")
+        self.status.content = f"{level} render {image.shape[1]} x {image.shape[0]}"
+        if self.worker.errors:
+            self.status.content += f"\n\nlast error: {self.worker.errors[-1]}"
+
+    def close(self) -> None:
+        """Stop the render worker and the server."""
+        self.worker.stop()
+        self.server.stop()
+
+
+def serve(stage: str | Path, config: ViewerConfig = ViewerConfig()) -> StageViewer:
+    """Start a viewer of ``stage`` (returns at once; :meth:`StageViewer.close` stops it).
+
+    Raises :class:`~regnf.scene_graph.StageError` (naming the stage) before any server starts if
+    the stage cannot be read.
+    """
+    return StageViewer(stage, config)

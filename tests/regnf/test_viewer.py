@@ -1,0 +1,143 @@
+"""``regnf view`` in a real browser: headless Chromium opens the viewer of a small stage.
+
+The browser must show every instance in the panel, and the rendered substitution whose pixels
+match the compositor's own render of the same camera (computed here from the pose the test
+gives the browser's camera, not by the viewer's code). A stage that cannot be read gives the
+same error as ``regnf stage show`` before any server starts.
+"""
+
+from __future__ import annotations
+
+import io
+import shutil
+import socket
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+from scipy.spatial.transform import Rotation
+
+from regnf.cli import main
+from regnf.compositor.from_stage import composite_from_stage
+from regnf.compositor.stage_config import StageCompositeConfig
+from regnf.core.cameras import look_at
+from regnf.core.image_io import rgb_to_uint8
+from regnf.neural_fields.camera import Camera
+from regnf.neural_fields.sphere_tracer import render
+from regnf.scene_graph import add_instance
+from regnf.viewer import StageViewer, ViewerConfig
+from tests.scene_graph.helpers import make_stage, similarity
+
+CHROMIUM, CHROMEDRIVER = shutil.which("chromium"), shutil.which("chromedriver")
+"""Debian's chromium and chromium-driver: ``make setup`` installs them (no skip: a machine
+without them fails here rather than passing untested)."""
+WINDOW = (800, 600)
+EYE, TARGET = np.array([3.5, -3.0, 2.6]), np.array([0.0, 0.0, 0.6])
+FOV_Y = 0.9  # radians
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@pytest.fixture
+def stage(tmp_path: Path) -> Path:
+    path = make_stage(tmp_path, ("c", "dc", "t"))
+    add_instance(path, "c", similarity(0.3, (0.8, 0.4, 0.0), 1.0), instance_id="c_1")
+    add_instance(path, "dc", similarity(-1.1, (-0.9, 0.2, 0.0), 1.0), instance_id="dc_1")
+    add_instance(path, "t", similarity(0.0, (0.0, -1.0, 0.0), 1.0), instance_id="t_1")
+    return path
+
+
+@pytest.fixture
+def browser() -> Iterator[object]:
+    from selenium import webdriver
+    from selenium.webdriver.chrome.options import Options
+    from selenium.webdriver.chrome.service import Service
+
+    assert CHROMIUM and CHROMEDRIVER, "install Debian's chromium and chromium-driver (make setup)"
+    opts = Options()
+    for arg in ("--headless=new", "--no-sandbox", "--disable-dev-shm-usage",
+                f"--window-size={WINDOW[0]},{WINDOW[1]}", "--use-angle=swiftshader",
+                "--enable-unsafe-swiftshader", "--force-device-scale-factor=1"):
+        opts.add_argument(arg)
+    opts.binary_location = CHROMIUM
+    driver = webdriver.Chrome(service=Service(CHROMEDRIVER), options=opts)
+    try:
+        yield driver
+    finally:
+        driver.quit()
+
+
+def wait_for(predicate, timeout: float, what: str) -> None:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if predicate():
+            return
+        time.sleep(0.1)
+    raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+
+
+def test_the_browser_shows_the_instances_and_the_compositors_render(stage: Path, browser) -> None:
+    viewer = StageViewer(stage, ViewerConfig(port=free_port(), coarse_pixels=24 * 18,
+                                             refined_pixels=120 * 90, rest_seconds=0.2))
+    try:
+        browser.get(f"http://127.0.0.1:{viewer.port}")
+        wait_for(lambda: len(viewer.server.get_clients()) == 1, 60, "the browser to connect")
+        body = lambda: browser.find_element("tag name", "body").text
+        wait_for(lambda: all(i in body() for i in ("c_1", "dc_1", "t_1")), 60, "the instance list")
+
+        client = next(iter(viewer.server.get_clients().values()))
+        pose = look_at(EYE, TARGET)  # OpenCV camera -> room metres
+        wxyz = np.roll(Rotation.from_matrix(pose[:3, :3]).as_quat(), 1)
+        with client.atomic():
+            client.camera.fov = FOV_Y
+            client.camera.wxyz = wxyz
+            client.camera.position = EYE
+        wait_for(lambda: np.allclose(client.camera.position, EYE, atol=1e-6), 30, "the camera")
+        wait_for(lambda: "refined render" in body(), 120, "the refined render")
+        time.sleep(1.0)  # the image's texture upload
+        shot = np.asarray(Image.open(io.BytesIO(browser.get_screenshot_as_png())).convert("RGB"))
+
+        # The compositor's own render of that camera, at the viewer's refined size.
+        aspect = float(client.camera.aspect)
+        w = round(np.sqrt(120 * 90 * aspect))
+        h = round(w / aspect)
+        f = 0.5 * h / np.tan(0.5 * FOV_Y)
+        K = np.array([[f, 0.0, 0.5 * w], [0.0, f, 0.5 * h], [0.0, 0.0, 1.0]])
+        comp = composite_from_stage(stage, StageCompositeConfig(mode="substitute"))
+        expected = rgb_to_uint8(render(comp.field, Camera(K, w, h, pose), ViewerConfig().sphere).rgb)
+
+        # The background image fills the canvas (the whole window): compare where no panel,
+        # notification or axes cover it, each screenshot pixel with the render pixel under it.
+        H, W = shot.shape[:2]
+        ys, xs = np.mgrid[int(0.35 * H):int(0.9 * H), int(0.1 * W):int(0.55 * W)]
+        got = shot[ys, xs].astype(int)
+        want = expected[(ys * h) // H, (xs * w) // W].astype(int)
+        assert got.std() > 5, "the screenshot is blank"
+        close = np.abs(got - want).max(axis=-1) <= 24
+        assert close.mean() > 0.85, f"only {close.mean():.2f} of the pixels match the render"
+    finally:
+        viewer.close()
+
+
+def test_a_stage_that_cannot_be_opened_fails_like_stage_show(tmp_path: Path, capsys) -> None:
+    bad = tmp_path / "bad.usda"
+    bad.write_text("#usda 1.0\n(\n  garbage\n")
+    port = free_port()
+    assert main(["stage", "show", "--stage", str(bad)]) == 1
+    show = capsys.readouterr().err.strip()
+    t0 = time.monotonic()
+    assert main(["view", str(bad), "--port", str(port)]) == 1
+    view = capsys.readouterr().err.strip()
+    assert time.monotonic() - t0 < 30
+    assert show.startswith("regnf stage: ") and view.startswith("regnf view: ")
+    assert view.removeprefix("regnf view: ") == show.removeprefix("regnf stage: ")
+    assert len(view.splitlines()) == 1 and str(bad) in view
+    with socket.socket() as s:  # no server was left listening
+        s.bind(("127.0.0.1", port))
