@@ -44,6 +44,7 @@ from regnf.registration.refinement import RefineConfig, RefineResult, refine_man
 from regnf.registration.result import HypothesisReport, RegistrationResult
 from regnf.registration.sampling import SamplingConfig, SurfaceSamples, sample_surface
 from regnf.registration.screening import screen_hypotheses
+from regnf.registration.transform import SimilarityTransform
 from regnf.registration.upright import UprightPrior
 
 
@@ -168,6 +169,7 @@ def register(
     proposal: OrientedBox,
     config: RegistrationConfig | None = None,
     method: str = "regnf",
+    initial: SimilarityTransform | None = None,
 ) -> RegistrationResult:
     """Register ``library_field`` to the object inside ``proposal`` of ``scene_field``.
 
@@ -178,6 +180,12 @@ def register(
     proposal : OrientedBox
         Oriented box around the object, in the scene field's frame.
     config : RegistrationConfig
+    method : str
+        The name the result reports.
+    initial : SimilarityTransform, optional
+        A start given by the caller (scene field -> library field; for example a pose a user
+        dragged near its place): the refinement starts from it alone, without the
+        initialisation's hypotheses. The sampling, refinement and confidence are the same.
 
     Returns
     -------
@@ -196,7 +204,10 @@ def register(
         timings["sampling"] = time.perf_counter() - t0
 
         t1 = time.perf_counter()
-        hyps = initialise(scene_field, library_field, proposal, scene_samples, lib_samples, cfg)
+        if initial is None:
+            hyps = initialise(scene_field, library_field, proposal, scene_samples, lib_samples, cfg)
+        else:
+            hyps = [Hypothesis(initial, float("nan"), float("nan"))]
         A, B = sample_tensors(scene_samples, lib_samples, library_field.device)
         timings["initialisation"] = time.perf_counter() - t1
 

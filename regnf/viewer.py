@@ -8,7 +8,12 @@ What it shows (all in room metres, +Z up):
 - a render of the viewer's own camera, from the project's compositor: the scene field alone, the
   substitution (every instance replaced by its library field) or a random replacement (seed
   chosen in the panel), as RGB, depth or instance ids. Progressive: a coarse image as soon as
-  the camera moves, the full-size one once it rests (``ViewerConfig.rest_seconds``).
+  the camera moves, the full-size one once it rests (``ViewerConfig.rest_seconds``);
+- editing: "move selected" puts a transform gizmo (with the library proxy) on the selected
+  instance; "refine" runs the registration's refinement from the dragged pose
+  (:func:`regnf.registration.register` with ``initial``); "accept" writes the refined pose to
+  the stage (:func:`regnf.scene_graph.set_instance`: locked, atomic), its provenance saying it
+  was refined from a pose set by hand; "reject" leaves the stage untouched.
 
 Rendering runs on one worker thread, never on viser's event loop or in a GUI callback: a busy
 render delays only the next image, not the panel. A newer camera supersedes a queued request;
@@ -38,8 +43,20 @@ from regnf.compositor.stage_config import StageCompositeConfig
 from regnf.core.image_io import rgb_to_uint8
 from regnf.neural_fields.camera import Camera
 from regnf.neural_fields.distance_grid import DistanceGrid
+from regnf.neural_fields.oriented_box import OrientedBox
 from regnf.neural_fields.sphere_tracer import SphereTracerConfig, render
-from regnf.scene_graph import ComposedScene, original_selections, read_stage
+from regnf.registration.pipeline import register
+from regnf.registration.transform import SimilarityTransform
+from regnf.scene_graph import (
+    SCENE_PRIM,
+    ComposedScene,
+    instance_path,
+    load_record_field,
+    original_selections,
+    provenance_from_registration,
+    read_stage,
+    set_instance,
+)
 
 VIEWS = ("proxies", "scene field", "substitution", "replacement")
 """What the viewport shows: the stage's proxy meshes, or a field render of one composite."""
@@ -47,6 +64,11 @@ CHANNELS = ("rgb", "depth", "instance id")
 """Which image of a field render is shown."""
 
 _MODE_OF_VIEW = {"scene field": "scene", "substitution": "substitute", "replacement": "substitute"}
+HAND_METHOD = "refined from a pose set by hand in regnf view"
+"""Appended to the registration method of an instance corrected in the viewer."""
+NEW_BOX_PAD = 0.1
+"""Without a recorded proposal box, refinement uses the library object's box at the dragged
+pose grown by this fraction (the scene side is sampled inside it)."""
 
 
 @dataclass(frozen=True)
@@ -150,6 +172,14 @@ class Composites:
         self._loaded: dict[str, Any] = {}
         self._built: dict[tuple[str, int], tuple[StageComposite, DistanceGrid | None]] = {}
         self._originals: dict[str, str] | None = None
+
+    def reset(self, scene: ComposedScene) -> None:
+        """The stage changed (an accepted edit): composites are rebuilt on next use."""
+        self.scene, self._built, self._originals = scene, {}, None
+
+    def field(self, prim: str, record: Any) -> Any:
+        """A field of the stage, loaded once."""
+        return load_record_field(self.stage, prim, record, self.config.device, self._loaded)
 
     def get(self, view: str, seed: int) -> tuple[StageComposite, DistanceGrid | None]:
         """The composite (and its empty-space grid) shown by ``view``."""
@@ -278,6 +308,57 @@ def instance_table(scene: ComposedScene) -> str:
     return "\n".join(rows)
 
 
+@dataclass
+class EditState:
+    """An instance being corrected in the viewer."""
+
+    instance_id: str
+    scale: float
+    """The instance's scale (the gizmo moves and turns; the refinement finds the scale)."""
+    gizmo: Any
+    """viser's transform controls."""
+    payload: dict | None = None
+    """The refined registration (``regnf register --out``'s JSON), once refined."""
+
+
+def refine_from_pose(stage: Path, scene: ComposedScene, composites: Composites, instance_id: str,
+                     object_to_scene: np.ndarray) -> dict:
+    """The registration of instance ``instance_id`` refined from the pose ``object_to_scene``
+    (4, 4) (object -> scene metres), as ``regnf register --out`` writes it.
+
+    The proposal box is the one recorded with the instance, or (placed by hand) the library
+    object's box at ``object_to_scene`` grown by :data:`NEW_BOX_PAD`.
+    """
+    from regnf.commands_registration import registration_payload
+
+    inst = scene.instances[instance_id]
+    rec = scene.library[inst.library_name]
+    scene_field = composites.field(SCENE_PRIM, scene.scene)
+    library_field = composites.field(instance_path(instance_id), rec)
+    S = scene_field.to_world.detach().cpu().double().numpy()
+    L = library_field.to_world.detach().cpu().double().numpy()
+    O = np.asarray(object_to_scene, dtype=np.float64)
+    # scene field -> metres -> the object's canonical metres -> library field
+    start = SimilarityTransform.from_matrix(np.linalg.inv(L) @ np.linalg.inv(O) @ S)
+    reg = inst.registration
+    if reg is not None and reg.proposal_center is not None and reg.proposal_half_extents is not None:
+        proposal = OrientedBox(reg.proposal_center, reg.proposal_half_extents, reg.proposal_rotation)
+    else:
+        proposal = OrientedBox.from_bounds(library_field.bounds, np.linalg.inv(S) @ O @ L).inflated(NEW_BOX_PAD)
+    result = register(scene_field, library_field, proposal, initial=start)
+    payload = registration_payload(result, scene_field, library_field, scene.scene.checkpoint, rec.checkpoint)
+    payload["method"] = f"{result.method}, {HAND_METHOD}"
+    return payload
+
+
+def write_refined(stage: Path, instance_id: str, payload: dict, allow_outside: bool = False) -> None:
+    """Write a refined registration (:func:`refine_from_pose`) to instance ``instance_id``:
+    accepted by the user, so recorded as forced when below the acceptance threshold."""
+    provenance = provenance_from_registration(payload, forced=not payload["accepted"])
+    set_instance(stage, instance_id, np.asarray(payload["object_to_scene_metres"], dtype=np.float64),
+                 provenance, allow_outside=allow_outside)
+
+
 class StageViewer:
     """A running viewer of one stage: the viser server, its panel and the render worker."""
 
@@ -293,8 +374,11 @@ class StageViewer:
         self.server.scene.set_up_direction("+z")
         self._meshes: list[Any] = []
         self._box = None
+        self.edit: EditState | None = None
+        self._edit_lock = threading.Lock()
         self._add_proxies()
         self._add_panel()
+        self._add_editing()
         self.worker = RenderWorker(self.composites, config, self._show)
         self.server.on_client_connect(self._on_connect)
         self.server.on_client_disconnect(lambda client: self.worker.forget(client.client_id))
@@ -326,7 +410,7 @@ class StageViewer:
             self.seed = gui.add_number("replacement seed", initial_value=0, min=0, step=1)
             self.status = gui.add_markdown("")
         with gui.add_folder("Instances"):
-            gui.add_markdown(instance_table(self.scene))
+            self.table = gui.add_markdown(instance_table(self.scene))
             ids = list(self.scene.instances) or ["(none)"]
             self.selected = gui.add_dropdown("selected", ids, initial_value=ids[0])
             self.details = gui.add_markdown("")
@@ -374,6 +458,112 @@ class StageViewer:
         else:
             lines.append("placed by hand")
         self.details.content = "\n\n".join(lines)
+
+    # -- editing ------------------------------------------------------------------------------
+    def _add_editing(self) -> None:
+        gui = self.server.gui
+        with gui.add_folder("Edit"):
+            self.move_button = gui.add_button("move selected")
+            self.refine_button = gui.add_button("refine", disabled=True)
+            self.accept_button = gui.add_button("accept", disabled=True)
+            self.reject_button = gui.add_button("reject", disabled=True)
+            self.edit_status = gui.add_markdown("")
+        self.move_button.on_click(lambda _: self.start_edit(self.selected.value))
+        self.refine_button.on_click(lambda _: self.refine_async())
+        self.accept_button.on_click(lambda _: self.accept())
+        self.reject_button.on_click(lambda _: self.reject())
+
+    def start_edit(self, iid: str) -> None:
+        """Put a transform gizmo, with the library proxy, on instance ``iid``."""
+        inst = self.scene.instances.get(iid)
+        if inst is None:
+            return
+        self.reject()
+        M = inst.object_to_scene
+        s = float(np.cbrt(np.linalg.det(M[:3, :3])))
+        gizmo = self.server.scene.add_transform_controls(
+            "/edit/gizmo", scale=max(0.3, s), position=tuple(M[:3, 3]),
+            wxyz=tuple(np.roll(Rotation.from_matrix(M[:3, :3] / s).as_quat(), 1)))
+        rec = self.scene.library[inst.library_name]
+        self.server.scene.add_mesh_simple("/edit/gizmo/proxy", rec.proxy.points * s, rec.proxy.faces,
+                                          color=(255, 90, 60), opacity=0.6)
+        self.edit = EditState(iid, s, gizmo)
+        self.refine_button.disabled = False
+        self.reject_button.disabled = False
+        self.accept_button.disabled = True
+        self.edit_status.content = f"drag **{iid}** near its place, then press refine"
+
+    def gizmo_pose(self) -> np.ndarray:
+        """(4, 4) object -> scene metres of the gizmo, at the edited instance's scale."""
+        assert self.edit is not None
+        g = self.edit.gizmo
+        return client_pose(g.position, g.wxyz) @ np.diag([self.edit.scale] * 3 + [1.0])
+
+    def refine_async(self) -> threading.Thread | None:
+        """Start :meth:`refine` on its own thread (never in a GUI callback's)."""
+        if self.edit is None:
+            return None
+        self.refine_button.disabled = True
+        self.edit_status.content = f"refining **{self.edit.instance_id}** ..."
+        start = self.gizmo_pose()
+        thread = threading.Thread(target=self._refine_job, args=(self.edit, start), daemon=True)
+        thread.start()
+        return thread
+
+    def _refine_job(self, edit: EditState, start: np.ndarray) -> None:
+        try:
+            payload = refine_from_pose(self.stage, self.scene, self.composites, edit.instance_id, start)
+        except Exception as exc:  # noqa: BLE001 (reported in the panel; the viewer keeps running)
+            self.edit_status.content = f"refine failed: {type(exc).__name__}: {exc}"
+            self.refine_button.disabled = False
+            return
+        with self._edit_lock:
+            if self.edit is not edit:
+                return  # rejected (or another edit started) meanwhile
+            edit.payload = payload
+            O = np.asarray(payload["object_to_scene_metres"])
+            s = float(np.cbrt(np.linalg.det(O[:3, :3])))
+            edit.gizmo.position = tuple(O[:3, 3])
+            edit.gizmo.wxyz = tuple(np.roll(Rotation.from_matrix(O[:3, :3] / s).as_quat(), 1))
+        verdict = "accepted" if payload["accepted"] else "below the acceptance threshold"
+        self.edit_status.content = (f"refined **{edit.instance_id}**: confidence {payload['confidence']:.3f} "
+                                    f"({verdict}); accept writes it to the stage")
+        self.refine_button.disabled = False
+        self.accept_button.disabled = False
+
+    def accept(self) -> None:
+        """Write the refined pose of the edited instance to the stage."""
+        with self._edit_lock:
+            edit = self.edit
+            if edit is None or edit.payload is None:
+                return
+            write_refined(self.stage, edit.instance_id, edit.payload, self.config.allow_outside)
+            self.edit = None
+        self.scene = read_stage(self.stage, allow_outside=self.config.allow_outside)
+        self.composites.reset(self.scene)
+        self.server.scene.remove_by_name("/edit/gizmo")
+        for mesh in self._meshes:
+            mesh.remove()
+        self._meshes = []
+        self._add_proxies()
+        self._show_proxies()
+        self.table.content = instance_table(self.scene)
+        self._select()
+        for button in (self.refine_button, self.accept_button, self.reject_button):
+            button.disabled = True
+        self.edit_status.content = f"**{edit.instance_id}** written to {self.stage.name}"
+        self._request_all()
+
+    def reject(self) -> None:
+        """Drop the edit: the stage is left untouched."""
+        with self._edit_lock:
+            if self.edit is None:
+                return
+            self.edit = None
+        self.server.scene.remove_by_name("/edit/gizmo")
+        for button in (self.refine_button, self.accept_button, self.reject_button):
+            button.disabled = True
+        self.edit_status.content = "edit dropped; the stage is unchanged"
 
     # -- clients and renders -----------------------------------------------------------------
     def _on_connect(self, client: Any) -> None:

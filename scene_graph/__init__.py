@@ -18,6 +18,7 @@ from .edit import (
     new_stage,
     parse_registration,
     provenance_from_registration,
+    set_instance,
 )
 from .errors import StageError
 from .fields import ProxyConfig, field_record, load_record_field, proxy_from_trimesh
@@ -60,6 +61,7 @@ __all__ = [
     "proxy_from_trimesh",
     "read_stage",
     "replacement_base",
+    "set_instance",
     "stage_lock",
     "summarize",
     "validate_stage",

@@ -170,6 +170,40 @@ def add_instance(
     return iid
 
 
+def set_instance(
+    stage_path: str | os.PathLike,
+    instance_id: str,
+    object_to_scene: np.ndarray,
+    registration: RegistrationProvenance | None = None,
+    allow_outside: bool = False,
+) -> None:
+    """Move an existing instance: its transform and provenance are replaced, its library object
+    and everything else in the stage kept (a pose corrected in ``regnf view``, for example).
+
+    Parameters
+    ----------
+    stage_path : str or PathLike
+    instance_id : str
+        An instance of the stage (``StageError`` otherwise).
+    object_to_scene : (4, 4) float
+        Canonical object metres -> scene metres (a similarity).
+    registration : RegistrationProvenance, optional
+        How the new transform was found; None: placed by hand.
+    allow_outside : bool
+        As for :func:`add_library_object`.
+    """
+    stage_path = Path(stage_path).absolute()
+    with stage_lock(stage_path):
+        scene = read_stage(stage_path, allow_outside=allow_outside)
+        old = scene.instances.get(instance_id)
+        if old is None:
+            raise StageError(stage_path, L.instance_path(instance_id),
+                             f"no such instance (the stage has {sorted(scene.instances)})")
+        scene.instances[instance_id] = InstanceRecord(
+            instance_id, old.library_name, np.asarray(object_to_scene, dtype=np.float64), registration)
+        write_stage(scene, stage_path)
+
+
 # -- registration results (JSON) ------------------------------------------------------------------
 def _short(value: object) -> str:
     """``repr(value)``, cut to one short line for a message."""

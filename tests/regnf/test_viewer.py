@@ -27,7 +27,7 @@ from regnf.core.cameras import look_at
 from regnf.core.image_io import rgb_to_uint8
 from regnf.neural_fields.camera import Camera
 from regnf.neural_fields.sphere_tracer import render
-from regnf.scene_graph import add_instance
+from regnf.scene_graph import add_instance, read_stage
 from regnf.viewer import StageViewer, ViewerConfig
 from tests.scene_graph.helpers import make_stage, similarity
 
@@ -141,3 +141,75 @@ def test_a_stage_that_cannot_be_opened_fails_like_stage_show(tmp_path: Path, cap
     assert len(view.splitlines()) == 1 and str(bad) in view
     with socket.socket() as s:  # no server was left listening
         s.bind(("127.0.0.1", port))
+
+
+def click(browser, label: str) -> None:
+    """Click the panel button whose text is ``label``."""
+    buttons = [b for b in browser.find_elements("tag name", "button") if b.text.strip() == label]
+    assert buttons, f"no button {label!r} in the page"
+    buttons[0].click()
+
+
+def test_refine_and_accept_in_the_browser_writes_what_the_api_writes(stage: Path, tmp_path: Path,
+                                                                    browser) -> None:
+    reference = tmp_path / "reference"
+    shutil.copytree(stage.parent, reference)
+    ref_stage = reference / stage.name
+    inst = read_stage(stage).instances["c_1"]
+    # Where the user drags the chair: 6 cm and 0.1 rad off its recorded pose.
+    dragged = inst.object_to_scene @ similarity(0.1, (0.0, 0.0, 0.0), 1.0)
+    dragged[:3, 3] += [0.05, -0.03, 0.0]
+
+    viewer = StageViewer(stage, ViewerConfig(port=free_port(), coarse_pixels=16 * 12,
+                                             refined_pixels=32 * 24))
+    try:
+        browser.get(f"http://127.0.0.1:{viewer.port}")
+        wait_for(lambda: len(viewer.server.get_clients()) == 1, 60, "the browser to connect")
+        body = lambda: browser.find_element("tag name", "body").text
+        wait_for(lambda: "move selected" in body(), 60, "the edit panel")
+        click(browser, "move selected")  # the selected instance: the first, c_1
+        wait_for(lambda: viewer.edit is not None, 30, "the gizmo")
+        s = viewer.edit.scale
+        viewer.edit.gizmo.position = tuple(dragged[:3, 3])  # what dragging the gizmo sets
+        viewer.edit.gizmo.wxyz = tuple(np.roll(Rotation.from_matrix(dragged[:3, :3] / s).as_quat(), 1))
+        np.testing.assert_allclose(viewer.gizmo_pose(), dragged, atol=1e-9)
+        click(browser, "refine")
+        wait_for(lambda: "refined c_1" in body(), 120, "the refinement")
+        click(browser, "accept")
+        wait_for(lambda: "written to" in body(), 60, "the stage write")
+    finally:
+        viewer.close()
+
+    # The same correction through the Python API, on the untouched copy.
+    from regnf.commands_registration import registration_payload
+    from regnf.neural_fields import load_field
+    from regnf.neural_fields.oriented_box import OrientedBox
+    from regnf.registration import register
+    from regnf.registration.transform import SimilarityTransform
+    from regnf.scene_graph import provenance_from_registration, set_instance
+
+    scene_rec = read_stage(ref_stage)
+    scene_field = load_field(scene_rec.scene.checkpoint)
+    lib_field = load_field(scene_rec.library["c"].checkpoint)
+    S = scene_field.to_world.double().numpy()
+    L = lib_field.to_world.double().numpy()
+    start = SimilarityTransform.from_matrix(np.linalg.inv(L) @ np.linalg.inv(dragged) @ S)
+    box = OrientedBox.from_bounds(lib_field.bounds, np.linalg.inv(S) @ dragged @ L).inflated(0.1)
+    result = register(scene_field, lib_field, box, initial=start)
+    payload = registration_payload(result, scene_field, lib_field, scene_rec.scene.checkpoint,
+                                   scene_rec.library["c"].checkpoint)
+    payload["method"] = f"{result.method}, refined from a pose set by hand in regnf view"
+    set_instance(ref_stage, "c_1", np.asarray(payload["object_to_scene_metres"]),
+                 provenance_from_registration(payload, forced=not payload["accepted"]))
+
+    got, want = read_stage(stage), read_stage(ref_stage)
+    assert list(got.instances) == list(want.instances)
+    for iid in got.instances:
+        a, b = got.instances[iid], want.instances[iid]
+        np.testing.assert_allclose(a.object_to_scene, b.object_to_scene, atol=1e-9)
+        assert a.library_name == b.library_name
+        assert (a.registration is None) == (b.registration is None)
+    a, b = got.instances["c_1"].registration, want.instances["c_1"].registration
+    assert a.method == b.method and "by hand" in a.method
+    assert a.confidence == pytest.approx(b.confidence, abs=1e-9) and a.forced == b.forced
+    assert not np.allclose(got.instances["c_1"].object_to_scene, inst.object_to_scene)

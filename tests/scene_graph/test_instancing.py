@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from pxr import Usd, UsdGeom
 
-from regnf.scene_graph import StageError, add_instance, make_replacement_layer, read_stage
+from regnf.scene_graph import StageError, add_instance, make_replacement_layer, read_stage, set_instance
 
 from .helpers import OBJECTS, make_stage, similarity, snapshot
 
@@ -115,3 +115,23 @@ def test_replacement_errors_name_prim_and_file(stage_path, tmp_path):
     with pytest.raises(StageError, match="escape"):
         make_replacement_layer(stage_path, {"a": "dc"}, tmp_path / "elsewhere.usda")
     assert not (stage_path.parent / "x.usda").exists() and not (tmp_path / "elsewhere.usda").exists()
+
+
+def test_set_instance_moves_one_instance_and_keeps_the_rest(tmp_path):
+    path = make_stage(tmp_path, ("c", "dc"))
+    add_instance(path, "c", similarity(0.3, (1.0, 2.0, FLOOR_Z), 1.0), instance_id="a")
+    add_instance(path, "dc", similarity(-1.0, (0.5, -1.0, FLOOR_Z), 1.02), instance_id="b")
+    before = read_stage(path)
+    moved = similarity(1.2, (0.7, 0.1, FLOOR_Z), 0.97)
+    set_instance(path, "a", moved)
+    after = read_stage(path)
+    np.testing.assert_allclose(after.instances["a"].object_to_scene, moved, atol=1e-12)
+    assert after.instances["a"].library_name == "c" and after.instances["a"].registration is None
+    np.testing.assert_array_equal(after.instances["b"].object_to_scene, before.instances["b"].object_to_scene)
+    assert list(after.instances) == ["a", "b"] and sorted(after.library) == sorted(before.library)
+    files = snapshot(path.parent)
+    with pytest.raises(StageError, match="no such instance"):
+        set_instance(path, "zz", moved)
+    with pytest.raises(StageError):
+        set_instance(path, "a", np.diag([1.0, 2.0, 1.0, 1.0]))  # not a similarity
+    assert snapshot(path.parent) == files  # a refused edit leaves every file as it was
