@@ -8,7 +8,13 @@ import numpy as np
 import pytest
 from pxr import Usd, UsdGeom
 
-from regnf.scene_graph import StageError, add_instance, make_replacement_layer, read_stage, set_instance
+from regnf.scene_graph import (
+    StageError,
+    add_instance,
+    make_replacement_layer,
+    read_stage,
+    set_instance,
+)
 
 from .helpers import OBJECTS, make_stage, similarity, snapshot
 
