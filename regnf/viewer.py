@@ -13,7 +13,10 @@ What it shows (all in room metres, +Z up):
   instance; "refine" runs the registration's refinement from the dragged pose
   (:func:`regnf.registration.register` with ``initial``); "accept" writes the refined pose to
   the stage (:func:`regnf.scene_graph.set_instance`: locked, atomic), its provenance saying it
-  was refined from a pose set by hand; "reject" leaves the stage untouched.
+  was refined from a pose set by hand; "reject" leaves the stage untouched;
+- a new instance: "draw box" puts a proposal box (size in the panel) on the floor to be dragged
+  around an object; "register box" registers the library object chosen in the list inside it
+  (the whole pipeline); "add instance" writes the result to the stage.
 
 Rendering runs on one worker thread, never on viser's event loop or in a GUI callback: a busy
 render delays only the next image, not the panel. A newer camera supersedes a queued request;
@@ -50,6 +53,7 @@ from regnf.registration.transform import SimilarityTransform
 from regnf.scene_graph import (
     SCENE_PRIM,
     ComposedScene,
+    add_instance_from_registration,
     instance_path,
     load_record_field,
     original_selections,
@@ -351,6 +355,32 @@ def refine_from_pose(stage: Path, scene: ComposedScene, composites: Composites, 
     return payload
 
 
+def register_box(scene: ComposedScene, composites: Composites, library_name: str,
+                 box_to_scene: np.ndarray, half_extents: np.ndarray) -> dict:
+    """The registration of library object ``library_name`` inside a box drawn in the viewer, as
+    ``regnf register --out`` writes it.
+
+    Parameters
+    ----------
+    box_to_scene : (4, 4) float
+        Rigid pose of the box (its centre and axes) in scene metres.
+    half_extents : (3,) float
+        Half sizes in metres.
+    """
+    from regnf.commands_registration import registration_payload
+
+    rec = scene.library[library_name]
+    scene_field = composites.field(SCENE_PRIM, scene.scene)
+    library_field = composites.field(f"library object {library_name!r}", rec)
+    S = scene_field.to_world.detach().cpu().double().numpy()
+    box_m = OrientedBox(box_to_scene[:3, 3], half_extents, box_to_scene[:3, :3])
+    result = register(scene_field, library_field, box_m.transformed(np.linalg.inv(S)))
+    payload = registration_payload(result, scene_field, library_field, scene.scene.checkpoint, rec.checkpoint)
+    payload["library_name"] = library_name
+    payload["method"] = f"{result.method}, inside a box drawn in regnf view"
+    return payload
+
+
 def write_refined(stage: Path, instance_id: str, payload: dict, allow_outside: bool = False) -> None:
     """Write a refined registration (:func:`refine_from_pose`) to instance ``instance_id``:
     accepted by the user, so recorded as forced when below the acceptance threshold."""
@@ -468,6 +498,20 @@ class StageViewer:
             self.accept_button = gui.add_button("accept", disabled=True)
             self.reject_button = gui.add_button("reject", disabled=True)
             self.edit_status = gui.add_markdown("")
+        with gui.add_folder("New instance"):
+            names = sorted(self.scene.library) or ["(empty library)"]
+            self.new_object = gui.add_dropdown("library object", names, initial_value=names[0])
+            self.new_size = gui.add_vector3("box size (m)", initial_value=(0.7, 0.7, 1.0),
+                                            min=(0.05, 0.05, 0.05), step=0.05)
+            self.draw_button = gui.add_button("draw box")
+            self.register_button = gui.add_button("register box", disabled=True)
+            self.add_button = gui.add_button("add instance", disabled=True)
+            self.new_status = gui.add_markdown("")
+        self.new_box: dict[str, Any] = {}
+        self.draw_button.on_click(lambda _: self.draw_box())
+        self.register_button.on_click(lambda _: self.register_box_async())
+        self.add_button.on_click(lambda _: self.add_new_instance())
+        self.new_size.on_update(lambda _: self._size_box())
         self.move_button.on_click(lambda _: self.start_edit(self.selected.value))
         self.refine_button.on_click(lambda _: self.refine_async())
         self.accept_button.on_click(lambda _: self.accept())
@@ -539,19 +583,93 @@ class StageViewer:
                 return
             write_refined(self.stage, edit.instance_id, edit.payload, self.config.allow_outside)
             self.edit = None
+        self.server.scene.remove_by_name("/edit/gizmo")
+        for button in (self.refine_button, self.accept_button, self.reject_button):
+            button.disabled = True
+        self._reload()
+        self.edit_status.content = f"**{edit.instance_id}** written to {self.stage.name}"
+
+    def draw_box(self) -> None:
+        """A proposal box standing on the floor below the scene's centre, with a gizmo."""
+        lo, hi = self.scene.scene.proxy.extent.astype(np.float64)
+        half = 0.5 * np.asarray(self.new_size.value, dtype=np.float64)
+        centre = np.array([0.5 * (lo[0] + hi[0]), 0.5 * (lo[1] + hi[1]), max(lo[2], 0.0) + half[2]])
+        gizmo = self.server.scene.add_transform_controls("/new/gizmo", scale=float(max(half.max(), 0.3)),
+                                                          position=tuple(centre))
+        self.new_box = {"gizmo": gizmo, "payload": None}
+        self._size_box()
+        self.register_button.disabled = False
+        self.add_button.disabled = True
+        self.new_status.content = "drag the box around an object, choose the object, press register box"
+
+    def _size_box(self) -> None:
+        if self.new_box:
+            self.server.scene.add_box("/new/gizmo/box", color=(60, 200, 255),
+                                      dimensions=tuple(float(v) for v in self.new_size.value), wireframe=True)
+
+    def new_box_pose(self) -> tuple[np.ndarray, np.ndarray]:
+        """(4, 4) rigid pose in scene metres and (3,) half extents of the drawn box."""
+        g = self.new_box["gizmo"]
+        return client_pose(g.position, g.wxyz), 0.5 * np.asarray(self.new_size.value, dtype=np.float64)
+
+    def register_box_async(self) -> threading.Thread | None:
+        """Start the registration inside the drawn box on its own thread."""
+        if not self.new_box:
+            return None
+        pose, half = self.new_box_pose()
+        name = self.new_object.value
+        self.register_button.disabled = True
+        self.new_status.content = f"registering **{name}** ..."
+        box = self.new_box
+
+        def job() -> None:
+            try:
+                payload = register_box(self.scene, self.composites, name, pose, half)
+            except Exception as exc:  # noqa: BLE001 (reported in the panel)
+                self.new_status.content = f"registration failed: {type(exc).__name__}: {exc}"
+                self.register_button.disabled = False
+                return
+            if self.new_box is not box:
+                return
+            box["payload"] = payload
+            verdict = "accepted" if payload["accepted"] else "below the acceptance threshold"
+            self.new_status.content = (f"**{name}**: confidence {payload['confidence']:.3f} ({verdict}); "
+                                       "add instance writes it to the stage")
+            self.register_button.disabled = False
+            self.add_button.disabled = False
+
+        thread = threading.Thread(target=job, daemon=True)
+        thread.start()
+        return thread
+
+    def add_new_instance(self) -> str | None:
+        """Write the registration of the drawn box as a new instance; returns its id."""
+        payload = self.new_box.get("payload") if self.new_box else None
+        if payload is None:
+            return None
+        iid = add_instance_from_registration(self.stage, payload, force=not payload["accepted"],
+                                             allow_outside=self.config.allow_outside)
+        self.server.scene.remove_by_name("/new/gizmo")
+        self.new_box = {}
+        self.register_button.disabled = True
+        self.add_button.disabled = True
+        self._reload()
+        self.new_status.content = f"**{iid}** added to {self.stage.name}"
+        return iid
+
+    def _reload(self) -> None:
+        """Re-read the stage after an edit: proxies, table, composites, renders."""
         self.scene = read_stage(self.stage, allow_outside=self.config.allow_outside)
         self.composites.reset(self.scene)
-        self.server.scene.remove_by_name("/edit/gizmo")
         for mesh in self._meshes:
             mesh.remove()
         self._meshes = []
         self._add_proxies()
         self._show_proxies()
         self.table.content = instance_table(self.scene)
+        ids = list(self.scene.instances) or ["(none)"]
+        self.selected.options = ids
         self._select()
-        for button in (self.refine_button, self.accept_button, self.reject_button):
-            button.disabled = True
-        self.edit_status.content = f"**{edit.instance_id}** written to {self.stage.name}"
         self._request_all()
 
     def reject(self) -> None:

@@ -213,3 +213,56 @@ def test_refine_and_accept_in_the_browser_writes_what_the_api_writes(stage: Path
     assert a.method == b.method and "by hand" in a.method
     assert a.confidence == pytest.approx(b.confidence, abs=1e-9) and a.forced == b.forced
     assert not np.allclose(got.instances["c_1"].object_to_scene, inst.object_to_scene)
+
+
+def test_a_box_drawn_in_the_browser_becomes_the_instance_the_api_adds(stage: Path, tmp_path: Path,
+                                                                     browser) -> None:
+    reference = tmp_path / "reference"
+    shutil.copytree(stage.parent, reference)
+    ref_stage = reference / stage.name
+    pose = np.eye(4)
+    pose[:3, 3] = [1.6, 1.2, 0.4]  # where the user drags the box
+    half = np.array([0.35, 0.35, 0.5])  # the panel's default size, 0.7 x 0.7 x 1.0 m
+
+    viewer = StageViewer(stage, ViewerConfig(port=free_port(), coarse_pixels=16 * 12,
+                                             refined_pixels=32 * 24))
+    try:
+        browser.get(f"http://127.0.0.1:{viewer.port}")
+        wait_for(lambda: len(viewer.server.get_clients()) == 1, 60, "the browser to connect")
+        body = lambda: browser.find_element("tag name", "body").text
+        wait_for(lambda: "draw box" in body(), 60, "the new-instance panel")
+        viewer.new_object.value = "c"
+        click(browser, "draw box")
+        wait_for(lambda: bool(viewer.new_box), 30, "the box")
+        viewer.new_box["gizmo"].position = tuple(pose[:3, 3])  # what dragging the box sets
+        got_pose, got_half = viewer.new_box_pose()
+        np.testing.assert_allclose(got_pose, pose, atol=1e-9)
+        np.testing.assert_allclose(got_half, half)
+        click(browser, "register box")
+        wait_for(lambda: "add instance writes it" in body(), 180, "the registration")
+        click(browser, "add instance")
+        wait_for(lambda: "added to" in body(), 60, "the stage write")
+    finally:
+        viewer.close()
+
+    from regnf.commands_registration import registration_payload
+    from regnf.neural_fields import OrientedBox, load_field
+    from regnf.registration import register
+    from regnf.scene_graph import add_instance_from_registration
+
+    rec = read_stage(ref_stage)
+    scene_field = load_field(rec.scene.checkpoint)
+    lib_field = load_field(rec.library["c"].checkpoint)
+    S = scene_field.to_world.double().numpy()
+    result = register(scene_field, lib_field, OrientedBox(pose[:3, 3], half, pose[:3, :3]).transformed(np.linalg.inv(S)))
+    payload = registration_payload(result, scene_field, lib_field, rec.scene.checkpoint, rec.library["c"].checkpoint)
+    payload["library_name"] = "c"
+    payload["method"] = f"{result.method}, inside a box drawn in regnf view"
+    add_instance_from_registration(ref_stage, payload, force=not payload["accepted"])
+
+    got, want = read_stage(stage), read_stage(ref_stage)
+    assert list(got.instances) == list(want.instances) == ["c_1", "dc_1", "t_1", "c_2"]
+    a, b = got.instances["c_2"], want.instances["c_2"]
+    np.testing.assert_allclose(a.object_to_scene, b.object_to_scene, atol=1e-9)
+    assert a.registration.method == b.registration.method and "drawn" in a.registration.method
+    assert a.registration.confidence == pytest.approx(b.registration.confidence, abs=1e-9)
