@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import os
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
+from regnf.neural_fields.field import Field
 from regnf.neural_fields.oriented_box import OrientedBox
 from regnf.registration.transform import SimilarityTransform
 
@@ -99,3 +101,20 @@ def asdict_plain(obj: object) -> dict:
         return x
 
     return plain(asdict(obj))  # type: ignore[return-value]
+
+
+def registration_payload(result: RegistrationResult, scene: Field, library: Field, scene_path: str | os.PathLike,
+                         library_path: str | os.PathLike) -> dict:
+    """What ``regnf register --out`` writes (and a stage records): the result, the fields, and the
+    object -> scene transform in metres."""
+    S = scene.to_world.detach().cpu().double().numpy()
+    L = library.to_world.detach().cpu().double().numpy()
+    object_to_scene = S @ result.transform.inverse().matrix() @ np.linalg.inv(L)
+    return {
+        **result.to_json(),
+        "scene_field": str(scene_path),
+        "library_field": str(library_path),
+        "library_name": library.name,
+        "library_label": library.label,
+        "object_to_scene_metres": object_to_scene.tolist(),
+    }

@@ -5,7 +5,6 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 from rich.console import Console
@@ -15,10 +14,7 @@ from regnf.core.atomic_io import write_json
 from regnf.core.preflight import check_output_file
 from regnf.neural_fields.checkpoint import load_field
 from regnf.registration.pipeline import RegistrationConfig
-
-if TYPE_CHECKING:
-    from regnf.neural_fields.field import Field
-    from regnf.registration.result import RegistrationResult
+from regnf.registration.result import registration_payload
 
 console = Console(stderr=True)
 
@@ -61,23 +57,6 @@ def load_box_metres(path: Path) -> np.ndarray:
     except (TypeError, ValueError) as exc:
         raise SystemExit(f"{path}: not a usable box: {exc}") from exc
     return corners
-
-
-def registration_payload(result: RegistrationResult, scene: Field, library: Field, scene_path: Path,
-                         library_path: Path) -> dict:
-    """What ``regnf register --out`` writes (and a stage records): the result, the fields, and the
-    object -> scene transform in metres."""
-    S = scene.to_world.detach().cpu().double().numpy()
-    L = library.to_world.detach().cpu().double().numpy()
-    object_to_scene = S @ result.transform.inverse().matrix() @ np.linalg.inv(L)
-    return {
-        **result.to_json(),
-        "scene_field": str(scene_path),
-        "library_field": str(library_path),
-        "library_name": library.name,
-        "library_label": library.label,
-        "object_to_scene_metres": object_to_scene.tolist(),
-    }
 
 
 @dataclass

@@ -187,9 +187,8 @@ def _register_all(stage: Path, out: Path, scene_path: Path, library_paths: dict[
     from regnf.registration.ground_truth import evaluate, pair_truth
     from regnf.registration.metrics import within_bars
     from regnf.registration.pipeline import register
+    from regnf.registration.result import registration_payload
     from regnf.scene_graph import add_instance_from_registration
-
-    from .commands_registration import registration_payload
 
     scene = load_field(scene_path, device=device)
     rows = []

@@ -14,7 +14,7 @@ import types
 import pytest
 
 PACKAGES = ("regnf.core", "regnf.synthetic", "regnf.neural_fields", "regnf.registration",
-            "regnf.scene_graph", "regnf.compositor", "regnf.benchmarks")
+            "regnf.scene_graph", "regnf.compositor", "regnf.viewer", "regnf.benchmarks")
 
 
 @pytest.mark.parametrize("name", PACKAGES)

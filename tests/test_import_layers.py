@@ -2,7 +2,7 @@
 
 Bottom to top: ``regnf.core`` (atomic writes, locks, output folders, executors, pre-flight
 checks), ``synthetic``, ``neural_fields``, ``registration``, ``scene_graph``, ``compositor``,
-``benchmarks``, and the command line (the modules directly in ``regnf/``). Every import
+``viewer``, ``benchmarks``, and the command line (the modules directly in ``regnf/``). Every import
 counts, including those inside functions, and nothing imports the folders by their bare names
 (``import compositor`` would load a second copy of the module beside ``regnf.compositor``).
 """
@@ -16,8 +16,8 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 
-LAYERS = ("core", "synthetic", "neural_fields", "registration", "scene_graph", "compositor", "benchmarks",
-          "cli")
+LAYERS = ("core", "synthetic", "neural_fields", "registration", "scene_graph", "compositor", "viewer",
+          "benchmarks", "cli")
 """Bottom to top; ``cli`` is the root package ``regnf`` itself (regnf/*.py)."""
 
 FOLDERS = {layer: ROOT / ("regnf" if layer == "cli" else layer) for layer in LAYERS}
@@ -99,3 +99,11 @@ def test_every_module_imports_only_from_below() -> None:
 def test_the_check_sees_an_upward_import(module: str, source: str, expected: int) -> None:
     # The test above can fail: an upward import, a lazy one or a bare name is each reported.
     assert len(violations(source, module)) == expected
+
+
+def test_every_layer_is_an_installed_package() -> None:
+    import tomllib
+
+    dirs = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["package-dir"]
+    assert {f"regnf.{layer}" for layer in LAYERS[:-1]} | {"regnf"} <= set(dirs)
+    assert set(dirs.values()) - {"regnf"} == set(LAYERS[:-1])

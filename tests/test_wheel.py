@@ -5,13 +5,15 @@ from __future__ import annotations
 import shutil
 import subprocess
 import sys
+import tomllib
 import zipfile
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-FOLDERS = ("regnf", "core", "synthetic", "neural_fields", "registration", "scene_graph", "compositor",
-           "benchmarks")
-"""The repository's package folders: ``regnf`` itself and the ones installed as its subpackages."""
+PACKAGE_DIRS = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["package-dir"]
+FOLDERS = ("regnf", *sorted(set(PACKAGE_DIRS.values()) - {"regnf"}))
+"""The repository's package folders: ``regnf`` itself and the ones installed as its subpackages
+(from ``pyproject.toml``; the import-layer test checks that every layer is one of them)."""
 
 
 def test_the_wheel_holds_one_top_level_package(tmp_path: Path) -> None:

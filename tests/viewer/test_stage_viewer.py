@@ -181,10 +181,10 @@ def test_refine_and_accept_in_the_browser_writes_what_the_api_writes(stage: Path
         viewer.close()
 
     # The same correction through the Python API, on the untouched copy.
-    from regnf.commands_registration import registration_payload
     from regnf.neural_fields import load_field
     from regnf.neural_fields.oriented_box import OrientedBox
     from regnf.registration import register
+    from regnf.registration.result import registration_payload
     from regnf.registration.transform import SimilarityTransform
     from regnf.scene_graph import provenance_from_registration, set_instance
 
@@ -245,9 +245,9 @@ def test_a_box_drawn_in_the_browser_becomes_the_instance_the_api_adds(stage: Pat
     finally:
         viewer.close()
 
-    from regnf.commands_registration import registration_payload
     from regnf.neural_fields import OrientedBox, load_field
     from regnf.registration import register
+    from regnf.registration.result import registration_payload
     from regnf.scene_graph import add_instance_from_registration
 
     rec = read_stage(ref_stage)

@@ -49,6 +49,7 @@ from regnf.neural_fields.distance_grid import DistanceGrid
 from regnf.neural_fields.oriented_box import OrientedBox
 from regnf.neural_fields.sphere_tracer import SphereTracerConfig, render
 from regnf.registration.pipeline import register
+from regnf.registration.result import registration_payload
 from regnf.registration.transform import SimilarityTransform
 from regnf.scene_graph import (
     SCENE_PRIM,
@@ -333,8 +334,6 @@ def refine_from_pose(stage: Path, scene: ComposedScene, composites: Composites, 
     The proposal box is the one recorded with the instance, or (placed by hand) the library
     object's box at ``object_to_scene`` grown by :data:`NEW_BOX_PAD`.
     """
-    from regnf.commands_registration import registration_payload
-
     inst = scene.instances[instance_id]
     rec = scene.library[inst.library_name]
     scene_field = composites.field(SCENE_PRIM, scene.scene)
@@ -367,8 +366,6 @@ def register_box(scene: ComposedScene, composites: Composites, library_name: str
     half_extents : (3,) float
         Half sizes in metres.
     """
-    from regnf.commands_registration import registration_payload
-
     rec = scene.library[library_name]
     scene_field = composites.field(SCENE_PRIM, scene.scene)
     library_field = composites.field(f"library object {library_name!r}", rec)
