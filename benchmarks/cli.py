@@ -250,3 +250,43 @@ class BenchRender:
             write_text(self.markdown, text)
         console.print(text)
         console.print(f"results: {self.json}; images: {', '.join(str(p) for p in pngs)}")
+
+
+@dataclass
+class BenchViewer:
+    """The viewer in headless Chromium on a registered stage: time to the first and refined images, pose corrections."""
+
+    stage: Path
+    """A stage of one of the synthetic rooms with registered instances (``make demo`` writes
+    ``out/demo/stage/ac-room.usda``)."""
+    room: Literal["ac-room", "atbl-room", "mix-room"] = "ac-room"
+    """The room the stage holds (its capture instances are the ground truth of the corrections)."""
+    coverage: Literal["full", "low"] = "low"
+    """The capture the stage's scene field was trained from (the demo's: low)."""
+    json: Path = Path("out/bench_viewer.json")
+    """Where to write the measurements (JSON)."""
+    images: Path = Path("out/bench_viewer")
+    """Folder for the screenshots."""
+    cache_dir: Path = dataclasses.field(default_factory=default_cache_dir)
+    """Cache directory (the room's capture is made there if missing)."""
+
+    def run(self) -> None:
+        check_outputs(self)
+        from regnf.benchmarks.viewer import run_viewer_benchmark
+        from regnf.scene_graph import StageError
+        from regnf.synthetic.capture import RoomCaptureConfig
+
+        capture = Cache(self.cache_dir).room_capture(self.room, RoomCaptureConfig(coverage=self.coverage))
+        command = f"regnf bench viewer --stage {self.stage} --json {self.json}"
+        try:
+            result = run_viewer_benchmark(self.stage, list(capture.instances), self.images)
+        except StageError as exc:
+            raise SystemExit(f"regnf bench viewer: {exc}") from exc
+        write_json(self.json, {"meta": run_meta(command, "cpu"), **result})
+        console.print(f"instances listed after {result['instances_listed_s']:.1f} s, first image "
+                      f"{result['first_render_s']:.1f} s, refined {result['refined_render_s']:.1f} s")
+        for row in result["corrections"]:
+            console.print(f"  {row['instance']}: refined from the dragged pose, confidence {row['confidence']:.3f}, "
+                          f"rotation {row['rot_geodesic_rad']:.4f} rad, translation {100 * row['trans_rel_diag']:.2f} %, "
+                          f"scale {100 * row['scale_rel']:.2f} %, within the bars: {row['within_bars']}")
+        console.print(f"results: {self.json}; screenshots: {self.images}")

@@ -47,6 +47,7 @@ def _commands() -> dict[str, type]:
         BenchFields,
         BenchRegistration,
         BenchRender,
+        BenchViewer,
     )
     from regnf.commands_demo import Demo
     from regnf.commands_fields import Distill, Mesh, Synth, Train
@@ -76,6 +77,7 @@ def _commands() -> dict[str, type]:
         "bench render": BenchRender,
         "bench encodings": BenchEncodings,
         "bench distill": BenchDistill,
+        "bench viewer": BenchViewer,
     }
 
 

@@ -1,0 +1,159 @@
+"""``regnf bench viewer``: the viewer as a user meets it, in a real browser, on a registered stage.
+
+1. Opening: headless Chromium opens a new viewer of the stage; measured from the page request
+   to the first (coarse) substitution image on screen and to the refined one, with viser's
+   default camera (what a user sees first).
+2. Screenshots of a view into the room: the substitution, the proxies and the instance ids.
+3. Correction: each instance of the stage whose capture instance is known is dragged off its
+   true pose (``drag_yaw`` radians about the vertical, ``drag_offset`` metres) and refined from
+   there (:func:`regnf.viewer.stage_viewer.refine_from_pose`, what the viewer's refine button
+   runs); the result is measured against the ground truth with the registration bars.
+"""
+
+from __future__ import annotations
+
+import io
+import shutil
+import socket
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from regnf.core.cameras import look_at
+from regnf.registration.ground_truth import pair_truth
+from regnf.registration.metrics import registration_errors, within_bars
+from regnf.registration.transform import SimilarityTransform
+from regnf.scene_graph import instance_path
+from regnf.synthetic.instance import Instance
+
+
+@dataclass(frozen=True)
+class ViewerBenchConfig:
+    """Settings of :func:`run_viewer_benchmark`."""
+
+    window: tuple[int, int] = (1024, 700)
+    """Browser window, pixels."""
+    drag_yaw: float = 0.25
+    """How far each instance is turned off its true pose before refining (radians)."""
+    drag_offset: tuple[float, float, float] = (0.08, -0.06, 0.0)
+    """How far it is moved (metres)."""
+    timeout: float = 120.0
+    """Seconds to wait for any one thing in the browser."""
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _browser(window: tuple[int, int]):
+    from selenium import webdriver
+    from selenium.webdriver.chrome.options import Options
+    from selenium.webdriver.chrome.service import Service
+
+    chromium, driver = shutil.which("chromium"), shutil.which("chromedriver")
+    if chromium is None or driver is None:
+        raise ValueError("the viewer benchmark needs Debian's chromium and chromium-driver (make setup)")
+    opts = Options()
+    for arg in ("--headless=new", "--no-sandbox", "--disable-dev-shm-usage", f"--window-size={window[0]},{window[1]}",
+                "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--force-device-scale-factor=1"):
+        opts.add_argument(arg)
+    opts.binary_location = chromium
+    return webdriver.Chrome(service=Service(driver), options=opts)
+
+
+def _wait(predicate, timeout: float, what: str) -> float:
+    """Seconds until ``predicate()`` holds; ``ValueError`` after ``timeout``."""
+    t0 = time.monotonic()
+    while not predicate():
+        if time.monotonic() - t0 > timeout:
+            raise ValueError(f"the viewer did not show {what} within {timeout:.0f} s")
+        time.sleep(0.05)
+    return time.monotonic() - t0
+
+
+def run_viewer_benchmark(stage: Path, instances: list[Instance], images: Path,
+                         config: ViewerBenchConfig = ViewerBenchConfig()) -> dict:
+    """Open, screenshots and corrections of ``stage``; ``instances`` are its capture's (truth)."""
+    from PIL import Image
+    from scipy.spatial.transform import Rotation
+
+    from regnf.viewer.stage_viewer import StageViewer, ViewerConfig, refine_from_pose
+
+    images.mkdir(parents=True, exist_ok=True)
+    viewer = StageViewer(stage, ViewerConfig(port=_free_port()))
+    browser = _browser(config.window)
+    out: dict = {"stage": str(stage)}
+    try:
+        body = lambda: browser.find_element("tag name", "body").text
+        t0 = time.monotonic()
+        browser.get(f"http://127.0.0.1:{viewer.port}")
+        _wait(lambda: all(i in body() for i in viewer.scene.instances), config.timeout, "the instances")
+        out["instances_listed_s"] = time.monotonic() - t0
+        _wait(lambda: "coarse render" in viewer.status.content, config.timeout, "a coarse render")
+        out["first_render_s"] = time.monotonic() - t0
+        _wait(lambda: "refined render" in viewer.status.content, config.timeout, "a refined render")
+        out["refined_render_s"] = time.monotonic() - t0
+
+        # A view into the room from a corner, 2 m up, towards the middle of the instances.
+        client = next(iter(viewer.server.get_clients().values()))
+        centres = np.array([i.object_to_scene[:3, 3] for i in viewer.scene.instances.values()])
+        target = centres.mean(axis=0)
+        lo, hi = viewer.scene.scene.proxy.extent.astype(np.float64)
+        eye = np.array([target[0] + 0.35 * (hi[0] - lo[0]), target[1] - 0.35 * (hi[1] - lo[1]), 2.0])
+        pose = look_at(eye, target)
+        shots = {}
+        for view, channel in (("substitution", "rgb"), ("substitution", "instance id"), ("proxies", "rgb")):
+            viewer.view.value, viewer.channel.value = view, channel
+            with client.atomic():
+                client.camera.fov = 1.0
+                client.camera.wxyz = np.roll(Rotation.from_matrix(pose[:3, :3]).as_quat(), 1)
+                client.camera.position = eye
+            if view != "proxies":
+                time.sleep(0.5)
+                _wait(lambda: "refined render" in viewer.status.content, config.timeout, "a refined render")
+            time.sleep(1.5)
+            name = f"{view}_{channel.replace(' ', '_')}.png"
+            Image.open(io.BytesIO(browser.get_screenshot_as_png())).convert("RGB").save(images / name)
+            shots[f"{view} {channel}"] = str(images / name)
+        out["screenshots"] = shots
+    finally:
+        browser.quit()
+
+    rows = []
+    try:
+        by_library = {i.library: i for i in instances}
+        for iid, inst in viewer.scene.instances.items():
+            truth_inst = by_library.get(inst.library_name)
+            if truth_inst is None:
+                continue
+            rec = viewer.scene.library[inst.library_name]
+            scene_field = viewer.composites.field("/World/Scene", viewer.scene.scene)
+            library_field = viewer.composites.field(instance_path(iid), rec)
+            truth = pair_truth(truth_inst, scene_field, library_field)
+            turn = np.eye(4)
+            turn[:3, :3] = Rotation.from_euler("z", config.drag_yaw).as_matrix()
+            dragged = truth_inst.object_to_world @ turn
+            dragged[:3, 3] += np.asarray(config.drag_offset)
+            t0 = time.perf_counter()
+            payload = refine_from_pose(stage, viewer.scene, viewer.composites, iid, dragged)
+            seconds = time.perf_counter() - t0
+            T = SimilarityTransform.from_json(payload["transform_scene_to_library"])
+            errs = registration_errors(
+                T, truth.truth, scene_world_scale=scene_field.world_scale, library_points=truth.surface_lib,
+                library_diagonal_m=truth.diagonal_m,
+                library_to_world=library_field.to_world.detach().cpu().double().numpy(),
+                symmetry=library_field.symmetry)._asdict()
+            sym = "_sym" if library_field.symmetry.order != 1 else ""
+            rows.append({"instance": iid, "object": inst.library_name, "confidence": payload["confidence"],
+                         "accepted": payload["accepted"], "rot_geodesic_rad": errs[f"rot_geodesic{sym}_rad"],
+                         "trans_rel_diag": errs[f"trans_rel_diag{sym}"], "scale_rel": errs["scale_rel"],
+                         "within_bars": within_bars(errs), "seconds": seconds})
+    finally:
+        viewer.close()
+    out["corrections"] = rows
+    out["drag"] = {"yaw_rad": config.drag_yaw, "offset_m": list(config.drag_offset)}
+    return out
