@@ -86,11 +86,11 @@ class ViewerConfig:
     """Interface to listen on; the default serves this machine only (``0.0.0.0``: every one)."""
     device: str = "cpu"
     """Where the fields are loaded and rendered (``cpu`` or ``cuda``)."""
-    coarse_pixels: int = 96 * 72
-    """Pixels of the image rendered as soon as the camera moves (about 0.1 s for a room's
-    substitution on 2 CPU cores)."""
+    coarse_pixels: int = 64 * 48
+    """Pixels of the image rendered as soon as the camera moves (0.3-0.5 s for the demo room's
+    substitution on 2 CPU cores; 96 x 72 took 1.0 s)."""
     refined_pixels: int = 320 * 240
-    """Pixels of the image rendered once the camera rests."""
+    """Pixels of the image rendered once the camera rests (3.6 s for the demo room)."""
     rest_seconds: float = 0.4
     """The camera counts as resting when it has not moved for this long."""
     sphere: SphereTracerConfig = field(default_factory=lambda: SphereTracerConfig(footprint_fraction=0.05))
@@ -397,6 +397,11 @@ class StageViewer:
         self.scene = read_stage(self.stage, allow_outside=config.allow_outside)
         self.config = config
         self.composites = Composites(self.stage, self.scene, config)
+        # The first view's composite (fields loaded, empty-space grid built: 3.6 s for the demo
+        # room) is made before the server starts, so that a browser's first image needs only
+        # a render.
+        if self.scene.instances:
+            self.composites.get("substitution", 0)
         self.server = viser.ViserServer(host=config.host, port=config.port, verbose=False)
         self.server.scene.set_up_direction("+z")
         self._meshes: list[Any] = []
