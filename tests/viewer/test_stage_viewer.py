@@ -266,3 +266,23 @@ def test_a_box_drawn_in_the_browser_becomes_the_instance_the_api_adds(stage: Pat
     np.testing.assert_allclose(a.object_to_scene, b.object_to_scene, atol=1e-9)
     assert a.registration.method == b.registration.method and "drawn" in a.registration.method
     assert a.registration.confidence == pytest.approx(b.registration.confidence, abs=1e-9)
+
+
+def test_a_busy_render_does_not_block_the_panel(stage: Path, browser) -> None:
+    # A refined image large enough to take seconds on 2 cores; the panel must answer meanwhile.
+    viewer = StageViewer(stage, ViewerConfig(port=free_port(), coarse_pixels=16 * 12,
+                                             refined_pixels=900 * 700, rest_seconds=0.0))
+    try:
+        browser.get(f"http://127.0.0.1:{viewer.port}")
+        body = lambda: browser.find_element("tag name", "body").text
+        wait_for(lambda: "coarse render" in viewer.status.content, 120, "the coarse image")
+        wait_for(lambda: "move selected" in body(), 60, "the edit panel")
+        assert "refined render" not in viewer.status.content  # the big render is running
+        t0 = time.monotonic()
+        click(browser, "move selected")
+        wait_for(lambda: viewer.edit is not None, 10, "the panel's answer")
+        answered = time.monotonic() - t0
+        assert "refined render" not in viewer.status.content, "the render ended first: not a test"
+        assert answered < 3.0, f"the panel took {answered:.1f} s while a render was busy"
+    finally:
+        viewer.close()
