@@ -43,20 +43,22 @@ class ViewerBenchConfig:
     """Seconds to wait for any one thing in the browser."""
 
 
-def _free_port() -> int:
+def free_port() -> int:
+    """A TCP port of this machine that is free now."""
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
 
 
-def _browser(window: tuple[int, int]):
+def headless_chromium(window: tuple[int, int]):
+    """Debian's Chromium, headless with software WebGL, driven by selenium (``quit()`` it)."""
     from selenium import webdriver
     from selenium.webdriver.chrome.options import Options
     from selenium.webdriver.chrome.service import Service
 
     chromium, driver = shutil.which("chromium"), shutil.which("chromedriver")
     if chromium is None or driver is None:
-        raise ValueError("the viewer benchmark needs Debian's chromium and chromium-driver (make setup)")
+        raise ValueError("browser checks need Debian's chromium and chromium-driver (make setup installs them)")
     opts = Options()
     for arg in ("--headless=new", "--no-sandbox", "--disable-dev-shm-usage", f"--window-size={window[0]},{window[1]}",
                 "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--force-device-scale-factor=1"):
@@ -81,11 +83,11 @@ def run_viewer_benchmark(stage: Path, instances: list[Instance], images: Path,
     from PIL import Image
     from scipy.spatial.transform import Rotation
 
-    from regnf.viewer.stage_viewer import StageViewer, ViewerConfig, refine_from_pose
+    from regnf.viewer.stage_viewer import StageViewer, ViewerConfig, refine_from_pose, wxyz_of
 
     images.mkdir(parents=True, exist_ok=True)
-    viewer = StageViewer(stage, ViewerConfig(port=_free_port()))
-    browser = _browser(config.window)
+    viewer = StageViewer(stage, ViewerConfig(port=free_port()))
+    browser = headless_chromium(config.window)
     out: dict = {"stage": str(stage)}
     try:
         body = lambda: browser.find_element("tag name", "body").text
@@ -110,7 +112,7 @@ def run_viewer_benchmark(stage: Path, instances: list[Instance], images: Path,
             viewer.view.value, viewer.channel.value = view, channel
             with client.atomic():
                 client.camera.fov = 1.0
-                client.camera.wxyz = np.roll(Rotation.from_matrix(pose[:3, :3]).as_quat(), 1)
+                client.camera.wxyz = wxyz_of(pose[:3, :3])
                 client.camera.position = eye
             if view != "proxies":
                 time.sleep(0.5)

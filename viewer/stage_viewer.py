@@ -145,6 +145,12 @@ def client_pose(position: np.ndarray, wxyz: np.ndarray) -> np.ndarray:
     return pose
 
 
+def wxyz_of(rotation: np.ndarray) -> tuple[float, float, float, float]:
+    """viser's (w, x, y, z) quaternion of a rotation matrix (3, 3): the inverse of
+    :func:`client_pose`'s rotation."""
+    return tuple(float(v) for v in np.roll(Rotation.from_matrix(rotation).as_quat(), 1))  # scipy: x, y, z, w
+
+
 def colourise(image: Any, channel: str) -> np.ndarray:
     """(h, w, 3) uint8 picture of one channel of a :class:`~regnf.core.render_result.Render`."""
     if channel == "rgb":
@@ -221,6 +227,8 @@ class RenderWorker:
 
     def __init__(self, composites: Composites, config: ViewerConfig, show) -> None:
         self.composites, self.config, self.show = composites, config, show
+        # A viewer camera may sit inside an object (flying through a room): show what it sees.
+        self._sphere = dataclasses.replace(config.sphere, check_camera=False)
         self._lock = threading.Condition()
         self._requests: dict[int, tuple[int, float, ViewRequest]] = {}  # id -> (version, time, req)
         self._done: dict[int, tuple[int, str]] = {}  # id -> (version, "coarse" | "refined")
@@ -289,10 +297,8 @@ class RenderWorker:
         comp, grid = self.composites.get(req.view, req.seed)
         pixels = self.config.coarse_pixels if level == "coarse" else self.config.refined_pixels
         cam = viewer_camera(req, pixels)
-        # A viewer camera may sit inside an object (flying through a room): show what it sees.
-        config = dataclasses.replace(self.config.sphere, check_camera=False)
         with torch.no_grad():
-            out = render(comp.field, cam, config, grid=grid)
+            out = render(comp.field, cam, self._sphere, grid=grid)
         return colourise(out, req.channel)
 
 
@@ -482,11 +488,10 @@ class StageViewer:
                 R_box = np.eye(3) if reg.proposal_rotation is None else reg.proposal_rotation
                 R = (S[:3, :3] / s) @ R_box
                 centre = S[:3, :3] @ reg.proposal_center + S[:3, 3]
-                wxyz = np.roll(Rotation.from_matrix(R).as_quat(), 1)
                 self._box = self.server.scene.add_box(
                     "/selection/proposal", color=(255, 200, 0),
                     dimensions=tuple(2.0 * s * reg.proposal_half_extents), wireframe=True,
-                    position=tuple(centre), wxyz=tuple(wxyz))
+                    position=tuple(centre), wxyz=wxyz_of(R))
         else:
             lines.append("placed by hand")
         self.details.content = "\n\n".join(lines)
@@ -529,7 +534,7 @@ class StageViewer:
         s = float(np.cbrt(np.linalg.det(M[:3, :3])))
         gizmo = self.server.scene.add_transform_controls(
             "/edit/gizmo", scale=max(0.3, s), position=tuple(M[:3, 3]),
-            wxyz=tuple(np.roll(Rotation.from_matrix(M[:3, :3] / s).as_quat(), 1)))
+            wxyz=wxyz_of(M[:3, :3] / s))
         rec = self.scene.library[inst.library_name]
         self.server.scene.add_mesh_simple("/edit/gizmo/proxy", rec.proxy.points * s, rec.proxy.faces,
                                           color=(255, 90, 60), opacity=0.6)
@@ -570,7 +575,7 @@ class StageViewer:
             O = np.asarray(payload["object_to_scene_metres"])
             s = float(np.cbrt(np.linalg.det(O[:3, :3])))
             edit.gizmo.position = tuple(O[:3, 3])
-            edit.gizmo.wxyz = tuple(np.roll(Rotation.from_matrix(O[:3, :3] / s).as_quat(), 1))
+            edit.gizmo.wxyz = wxyz_of(O[:3, :3] / s)
         verdict = "accepted" if payload["accepted"] else "below the acceptance threshold"
         self.edit_status.content = (f"refined **{edit.instance_id}**: confidence {payload['confidence']:.3f} "
                                     f"({verdict}); accept writes it to the stage")

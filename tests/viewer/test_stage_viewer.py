@@ -8,18 +8,19 @@ same error as ``regnf stage show`` before any server starts.
 
 from __future__ import annotations
 
+import contextlib
 import io
 import shutil
 import socket
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
 import pytest
 from PIL import Image
-from scipy.spatial.transform import Rotation
 
+from regnf.benchmarks.viewer import free_port, headless_chromium
 from regnf.cli import main
 from regnf.compositor.from_stage import composite_from_stage
 from regnf.compositor.stage_config import StageCompositeConfig
@@ -29,20 +30,12 @@ from regnf.neural_fields.camera import Camera
 from regnf.neural_fields.sphere_tracer import render
 from regnf.scene_graph import add_instance, read_stage
 from regnf.viewer import StageViewer, ViewerConfig
+from regnf.viewer.stage_viewer import wxyz_of
 from tests.scene_graph.helpers import make_stage, similarity
 
-CHROMIUM, CHROMEDRIVER = shutil.which("chromium"), shutil.which("chromedriver")
-"""Debian's chromium and chromium-driver: ``make setup`` installs them (no skip: a machine
-without them fails here rather than passing untested)."""
 WINDOW = (800, 600)
 EYE, TARGET = np.array([3.5, -3.0, 2.6]), np.array([0.0, 0.0, 0.6])
 FOV_Y = 0.9  # radians
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 @pytest.fixture
@@ -56,18 +49,9 @@ def stage(tmp_path: Path) -> Path:
 
 @pytest.fixture
 def browser() -> Iterator[object]:
-    from selenium import webdriver
-    from selenium.webdriver.chrome.options import Options
-    from selenium.webdriver.chrome.service import Service
-
-    assert CHROMIUM and CHROMEDRIVER, "install Debian's chromium and chromium-driver (make setup)"
-    opts = Options()
-    for arg in ("--headless=new", "--no-sandbox", "--disable-dev-shm-usage",
-                f"--window-size={WINDOW[0]},{WINDOW[1]}", "--use-angle=swiftshader",
-                "--enable-unsafe-swiftshader", "--force-device-scale-factor=1"):
-        opts.add_argument(arg)
-    opts.binary_location = CHROMIUM
-    driver = webdriver.Chrome(service=Service(CHROMEDRIVER), options=opts)
+    # Debian's chromium and chromium-driver: `make setup` installs them (no skip: a machine
+    # without them fails here rather than passing untested).
+    driver = headless_chromium(WINDOW)
     try:
         yield driver
     finally:
@@ -83,21 +67,28 @@ def wait_for(predicate, timeout: float, what: str) -> None:
     raise AssertionError(f"timed out after {timeout} s waiting for {what}")
 
 
-def test_the_browser_shows_the_instances_and_the_compositors_render(stage: Path, browser) -> None:
-    viewer = StageViewer(stage, ViewerConfig(port=free_port(), coarse_pixels=24 * 18,
-                                             refined_pixels=120 * 90, rest_seconds=0.2))
+@contextlib.contextmanager
+def opened(stage: Path, browser, **settings) -> Iterator[tuple[StageViewer, Callable[[], str]]]:
+    """A viewer of ``stage`` (``ViewerConfig(**settings)``, a free port) open in ``browser``,
+    and the page's text; the viewer is closed after."""
+    viewer = StageViewer(stage, ViewerConfig(port=free_port(), **settings))
     try:
         browser.get(f"http://127.0.0.1:{viewer.port}")
         wait_for(lambda: len(viewer.server.get_clients()) == 1, 60, "the browser to connect")
-        body = lambda: browser.find_element("tag name", "body").text
+        yield viewer, lambda: browser.find_element("tag name", "body").text
+    finally:
+        viewer.close()
+
+
+def test_the_browser_shows_the_instances_and_the_compositors_render(stage: Path, browser) -> None:
+    with opened(stage, browser, coarse_pixels=24 * 18, refined_pixels=120 * 90, rest_seconds=0.2) as (viewer, body):
         wait_for(lambda: all(i in body() for i in ("c_1", "dc_1", "t_1")), 60, "the instance list")
 
         client = next(iter(viewer.server.get_clients().values()))
         pose = look_at(EYE, TARGET)  # OpenCV camera -> room metres
-        wxyz = np.roll(Rotation.from_matrix(pose[:3, :3]).as_quat(), 1)
         with client.atomic():
             client.camera.fov = FOV_Y
-            client.camera.wxyz = wxyz
+            client.camera.wxyz = wxyz_of(pose[:3, :3])
             client.camera.position = EYE
         wait_for(lambda: np.allclose(client.camera.position, EYE, atol=1e-6), 30, "the camera")
         wait_for(lambda: "refined render" in body(), 120, "the refined render")
@@ -122,8 +113,6 @@ def test_the_browser_shows_the_instances_and_the_compositors_render(stage: Path,
         assert got.std() > 5, "the screenshot is blank"
         close = np.abs(got - want).max(axis=-1) <= 24
         assert close.mean() > 0.85, f"only {close.mean():.2f} of the pixels match the render"
-    finally:
-        viewer.close()
 
 
 def test_a_stage_that_cannot_be_opened_fails_like_stage_show(tmp_path: Path, capsys) -> None:
@@ -160,25 +149,18 @@ def test_refine_and_accept_in_the_browser_writes_what_the_api_writes(stage: Path
     dragged = inst.object_to_scene @ similarity(0.1, (0.0, 0.0, 0.0), 1.0)
     dragged[:3, 3] += [0.05, -0.03, 0.0]
 
-    viewer = StageViewer(stage, ViewerConfig(port=free_port(), coarse_pixels=16 * 12,
-                                             refined_pixels=32 * 24))
-    try:
-        browser.get(f"http://127.0.0.1:{viewer.port}")
-        wait_for(lambda: len(viewer.server.get_clients()) == 1, 60, "the browser to connect")
-        body = lambda: browser.find_element("tag name", "body").text
+    with opened(stage, browser, coarse_pixels=16 * 12, refined_pixels=32 * 24) as (viewer, body):
         wait_for(lambda: "move selected" in body(), 60, "the edit panel")
         click(browser, "move selected")  # the selected instance: the first, c_1
         wait_for(lambda: viewer.edit is not None, 30, "the gizmo")
         s = viewer.edit.scale
         viewer.edit.gizmo.position = tuple(dragged[:3, 3])  # what dragging the gizmo sets
-        viewer.edit.gizmo.wxyz = tuple(np.roll(Rotation.from_matrix(dragged[:3, :3] / s).as_quat(), 1))
+        viewer.edit.gizmo.wxyz = wxyz_of(dragged[:3, :3] / s)
         np.testing.assert_allclose(viewer.gizmo_pose(), dragged, atol=1e-9)
         click(browser, "refine")
         wait_for(lambda: "refined c_1" in body(), 120, "the refinement")
         click(browser, "accept")
         wait_for(lambda: "written to" in body(), 60, "the stage write")
-    finally:
-        viewer.close()
 
     # The same correction through the Python API, on the untouched copy.
     from regnf.neural_fields import load_field
@@ -224,12 +206,7 @@ def test_a_box_drawn_in_the_browser_becomes_the_instance_the_api_adds(stage: Pat
     pose[:3, 3] = [1.6, 1.2, 0.4]  # where the user drags the box
     half = np.array([0.35, 0.35, 0.5])  # the panel's default size, 0.7 x 0.7 x 1.0 m
 
-    viewer = StageViewer(stage, ViewerConfig(port=free_port(), coarse_pixels=16 * 12,
-                                             refined_pixels=32 * 24))
-    try:
-        browser.get(f"http://127.0.0.1:{viewer.port}")
-        wait_for(lambda: len(viewer.server.get_clients()) == 1, 60, "the browser to connect")
-        body = lambda: browser.find_element("tag name", "body").text
+    with opened(stage, browser, coarse_pixels=16 * 12, refined_pixels=32 * 24) as (viewer, body):
         wait_for(lambda: "draw box" in body(), 60, "the new-instance panel")
         viewer.new_object.value = "c"
         click(browser, "draw box")
@@ -242,8 +219,6 @@ def test_a_box_drawn_in_the_browser_becomes_the_instance_the_api_adds(stage: Pat
         wait_for(lambda: "add instance writes it" in body(), 180, "the registration")
         click(browser, "add instance")
         wait_for(lambda: "added to" in body(), 60, "the stage write")
-    finally:
-        viewer.close()
 
     from regnf.neural_fields import OrientedBox, load_field
     from regnf.registration import register
@@ -270,11 +245,7 @@ def test_a_box_drawn_in_the_browser_becomes_the_instance_the_api_adds(stage: Pat
 
 def test_a_busy_render_does_not_block_the_panel(stage: Path, browser) -> None:
     # A refined image large enough to take seconds on 2 cores; the panel must answer meanwhile.
-    viewer = StageViewer(stage, ViewerConfig(port=free_port(), coarse_pixels=16 * 12,
-                                             refined_pixels=900 * 700, rest_seconds=0.0))
-    try:
-        browser.get(f"http://127.0.0.1:{viewer.port}")
-        body = lambda: browser.find_element("tag name", "body").text
+    with opened(stage, browser, coarse_pixels=16 * 12, refined_pixels=900 * 700, rest_seconds=0.0) as (viewer, body):
         wait_for(lambda: "coarse render" in viewer.status.content, 120, "the coarse image")
         wait_for(lambda: "move selected" in body(), 60, "the edit panel")
         assert "refined render" not in viewer.status.content  # the big render is running
@@ -284,5 +255,3 @@ def test_a_busy_render_does_not_block_the_panel(stage: Path, browser) -> None:
         answered = time.monotonic() - t0
         assert "refined render" not in viewer.status.content, "the render ended first: not a test"
         assert answered < 3.0, f"the panel took {answered:.1f} s while a render was busy"
-    finally:
-        viewer.close()
