@@ -4,7 +4,9 @@ What it shows (all in room metres, +Z up):
 
 - the stage's proxies: the scene's mesh and each instance's library proxy placed by its
   ``object_to_scene``; a side panel lists every instance with its class, library object,
-  confidence and how its transform was found, and draws the selected instance's proposal box;
+  confidence and how its transform was found, and draws the selected instance's proposal box
+  and, on request ("show sample sets"), the two point sets its registration compares: the
+  scene's surface samples inside the box and the library object's, placed by its pose;
 - a render of the viewer's own camera, from the project's compositor: the scene field alone, the
   substitution (every instance replaced by its library field) or a random replacement (seed
   chosen in the panel), as RGB, depth or instance ids. Progressive: a coarse image as soon as
@@ -44,11 +46,12 @@ from regnf.compositor.from_stage import StageComposite, composite_from_scene
 from regnf.compositor.replace import pick_replacements, swapped
 from regnf.compositor.stage_config import StageCompositeConfig
 from regnf.core.image_io import rgb_to_uint8
+from regnf.core.threads import one_thread
 from regnf.neural_fields.camera import Camera
 from regnf.neural_fields.distance_grid import DistanceGrid
 from regnf.neural_fields.oriented_box import OrientedBox
 from regnf.neural_fields.sphere_tracer import SphereTracerConfig, render
-from regnf.registration.pipeline import register
+from regnf.registration.pipeline import RegistrationConfig, register, sample_pair
 from regnf.registration.result import registration_payload
 from regnf.registration.transform import SimilarityTransform
 from regnf.scene_graph import (
@@ -71,6 +74,10 @@ CHANNELS = ("rgb", "depth", "instance id")
 _MODE_OF_VIEW = {"scene field": "scene", "substitution": "substitute", "replacement": "substitute"}
 HAND_METHOD = "refined from a pose set by hand in regnf view"
 """Appended to the registration method of an instance corrected in the viewer."""
+SCENE_SAMPLES_RGB = (40, 110, 255)
+"""Colour of a selected registration's scene samples (the benchmark's pictures use blue too)."""
+LIBRARY_SAMPLES_RGB = (255, 140, 0)
+"""Colour of its library samples (orange)."""
 NEW_BOX_PAD = 0.1
 """Without a recorded proposal box, refinement uses the library object's box at the dragged
 pose grown by this fraction (the scene side is sampled inside it)."""
@@ -332,6 +339,56 @@ class EditState:
     """The refined registration (``regnf register --out``'s JSON), once refined."""
 
 
+def instance_fields(scene: ComposedScene, composites: Composites, instance_id: str) -> tuple[Any, Any]:
+    """The scene field and the library field of instance ``instance_id`` (loaded once)."""
+    rec = scene.library[scene.instances[instance_id].library_name]
+    return composites.field(SCENE_PRIM, scene.scene), composites.field(instance_path(instance_id), rec)
+
+
+def instance_proposal(inst: Any, scene_field: Any, library_field: Any, object_to_scene: np.ndarray) -> OrientedBox:
+    """The proposal box (scene field frame) of an instance: the one recorded with its
+    registration, or (placed by hand) the library object's box at ``object_to_scene`` (4, 4)
+    grown by :data:`NEW_BOX_PAD`."""
+    reg = inst.registration
+    if reg is not None and reg.proposal_center is not None and reg.proposal_half_extents is not None:
+        return OrientedBox(reg.proposal_center, reg.proposal_half_extents, reg.proposal_rotation)
+    S = scene_field.to_world.detach().cpu().double().numpy()
+    L = library_field.to_world.detach().cpu().double().numpy()
+    return OrientedBox.from_bounds(library_field.bounds, np.linalg.inv(S) @ object_to_scene @ L).inflated(NEW_BOX_PAD)
+
+
+class SampleSets(NamedTuple):
+    """The two point sets a registration of an instance compares, in scene metres."""
+
+    scene: np.ndarray
+    """(n, 3) float64 surface samples of the scene field inside the proposal box."""
+    library: np.ndarray
+    """(m, 3) float64 surface samples of the library field, placed by the instance's pose."""
+
+
+def instance_samples(scene: ComposedScene, composites: Composites, instance_id: str,
+                     config: RegistrationConfig | None = None) -> SampleSets:
+    """The registration's two sample sets of instance ``instance_id`` at its recorded pose.
+
+    The sampling is the registration's own (:func:`regnf.registration.pipeline.sample_pair`,
+    on one thread as :func:`~regnf.registration.register` runs it: the same points for the same
+    fields, box and settings); ``config`` defaults to the registration's defaults (what
+    ``regnf register`` and the demo use). The library samples are placed by the stage's
+    transform, so a right pose puts them on the scene samples.
+    """
+    inst = scene.instances[instance_id]
+    scene_field, library_field = instance_fields(scene, composites, instance_id)
+    S = scene_field.to_world.detach().cpu().double().numpy()
+    L = library_field.to_world.detach().cpu().double().numpy()
+    O = np.asarray(inst.object_to_scene, dtype=np.float64)
+    proposal = instance_proposal(inst, scene_field, library_field, O)
+    with one_thread():
+        a, b = sample_pair(scene_field, library_field, proposal, config or RegistrationConfig())
+    to_metres = O @ L
+    return SampleSets(np.asarray(a.points, dtype=np.float64) @ S[:3, :3].T + S[:3, 3],
+                      np.asarray(b.points, dtype=np.float64) @ to_metres[:3, :3].T + to_metres[:3, 3])
+
+
 def refine_from_pose(stage: Path, scene: ComposedScene, composites: Composites, instance_id: str,
                      object_to_scene: np.ndarray) -> dict:
     """The registration of instance ``instance_id`` refined from the pose ``object_to_scene``
@@ -340,21 +397,15 @@ def refine_from_pose(stage: Path, scene: ComposedScene, composites: Composites, 
     The proposal box is the one recorded with the instance, or (placed by hand) the library
     object's box at ``object_to_scene`` grown by :data:`NEW_BOX_PAD`.
     """
-    inst = scene.instances[instance_id]
-    rec = scene.library[inst.library_name]
-    scene_field = composites.field(SCENE_PRIM, scene.scene)
-    library_field = composites.field(instance_path(instance_id), rec)
+    scene_field, library_field = instance_fields(scene, composites, instance_id)
     S = scene_field.to_world.detach().cpu().double().numpy()
     L = library_field.to_world.detach().cpu().double().numpy()
     O = np.asarray(object_to_scene, dtype=np.float64)
     # scene field -> metres -> the object's canonical metres -> library field
     start = SimilarityTransform.from_matrix(np.linalg.inv(L) @ np.linalg.inv(O) @ S)
-    reg = inst.registration
-    if reg is not None and reg.proposal_center is not None and reg.proposal_half_extents is not None:
-        proposal = OrientedBox(reg.proposal_center, reg.proposal_half_extents, reg.proposal_rotation)
-    else:
-        proposal = OrientedBox.from_bounds(library_field.bounds, np.linalg.inv(S) @ O @ L).inflated(NEW_BOX_PAD)
+    proposal = instance_proposal(scene.instances[instance_id], scene_field, library_field, O)
     result = register(scene_field, library_field, proposal, initial=start)
+    rec = scene.library[scene.instances[instance_id].library_name]
     payload = registration_payload(result, scene_field, library_field, scene.scene.checkpoint, rec.checkpoint)
     payload["method"] = f"{result.method}, {HAND_METHOD}"
     return payload
@@ -414,6 +465,12 @@ class StageViewer:
         self._box = None
         self.edit: EditState | None = None
         self._edit_lock = threading.Lock()
+        # One registration job (refine, register box, sampling) at a time: they share the
+        # fields and set torch's process-wide thread count (regnf.core.threads).
+        self._job_lock = threading.Lock()
+        self._sample_clouds: list[Any] = []
+        self._samples_for: tuple[str, bytes] | None = None
+        self._samples_cache: dict[tuple[str, bytes], SampleSets] = {}
         self._add_proxies()
         self._add_panel()
         self._add_editing()
@@ -451,11 +508,14 @@ class StageViewer:
             self.table = gui.add_markdown(instance_table(self.scene))
             ids = list(self.scene.instances) or ["(none)"]
             self.selected = gui.add_dropdown("selected", ids, initial_value=ids[0])
+            self.show_samples = gui.add_checkbox("show sample sets", initial_value=False)
             self.details = gui.add_markdown("")
+            self.samples_status = gui.add_markdown("")
         self.view.on_update(lambda _: self._show_proxies())
         for handle in (self.view, self.channel, self.seed):
             handle.on_update(lambda _: self._request_all())
         self.selected.on_update(lambda _: self._select())
+        self.show_samples.on_update(lambda _: self.update_samples())
         self._select()
         self._show_proxies()
 
@@ -495,6 +555,45 @@ class StageViewer:
         else:
             lines.append("placed by hand")
         self.details.content = "\n\n".join(lines)
+        self.update_samples()
+
+    def update_samples(self) -> threading.Thread | None:
+        """Show the selected instance's two sample sets (computed on a thread: about a second
+        or two of sampling), or hide them when "show sample sets" is off."""
+        for handle in self._sample_clouds:
+            handle.remove()
+        self._sample_clouds = []
+        self._samples_for = None
+        iid = self.selected.value
+        if not self.show_samples.value or iid not in self.scene.instances:
+            self.samples_status.content = ""
+            return None
+        self._samples_for = key = (iid, self.scene.instances[iid].object_to_scene.tobytes())
+        self.samples_status.content = f"sampling **{iid}** ..."
+        scene = self.scene
+
+        def job() -> None:
+            try:
+                with self._job_lock:
+                    sets = self._samples_cache.get(key) or instance_samples(scene, self.composites, iid)
+                self._samples_cache[key] = sets
+            except Exception as exc:  # noqa: BLE001 (reported in the panel; the viewer keeps running)
+                self.samples_status.content = f"sampling failed: {type(exc).__name__}: {exc}"
+                return
+            if self._samples_for != key:
+                return  # another instance was selected, or the samples were hidden, meanwhile
+            size = 0.004 * float(np.linalg.norm(np.ptp(sets.library, axis=0)))
+            self._sample_clouds = [
+                self.server.scene.add_point_cloud(f"/selection/samples/{side}", pts.astype(np.float32),
+                                                  colors=colour, point_size=size, precision="float32")
+                for side, pts, colour in (("scene", sets.scene, SCENE_SAMPLES_RGB),
+                                          ("library", sets.library, LIBRARY_SAMPLES_RGB))]
+            self.samples_status.content = (f"sample sets of **{iid}**: {len(sets.scene)} scene samples (blue), "
+                                           f"{len(sets.library)} library samples at its pose (orange)")
+
+        thread = threading.Thread(target=job, name="regnf-view-samples", daemon=True)
+        thread.start()
+        return thread
 
     # -- editing ------------------------------------------------------------------------------
     def _add_editing(self) -> None:
@@ -563,7 +662,8 @@ class StageViewer:
 
     def _refine_job(self, edit: EditState, start: np.ndarray) -> None:
         try:
-            payload = refine_from_pose(self.stage, self.scene, self.composites, edit.instance_id, start)
+            with self._job_lock:
+                payload = refine_from_pose(self.stage, self.scene, self.composites, edit.instance_id, start)
         except Exception as exc:  # noqa: BLE001 (reported in the panel; the viewer keeps running)
             self.edit_status.content = f"refine failed: {type(exc).__name__}: {exc}"
             self.refine_button.disabled = False
@@ -631,7 +731,8 @@ class StageViewer:
 
         def job() -> None:
             try:
-                payload = register_box(self.scene, self.composites, name, pose, half)
+                with self._job_lock:
+                    payload = register_box(self.scene, self.composites, name, pose, half)
             except Exception as exc:  # noqa: BLE001 (reported in the panel)
                 self.new_status.content = f"registration failed: {type(exc).__name__}: {exc}"
                 self.register_button.disabled = False

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 from PIL import Image
 
 from regnf.benchmarks.viewer import free_port, headless_chromium
@@ -255,3 +256,39 @@ def test_a_busy_render_does_not_block_the_panel(stage: Path, browser) -> None:
         answered = time.monotonic() - t0
         assert "refined render" not in viewer.status.content, "the render ended first: not a test"
         assert answered < 3.0, f"the panel took {answered:.1f} s while a render was busy"
+
+
+def test_the_sample_sets_of_the_selected_instance_lie_on_both_fields_surfaces(stage: Path, browser) -> None:
+    with opened(stage, browser, coarse_pixels=16 * 12, refined_pixels=32 * 24) as (viewer, body):
+        wait_for(lambda: "show sample sets" in body(), 60, "the instance panel")
+        viewer.selected.value = "dc_1"
+        viewer.show_samples.value = True  # what ticking the box sets
+        wait_for(lambda: "sample sets of dc_1" in body(), 120, "the sample sets")
+        scene_pts, lib_pts = (np.asarray(h.points, dtype=np.float64) for h in viewer._sample_clouds)
+        viewer.show_samples.value = False
+        wait_for(lambda: "sample sets of" not in body(), 30, "the sample sets to go")
+        assert not viewer._sample_clouds
+
+    # Truth, from the checkpoints and the stage's transform, not from the viewer's code.
+    from regnf.neural_fields import load_field
+
+    rec = read_stage(stage)
+    inst = rec.instances["dc_1"]
+    scene_field = load_field(rec.scene.checkpoint)
+    lib_field = load_field(rec.library["dc"].checkpoint)
+    S = scene_field.to_world.double().numpy()
+    to_metres = inst.object_to_scene @ lib_field.to_world.double().numpy()
+    assert len(scene_pts) > 100 and len(lib_pts) > 100
+
+    def field_points(M: np.ndarray, pts: np.ndarray) -> torch.Tensor:
+        Minv = np.linalg.inv(M)
+        return torch.as_tensor(pts @ Minv[:3, :3].T + Minv[:3, 3], dtype=torch.float32)
+
+    with torch.no_grad():
+        d_scene = scene_field.sdf(field_points(S, scene_pts)).abs().numpy()
+        d_lib = lib_field.sdf(field_points(to_metres, lib_pts)).abs().numpy()
+    assert np.quantile(d_scene, 0.95) < 1e-3 and np.quantile(d_lib, 0.95) < 1e-3
+    # The library samples stand where the instance does; the scene samples around it.
+    centre = inst.object_to_scene[:3, 3]
+    assert np.linalg.norm(lib_pts.mean(axis=0)[:2] - centre[:2]) < 0.3
+    assert np.linalg.norm(scene_pts - centre, axis=1).max() < 1.5
