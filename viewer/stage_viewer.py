@@ -45,6 +45,7 @@ from scipy.spatial.transform import Rotation
 from regnf.compositor.from_stage import StageComposite, composite_from_scene
 from regnf.compositor.replace import pick_replacements, swapped
 from regnf.compositor.stage_config import StageCompositeConfig
+from regnf.core.cameras import look_at
 from regnf.core.image_io import rgb_to_uint8
 from regnf.core.threads import one_thread
 from regnf.neural_fields.camera import Camera
@@ -78,6 +79,9 @@ SCENE_SAMPLES_RGB = (40, 110, 255)
 """Colour of a selected registration's scene samples (the benchmark's pictures use blue too)."""
 LIBRARY_SAMPLES_RGB = (255, 140, 0)
 """Colour of its library samples (orange)."""
+OPENING_GRACE_S = 3.0
+"""Seconds after a browser connects during which its camera reports count only once they show
+the opening view (see ``StageViewer._on_connect``)."""
 NEW_BOX_PAD = 0.1
 """Without a recorded proposal box, refinement uses the library object's box at the dragged
 pose grown by this fraction (the scene side is sampled inside it)."""
@@ -100,6 +104,13 @@ class ViewerConfig:
     """Pixels of the image rendered once the camera rests (3.6 s for the demo room)."""
     rest_seconds: float = 0.4
     """The camera counts as resting when it has not moved for this long."""
+    opening_fov: float = 1.1
+    """Vertical field of view (radians) of the camera a browser opens with (viser's default
+    is 1.31: wider than a room needs)."""
+    opening_aspect: float = 2.4
+    """The opening view's coarse image is rendered before the server starts, this wide (width
+    over height), and cropped to each browser's aspect: any window up to this wide gets its
+    first image without waiting for a render."""
     sphere: SphereTracerConfig = field(default_factory=lambda: SphereTracerConfig(footprint_fraction=0.05))
     """The sphere tracer's settings (``regnf render``'s defaults: stop at 5 % of a pixel's
     footprint)."""
@@ -115,6 +126,10 @@ class ViewerConfig:
                              f"{self.coarse_pixels} and {self.refined_pixels}")
         if not (math.isfinite(self.rest_seconds) and self.rest_seconds >= 0):
             raise ValueError(f"rest_seconds must be finite and >= 0, got {self.rest_seconds}")
+        if not 0.05 < self.opening_fov < 3.0:
+            raise ValueError(f"opening_fov must be in (0.05, 3) radians, got {self.opening_fov}")
+        if not (math.isfinite(self.opening_aspect) and self.opening_aspect >= 1.0):
+            raise ValueError(f"opening_aspect must be >= 1, got {self.opening_aspect}")
 
 
 class ViewRequest(NamedTuple):
@@ -141,6 +156,49 @@ def viewer_camera(request: ViewRequest, pixels: int) -> Camera:
     f = 0.5 * h / math.tan(0.5 * request.fov_y)
     K = np.array([[f, 0.0, 0.5 * w], [0.0, f, 0.5 * h], [0.0, 0.0, 1.0]])
     return Camera(K, w, h, request.camera_to_world)
+
+
+def opening_view(scene: ComposedScene) -> tuple[np.ndarray, np.ndarray]:
+    """(eye, target), (3,) room metres, of the camera a browser opens with: from inside the
+    room, a third of the way towards a corner and two thirds of its height up, looking at the
+    middle of the instances (of the room, when it has none)."""
+    lo, hi = scene.scene.proxy.extent.astype(np.float64)
+    size = hi - lo
+    if scene.instances:
+        target = np.mean([inst.object_to_scene[:3, 3] for inst in scene.instances.values()], axis=0)
+    else:
+        target = 0.5 * (lo + hi)
+    eye = target + np.array([0.35 * size[0], -0.35 * size[1], 0.0])
+    eye = np.clip(eye, lo + 0.1 * size, hi - 0.1 * size)  # inside the walls
+    eye[2] = lo[2] + 0.65 * size[2]
+    if np.linalg.norm(eye - target) < 1e-6:
+        eye = target + np.array([0.0, -1.0, 1.0])
+    return eye, target
+
+
+def same_camera(a: ViewRequest, b: ViewRequest, tol: float = 1e-4) -> bool:
+    """Whether two requests look from the same camera (pose and field of view within ``tol``:
+    metres and radians; a browser reports back the pose it was given in float32)."""
+    return (abs(a.fov_y - b.fov_y) < tol
+            and bool(np.abs(a.camera_to_world - b.camera_to_world).max() < tol))
+
+
+def same_view(a: ViewRequest, b: ViewRequest) -> bool:
+    """Whether two requests show the same image: the same camera, aspect and panel choices."""
+    return (same_camera(a, b) and abs(a.aspect - b.aspect) < 1e-6
+            and (a.view, a.channel, a.seed) == (b.view, b.channel, b.seed))
+
+
+def crop_to_aspect(image: Any, aspect: float) -> Any | None:
+    """The centre columns (or rows) of a render that a camera of the same focal length and
+    ``aspect`` (width over height) sees, or None if it is wider than the render."""
+    h, w = image.rgb.shape[:2]
+    cw = max(1, round(h * aspect))
+    cw -= (w - cw) % 2  # an even margin: the crop's centre is the render's, to the pixel
+    if cw < 1 or cw > w:
+        return None
+    x0 = (w - cw) // 2
+    return type(image)(*(None if t is None else t[:, x0:x0 + cw] for t in image))
 
 
 def client_pose(position: np.ndarray, wxyz: np.ndarray) -> np.ndarray:
@@ -226,16 +284,26 @@ class Composites:
         return self._built[key]
 
 
+def render_request(composites: Composites, req: ViewRequest, pixels: int, config: ViewerConfig) -> Any:
+    """The :class:`~regnf.core.render_result.Render` of ``req`` with about ``pixels`` pixels."""
+    comp, grid = composites.get(req.view, req.seed)
+    # A viewer camera may sit inside an object (flying through a room): show what it sees.
+    sphere = dataclasses.replace(config.sphere, check_camera=False)
+    with torch.no_grad():
+        return render(comp.field, viewer_camera(req, pixels), sphere, grid=grid)
+
+
 class RenderWorker:
     """One thread that renders the newest request of every client, coarse then refined.
 
     ``show(client_id, image)`` is called from the worker thread with a (h, w, 3) uint8 picture.
     """
 
-    def __init__(self, composites: Composites, config: ViewerConfig, show) -> None:
+    def __init__(self, composites: Composites, config: ViewerConfig, show,
+                 opening: tuple[ViewRequest, Any] | None = None) -> None:
         self.composites, self.config, self.show = composites, config, show
-        # A viewer camera may sit inside an object (flying through a room): show what it sees.
-        self._sphere = dataclasses.replace(config.sphere, check_camera=False)
+        self.opening = opening
+        """The opening view's request and its wide coarse render (cropped per client)."""
         self._lock = threading.Condition()
         self._requests: dict[int, tuple[int, float, ViewRequest]] = {}  # id -> (version, time, req)
         self._done: dict[int, tuple[int, str]] = {}  # id -> (version, "coarse" | "refined")
@@ -245,9 +313,13 @@ class RenderWorker:
         self._thread.start()
 
     def request(self, client_id: int, req: ViewRequest) -> None:
-        """Ask for ``req`` (a newer request of the same client supersedes it)."""
+        """Ask for ``req`` (a newer request of the same client supersedes it; one that shows
+        the same as the current one changes nothing)."""
         with self._lock:
-            version = self._requests.get(client_id, (0, 0.0, None))[0] + 1
+            version, _, current = self._requests.get(client_id, (0, 0.0, None))
+            if current is not None and same_view(current, req):
+                return
+            version += 1
             self._requests[client_id] = (version, time.monotonic(), req)
             self._lock.notify()
 
@@ -301,12 +373,14 @@ class RenderWorker:
                 self.show(cid, image, level)
 
     def _render(self, req: ViewRequest, level: str) -> np.ndarray:
-        comp, grid = self.composites.get(req.view, req.seed)
+        if level == "coarse" and self.opening is not None:
+            first, image = self.opening
+            if (req.view, req.seed) == (first.view, first.seed) and same_camera(req, first):
+                crop = crop_to_aspect(image, req.aspect)
+                if crop is not None:
+                    return colourise(crop, req.channel)
         pixels = self.config.coarse_pixels if level == "coarse" else self.config.refined_pixels
-        cam = viewer_camera(req, pixels)
-        with torch.no_grad():
-            out = render(comp.field, cam, self._sphere, grid=grid)
-        return colourise(out, req.channel)
+        return colourise(render_request(self.composites, req, pixels, self.config), req.channel)
 
 
 def instance_table(scene: ComposedScene) -> str:
@@ -457,10 +531,20 @@ class StageViewer:
         # The first view's composite (fields loaded, empty-space grid built: 3.6 s for the demo
         # room) is made before the server starts, so that a browser's first image needs only
         # a render.
+        # So is the coarse image of the camera a browser opens with: the browser needs seconds
+        # to start its page, and a render then would compete with it for the CPU.
+        eye, target = opening_view(self.scene)
+        opening = None
         if self.scene.instances:
             self.composites.get("substitution", 0)
+            first = ViewRequest(look_at(eye, target), config.opening_fov, config.opening_aspect,
+                                "substitution", "rgb", 0)
+            wide = round(config.coarse_pixels * config.opening_aspect * 0.75)  # a 4:3 coarse image's height
+            opening = (first, render_request(self.composites, first, wide, config))
         self.server = viser.ViserServer(host=config.host, port=config.port, verbose=False)
         self.server.scene.set_up_direction("+z")
+        camera = self.server.initial_camera
+        camera.position, camera.look_at, camera.up, camera.fov = eye, target, (0.0, 0.0, 1.0), config.opening_fov
         self._meshes: list[Any] = []
         self._box = None
         self.edit: EditState | None = None
@@ -474,7 +558,7 @@ class StageViewer:
         self._add_proxies()
         self._add_panel()
         self._add_editing()
-        self.worker = RenderWorker(self.composites, config, self._show)
+        self.worker = RenderWorker(self.composites, config, self._show, opening)
         self.server.on_client_connect(self._on_connect)
         self.server.on_client_disconnect(lambda client: self.worker.forget(client.client_id))
 
@@ -793,18 +877,41 @@ class StageViewer:
 
     # -- clients and renders -----------------------------------------------------------------
     def _on_connect(self, client: Any) -> None:
-        client.camera.on_update(lambda _: self._request(client))
-        self._request(client)
+        # A browser opens at the initial camera, but first reports the camera its page starts
+        # with (viser 1.1: 5 m along -x), 0.5-1 s before; rendering that would keep the worker
+        # busy when the real one arrives. So ask at once for the opening view (its coarse image
+        # is ready), and ignore the client's cameras until it reports that one, or for
+        # OPENING_GRACE_S at most.
+        connected = time.monotonic()
+        settled = [False]
+
+        def camera_moved(_: Any) -> None:
+            if not settled[0]:
+                cam = client.camera
+                reported = ViewRequest(client_pose(cam.position, cam.wxyz), float(cam.fov), 1.0, "", "", 0)
+                opening = ViewRequest(look_at(self.server.initial_camera.position, self.server.initial_camera.look_at),
+                                      float(self.server.initial_camera.fov), 1.0, "", "", 0)
+                settled[0] = same_camera(reported, opening) or time.monotonic() - connected > OPENING_GRACE_S
+                if not settled[0]:
+                    return
+            self._request(client)
+
+        client.camera.on_update(camera_moved)
+        self._request(client, opening=True)
 
     def _request_all(self) -> None:
         for client in self.server.get_clients().values():
             self._request(client)
 
-    def _request(self, client: Any) -> None:
+    def _request(self, client: Any, opening: bool = False) -> None:
         cam = client.camera
         aspect = float(cam.aspect) if cam.aspect and cam.aspect > 0 else 4.0 / 3.0
-        req = ViewRequest(client_pose(cam.position, cam.wxyz), float(cam.fov), aspect,
-                          self.view.value, self.channel.value, int(self.seed.value))
+        if opening:
+            initial = self.server.initial_camera
+            pose, fov = look_at(initial.position, initial.look_at), float(initial.fov)
+        else:
+            pose, fov = client_pose(cam.position, cam.wxyz), float(cam.fov)
+        req = ViewRequest(pose, fov, aspect, self.view.value, self.channel.value, int(self.seed.value))
         self.worker.request(client.client_id, req)
 
     def _show(self, client_id: int, image: np.ndarray, level: str) -> None:

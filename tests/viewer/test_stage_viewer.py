@@ -31,7 +31,7 @@ from regnf.neural_fields.camera import Camera
 from regnf.neural_fields.sphere_tracer import render
 from regnf.scene_graph import add_instance, read_stage
 from regnf.viewer import StageViewer, ViewerConfig
-from regnf.viewer.stage_viewer import wxyz_of
+from regnf.viewer.stage_viewer import client_pose, wxyz_of
 from tests.scene_graph.helpers import make_stage, similarity
 
 WINDOW = (800, 600)
@@ -85,7 +85,15 @@ def test_the_browser_shows_the_instances_and_the_compositors_render(stage: Path,
     with opened(stage, browser, coarse_pixels=24 * 18, refined_pixels=120 * 90, rest_seconds=0.2) as (viewer, body):
         wait_for(lambda: all(i in body() for i in ("c_1", "dc_1", "t_1")), 60, "the instance list")
 
+        # The browser opens at the viewer's opening camera (whose first image was rendered
+        # before the server started) and shows an image of it.
         client = next(iter(viewer.server.get_clients().values()))
+        initial = viewer.server.initial_camera
+        opening = look_at(initial.position, initial.look_at)
+        wait_for(lambda: np.allclose(client_pose(client.camera.position, client.camera.wxyz), opening, atol=1e-3),
+                 30, "the opening camera")
+        wait_for(lambda: "render" in body(), 60, "the first image")
+
         pose = look_at(EYE, TARGET)  # OpenCV camera -> room metres
         with client.atomic():
             client.camera.fov = FOV_Y
