@@ -3,7 +3,8 @@
 1. Opening: headless Chromium opens a new viewer of the stage; measured from the page request
    to the first (coarse) substitution image on screen and to the refined one, with viser's
    default camera (what a user sees first).
-2. Screenshots of a view into the room: the substitution, the proxies and the instance ids.
+2. Screenshots of a view into the room: the substitution, the proxies, the instance ids, and
+   the first instance's two registration sample sets over the scene field.
 3. Correction: each instance of the stage whose capture instance is known is dragged off its
    true pose (``drag_yaw`` radians about the vertical, ``drag_offset`` metres) and refined from
    there (:func:`regnf.viewer.stage_viewer.refine_from_pose`, what the viewer's refine button
@@ -121,6 +122,17 @@ def run_viewer_benchmark(stage: Path, instances: list[Instance], images: Path,
             name = f"{view}_{channel.replace(' ', '_')}.png"
             Image.open(io.BytesIO(browser.get_screenshot_as_png())).convert("RGB").save(images / name)
             shots[f"{view} {channel}"] = str(images / name)
+        # The first instance's two sample sets over the scene field's render.
+        first = next(iter(viewer.scene.instances))
+        viewer.view.value, viewer.channel.value = "scene field", "rgb"
+        viewer.selected.value = first
+        viewer.show_samples.value = True
+        _wait(lambda: f"sample sets of {first}" in viewer.samples_status.content, config.timeout, "the sample sets")
+        time.sleep(0.5)
+        _wait(lambda: "refined render" in viewer.status.content, config.timeout, "a refined render")
+        time.sleep(1.5)
+        Image.open(io.BytesIO(browser.get_screenshot_as_png())).convert("RGB").save(images / "sample_sets.png")
+        shots[f"sample sets of {first}"] = str(images / "sample_sets.png")
         out["screenshots"] = shots
     finally:
         browser.quit()
