@@ -102,3 +102,25 @@ def test_a_field_with_no_objects_has_no_candidates() -> None:
     got = find_candidates(empty, CandidateConfig(resolution=120))
     assert got.candidates == []
     assert torch.is_tensor(empty.to_world)
+
+
+@pytest.mark.parametrize("seen_below", [False, True])
+def test_a_top_whose_underside_no_view_saw_grows_to_the_floor(seen_below: bool) -> None:
+    from regnf.neural_fields.visibility import VisibilityGrid
+
+    # A table top floating 0.7 m above the floor (its legs unseen, so not in the field).
+    room = Union(*ROOM, Box((0.45, 0.45, 0.02), (0.5, -0.5, 0.72)))
+    lo, hi = np.array([-2.7, -2.2, -0.2]), np.array([2.7, 2.2, 2.6])
+    res = np.array([54, 44, 28])  # 10 cm voxels
+    counts = torch.full(tuple(res), 255, dtype=torch.uint8)
+    if not seen_below:  # no view saw under the top
+        centres = lo + (np.stack(np.meshgrid(*[np.arange(r) for r in res], indexing="ij"), -1) + 0.5) * (hi - lo) / res
+        under = (np.abs(centres[..., 0] - 0.5) < 0.5) & (np.abs(centres[..., 1] + 0.5) < 0.5) & (centres[..., 2] < 0.65)
+        counts[torch.as_tensor(under)] = 0
+    room.visibility = VisibilityGrid(counts, np.stack([lo, hi]))
+    got = find_candidates(room, CandidateConfig(resolution=160))
+    assert len(got.candidates) == 1
+    box = got.candidates[0].box
+    bottom, top = box.center[2] - box.half_extents[2], box.center[2] + box.half_extents[2]
+    assert top == pytest.approx(0.74, abs=0.02)
+    assert bottom == pytest.approx(0.7 if seen_below else 0.0, abs=0.02)
