@@ -104,6 +104,11 @@ class ViewerConfig:
     """Pixels of the image rendered once the camera rests (3.6 s for the demo room)."""
     rest_seconds: float = 0.4
     """The camera counts as resting when it has not moved for this long."""
+    opening_rest_seconds: float = 3.0
+    """A newly opened page's first view is refined only after this long: the browser is still
+    building the page, and a render then takes the CPU from it (measured on the demo's stage,
+    2 cores, headless Chromium: with the refined render at once, the panel and the first image
+    appeared 6.4 s after the page request; waiting 3 s, ...)."""
     opening_fov: float = 1.1
     """Vertical field of view (radians) of the camera a browser opens with (viser's default
     is 1.31: wider than a room needs)."""
@@ -124,8 +129,9 @@ class ViewerConfig:
         if self.coarse_pixels < 1 or self.refined_pixels < self.coarse_pixels:
             raise ValueError("need 1 <= coarse_pixels <= refined_pixels, got "
                              f"{self.coarse_pixels} and {self.refined_pixels}")
-        if not (math.isfinite(self.rest_seconds) and self.rest_seconds >= 0):
-            raise ValueError(f"rest_seconds must be finite and >= 0, got {self.rest_seconds}")
+        for name in ("rest_seconds", "opening_rest_seconds"):
+            if not (math.isfinite(getattr(self, name)) and getattr(self, name) >= 0):
+                raise ValueError(f"{name} must be finite and >= 0, got {getattr(self, name)}")
         if not 0.05 < self.opening_fov < 3.0:
             raise ValueError(f"opening_fov must be in (0.05, 3) radians, got {self.opening_fov}")
         if not (math.isfinite(self.opening_aspect) and self.opening_aspect >= 1.0):
@@ -158,22 +164,44 @@ def viewer_camera(request: ViewRequest, pixels: int) -> Camera:
     return Camera(K, w, h, request.camera_to_world)
 
 
-def opening_view(scene: ComposedScene) -> tuple[np.ndarray, np.ndarray]:
-    """(eye, target), (3,) room metres, of the camera a browser opens with: from inside the
-    room, a third of the way towards a corner and two thirds of its height up, looking at the
-    middle of the instances (of the room, when it has none)."""
+def opening_view(scene: ComposedScene, scene_field: Any) -> tuple[np.ndarray, np.ndarray]:
+    """(eye, target), (3,) room metres, of the camera a browser opens with.
+
+    It looks at the middle of the instances (of the room, when it has none) from the first of
+    a ring of places around it (2.5-1.2 m away, 30-45 degrees up, every 45 degrees about the
+    vertical, the side facing the room's centre first) that stands in free space the scene's
+    views observed, with free space all the way to the target: a room captured from a few
+    places holds a made-up fill where no view looked, and a camera there sees only that (the
+    demo's stage, from a fixed corner: a grey image). Without any such place, the first of the
+    ring inside the room.
+    """
     lo, hi = scene.scene.proxy.extent.astype(np.float64)
-    size = hi - lo
     if scene.instances:
         target = np.mean([inst.object_to_scene[:3, 3] for inst in scene.instances.values()], axis=0)
     else:
         target = 0.5 * (lo + hi)
-    eye = target + np.array([0.35 * size[0], -0.35 * size[1], 0.0])
-    eye = np.clip(eye, lo + 0.1 * size, hi - 0.1 * size)  # inside the walls
-    eye[2] = lo[2] + 0.65 * size[2]
-    if np.linalg.norm(eye - target) < 1e-6:
-        eye = target + np.array([0.0, -1.0, 1.0])
-    return eye, target
+    centre = 0.5 * (lo + hi)
+    towards_centre = math.atan2(centre[1] - target[1], centre[0] - target[0]) if np.linalg.norm(
+        (centre - target)[:2]) > 1e-6 else -math.pi / 4
+    azimuths = towards_centre + np.radians([0, 45, -45, 90, -90, 135, -135, 180])
+    elevations, distances = np.radians([35.0, 45.0, 30.0]), np.array([2.5, 2.0, 1.6, 1.2])
+    az, el, dist = (g.reshape(-1) for g in np.meshgrid(azimuths, elevations, distances, indexing="ij"))
+    eyes = target + dist[:, None] * np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], -1)
+    inside = np.all((eyes[:, :2] > lo[:2]) & (eyes[:, :2] < hi[:2]), axis=1)  # within the walls
+    # 12 points on each sight line, from the eye to 80 % of the way to the target.
+    f = np.linspace(0.0, 0.8, 12)
+    line = eyes[:, None, :] + f[None, :, None] * (target - eyes)[:, None, :]  # (m, 12, 3)
+    W = scene_field.to_world.detach().cpu().double().numpy()
+    local = (line.reshape(-1, 3) - W[:3, 3]) @ np.linalg.inv(W[:3, :3]).T
+    x = torch.as_tensor(local, dtype=torch.float32, device=scene_field.device)
+    with torch.no_grad():
+        free = (scene_field.sdf(x) * scene_field.world_scale > 0.05).reshape(len(eyes), -1).all(dim=1)
+        if scene_field.visibility is not None:
+            seen = scene_field.visibility.observed(x).reshape(len(eyes), -1).min(dim=1).values >= 0.5
+            free = free & seen
+    good = np.flatnonzero(free.cpu().numpy() & inside)
+    pick = good[0] if len(good) else (np.flatnonzero(inside)[0] if inside.any() else 0)
+    return eyes[pick], target
 
 
 def same_camera(a: ViewRequest, b: ViewRequest, tol: float = 1e-4) -> bool:
@@ -305,22 +333,24 @@ class RenderWorker:
         self.opening = opening
         """The opening view's request and its wide coarse render (cropped per client)."""
         self._lock = threading.Condition()
-        self._requests: dict[int, tuple[int, float, ViewRequest]] = {}  # id -> (version, time, req)
+        self._requests: dict[int, tuple[int, float, ViewRequest, float]] = {}  # id -> (version, time, req, rest)
         self._done: dict[int, tuple[int, str]] = {}  # id -> (version, "coarse" | "refined")
         self._stop = False
         self.errors: list[str] = []
         self._thread = threading.Thread(target=self._loop, name="regnf-view-render", daemon=True)
         self._thread.start()
 
-    def request(self, client_id: int, req: ViewRequest) -> None:
+    def request(self, client_id: int, req: ViewRequest, rest: float | None = None) -> None:
         """Ask for ``req`` (a newer request of the same client supersedes it; one that shows
-        the same as the current one changes nothing)."""
+        the same as the current one changes nothing). Its refined image is rendered once it
+        has been current for ``rest`` seconds (``config.rest_seconds`` by default)."""
         with self._lock:
-            version, _, current = self._requests.get(client_id, (0, 0.0, None))
+            version, _, current, _ = self._requests.get(client_id, (0, 0.0, None, 0.0))
             if current is not None and same_view(current, req):
                 return
             version += 1
-            self._requests[client_id] = (version, time.monotonic(), req)
+            wait = self.config.rest_seconds if rest is None else rest
+            self._requests[client_id] = (version, time.monotonic(), req, wait)
             self._lock.notify()
 
     def forget(self, client_id: int) -> None:
@@ -336,18 +366,18 @@ class RenderWorker:
 
     def current(self, client_id: int) -> int:
         with self._lock:
-            return self._requests.get(client_id, (0, 0.0, None))[0]
+            return self._requests.get(client_id, (0,))[0]
 
     def _next(self) -> tuple[int, int, ViewRequest, str] | None:
         """The next job (client, version, request, level), or None (caller waits)."""
         now = time.monotonic()
-        for cid, (version, since, req) in self._requests.items():
+        for cid, (version, since, req, rest) in self._requests.items():
             if req.view == "proxies":
                 continue
             done = self._done.get(cid)
             if done is None or done[0] != version:
                 return cid, version, req, "coarse"
-            if done[1] == "coarse" and now - since >= self.config.rest_seconds:
+            if done[1] == "coarse" and now - since >= rest:
                 return cid, version, req, "refined"
         return None
 
@@ -533,7 +563,7 @@ class StageViewer:
         # a render.
         # So is the coarse image of the camera a browser opens with: the browser needs seconds
         # to start its page, and a render then would compete with it for the CPU.
-        eye, target = opening_view(self.scene)
+        eye, target = opening_view(self.scene, self.composites.field(SCENE_PRIM, self.scene.scene))
         opening = None
         if self.scene.instances:
             self.composites.get("substitution", 0)
@@ -555,7 +585,8 @@ class StageViewer:
         self._sample_clouds: list[Any] = []
         self._samples_for: tuple[str, bytes] | None = None
         self._samples_cache: dict[tuple[str, bytes], SampleSets] = {}
-        self._add_proxies()
+        self.shown_at: dict[str, float] = {}
+        """``time.monotonic()`` when the first ``coarse`` and ``refined`` images were sent."""
         self._add_panel()
         self._add_editing()
         self.worker = RenderWorker(self.composites, config, self._show, opening)
@@ -605,6 +636,10 @@ class StageViewer:
 
     def _show_proxies(self) -> None:
         visible = self.view.value == "proxies"
+        if visible and not self._meshes:
+            # Sent when first shown, not with the page: a page that opens on a render starts
+            # faster without them (measured: 0.3-0.4 s of the demo stage's 6 s, 2 cores).
+            self._add_proxies()
         for mesh in self._meshes:
             mesh.visible = visible
         if visible:
@@ -682,13 +717,15 @@ class StageViewer:
     # -- editing ------------------------------------------------------------------------------
     def _add_editing(self) -> None:
         gui = self.server.gui
-        with gui.add_folder("Edit"):
+        # Folded until opened: a page builds folded controls later, and opens faster (measured:
+        # 0.4-0.5 s of the demo stage's 6 s on 2 cores).
+        with gui.add_folder("Edit", expand_by_default=False):
             self.move_button = gui.add_button("move selected")
             self.refine_button = gui.add_button("refine", disabled=True)
             self.accept_button = gui.add_button("accept", disabled=True)
             self.reject_button = gui.add_button("reject", disabled=True)
             self.edit_status = gui.add_markdown("")
-        with gui.add_folder("New instance"):
+        with gui.add_folder("New instance", expand_by_default=False):
             names = sorted(self.scene.library) or ["(empty library)"]
             self.new_object = gui.add_dropdown("library object", names, initial_value=names[0])
             self.new_size = gui.add_vector3("box size (m)", initial_value=(0.7, 0.7, 1.0),
@@ -856,7 +893,6 @@ class StageViewer:
         for mesh in self._meshes:
             mesh.remove()
         self._meshes = []
-        self._add_proxies()
         self._show_proxies()
         self.table.content = instance_table(self.scene)
         ids = list(self.scene.instances) or ["(none)"]
@@ -912,13 +948,14 @@ class StageViewer:
         else:
             pose, fov = client_pose(cam.position, cam.wxyz), float(cam.fov)
         req = ViewRequest(pose, fov, aspect, self.view.value, self.channel.value, int(self.seed.value))
-        self.worker.request(client.client_id, req)
+        self.worker.request(client.client_id, req, self.config.opening_rest_seconds if opening else None)
 
     def _show(self, client_id: int, image: np.ndarray, level: str) -> None:
         client = self.server.get_clients().get(client_id)
         if client is None or self.view.value == "proxies":
             return
         client.scene.set_background_image(image, format="png")
+        self.shown_at.setdefault(level, time.monotonic())
         self.status.content = f"{level} render {image.shape[1]} x {image.shape[0]}"
         if self.worker.errors:
             self.status.content += f"\n\nlast error: {self.worker.errors[-1]}"

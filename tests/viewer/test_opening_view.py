@@ -65,13 +65,40 @@ def test_a_browser_wider_than_the_wide_render_gets_no_crop(stage: Path) -> None:
     assert crop_to_aspect(image, 2.5) is None
 
 
-def test_the_opening_camera_stands_in_the_room_and_looks_at_the_instances(stage: Path) -> None:
-    scene = read_stage(stage)
-    eye, target = opening_view(scene)
+@pytest.mark.parametrize("blocked", ["nothing", "fill", "unseen"])
+def test_the_opening_camera_stands_in_observed_free_space_and_looks_at_the_instances(
+        stage: Path, blocked: str) -> None:
+    from regnf.neural_fields.analytic import Box, Union
+    from regnf.neural_fields.visibility import VisibilityGrid
+
+    scene = read_stage(stage)  # its proxy: a 6 x 5 m floor
+    target_truth = np.mean([(0.8, 0.4, 0.0), (0.0, -1.0, 0.0)], axis=0)
+    room = [Box((3.0, 2.5, 0.05), (0.0, 0.0, -0.05))]  # the floor
+    # The blocked half (x < 0) is the side the camera would look from first: towards the room's
+    # centre from the instances.
+    if blocked == "fill":  # a made-up fill over it
+        room.append(Box((1.5, 2.5, 1.5), (-1.5, 0.0, 1.5)))
+    field = Union(*room)
+    if blocked == "unseen":  # no view saw it
+        lo, hi = np.array([-3.0, -2.5, -0.2]), np.array([3.0, 2.5, 3.0])
+        res = (30, 25, 16)
+        centres = lo + (np.stack(np.meshgrid(*[np.arange(r) for r in res], indexing="ij"), -1) + 0.5) * (hi - lo) / res
+        counts = torch.full(res, 255, dtype=torch.uint8)
+        counts[torch.as_tensor(centres[..., 0] < 0.0)] = 0
+        field.visibility = VisibilityGrid(counts, np.stack([lo, hi]))
+    eye, target = opening_view(scene, field)
     lo, hi = scene.scene.proxy.extent
-    assert np.all(eye >= lo - 1e-9) and np.all(eye <= hi + 1e-9)
-    np.testing.assert_allclose(target, np.mean([(0.8, 0.4, 0.0), (0.0, -1.0, 0.0)], axis=0), atol=1e-9)
-    assert np.linalg.norm(eye - target) > 0.5
+    assert np.all(eye[:2] >= lo[:2]) and np.all(eye[:2] <= hi[:2]) and eye[2] > target_truth[2]
+    np.testing.assert_allclose(target, target_truth, atol=1e-9)
+    assert np.linalg.norm(eye - target) > 1.0
+    if blocked == "nothing":
+        assert eye[0] < target_truth[0]  # towards the room's centre
+    else:
+        assert eye[0] > 0.1  # on the free, observed side
+    # and the whole sight line is free
+    line = eye + np.linspace(0.0, 0.8, 30)[:, None] * (target - eye)
+    with torch.no_grad():
+        assert float(field.sdf(torch.as_tensor(line, dtype=torch.float32)).min()) > 0.05
 
 
 def test_a_request_that_shows_the_same_view_does_not_restart_the_render() -> None:

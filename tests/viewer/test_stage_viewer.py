@@ -141,10 +141,19 @@ def test_a_stage_that_cannot_be_opened_fails_like_stage_show(tmp_path: Path, cap
         s.bind(("127.0.0.1", port))
 
 
+def unfold(browser, title: str) -> None:
+    """Open the panel's folder ``title`` (the editing folders open folded)."""
+    heads = [e for e in browser.find_elements("xpath", f"//*[normalize-space(text())='{title}']")]
+    assert heads, f"no folder {title!r} in the page"
+    browser.execute_script("arguments[0].scrollIntoView({block: 'center'})", heads[0])
+    heads[0].click()
+
+
 def click(browser, label: str) -> None:
     """Click the panel button whose text is ``label``."""
     buttons = [b for b in browser.find_elements("tag name", "button") if b.text.strip() == label]
     assert buttons, f"no button {label!r} in the page"
+    browser.execute_script("arguments[0].scrollIntoView({block: 'center'})", buttons[0])
     buttons[0].click()
 
 
@@ -159,7 +168,9 @@ def test_refine_and_accept_in_the_browser_writes_what_the_api_writes(stage: Path
     dragged[:3, 3] += [0.05, -0.03, 0.0]
 
     with opened(stage, browser, coarse_pixels=16 * 12, refined_pixels=32 * 24) as (viewer, body):
-        wait_for(lambda: "move selected" in body(), 60, "the edit panel")
+        wait_for(lambda: "Edit" in body(), 60, "the edit panel")
+        unfold(browser, "Edit")
+        wait_for(lambda: "move selected" in body(), 30, "the edit buttons")
         click(browser, "move selected")  # the selected instance: the first, c_1
         wait_for(lambda: viewer.edit is not None, 30, "the gizmo")
         s = viewer.edit.scale
@@ -216,7 +227,9 @@ def test_a_box_drawn_in_the_browser_becomes_the_instance_the_api_adds(stage: Pat
     half = np.array([0.35, 0.35, 0.5])  # the panel's default size, 0.7 x 0.7 x 1.0 m
 
     with opened(stage, browser, coarse_pixels=16 * 12, refined_pixels=32 * 24) as (viewer, body):
-        wait_for(lambda: "draw box" in body(), 60, "the new-instance panel")
+        wait_for(lambda: "New instance" in body(), 60, "the new-instance panel")
+        unfold(browser, "New instance")
+        wait_for(lambda: "draw box" in body(), 30, "the new-instance buttons")
         viewer.new_object.value = "c"
         click(browser, "draw box")
         wait_for(lambda: bool(viewer.new_box), 30, "the box")
@@ -256,7 +269,9 @@ def test_a_busy_render_does_not_block_the_panel(stage: Path, browser) -> None:
     # A refined image large enough to take seconds on 2 cores; the panel must answer meanwhile.
     with opened(stage, browser, coarse_pixels=16 * 12, refined_pixels=900 * 700, rest_seconds=0.0) as (viewer, body):
         wait_for(lambda: "coarse render" in viewer.status.content, 120, "the coarse image")
-        wait_for(lambda: "move selected" in body(), 60, "the edit panel")
+        wait_for(lambda: "Edit" in body(), 60, "the edit panel")
+        unfold(browser, "Edit")
+        wait_for(lambda: "move selected" in body(), 30, "the edit buttons")
         assert "refined render" not in viewer.status.content  # the big render is running
         t0 = time.monotonic()
         click(browser, "move selected")
