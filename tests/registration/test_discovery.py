@@ -1,0 +1,66 @@
+"""Discovery on an analytic room: every object found, identified and registered with no boxes;
+what the library lacks stays unmatched."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from regnf.neural_fields.analytic import Box, Cylinder, Transformed, Union
+from regnf.neural_fields.similarity import similarity_matrix
+from regnf.registration.candidates import CandidateConfig
+from regnf.registration.discovery import DiscoveryConfig, discover, proportions
+from regnf.registration.transform import SimilarityTransform
+
+from .fixtures import OBJECT_HI, OBJECT_LO, make_object, placement
+from .test_pipeline import errors
+
+# The test object twice (one library object, two places), and a lamp the library lacks.
+PLACED = {"a": placement([0, 0, 1], 0.6, [1.0, 0.6, 0.0], 1.0),
+          "b": placement([0, 0, 1], -1.9, [-1.1, -0.7, 0.0], 1.0)}
+LIBRARY_FACTOR = 2.0  # the library's units: half a metre (scale is not known in advance)
+
+
+@pytest.fixture(scope="module")
+def result():
+    floor = Box((3.0, 3.0, 0.05), (0.0, 0.0, -0.05))
+    lamp = Cylinder(0.12, 0.7, (0.9, -1.4, 0.7))  # 1.4 m tall, 24 cm wide
+    scene = Union(floor, lamp, *(Transformed(make_object(), M) for M in PLACED.values()), label="scene")
+    lib_obj = Transformed(make_object(), np.asarray(similarity_matrix(np.eye(3), np.zeros(3), LIBRARY_FACTOR)),
+                          name="testobj", label="chair")
+    table = Box((0.7, 0.4, 0.37), (0.0, 0.0, 0.37), name="table", label="table")
+    config = DiscoveryConfig(candidates=CandidateConfig(resolution=128), shortlist=2)
+    return discover(scene, {"testobj": lib_obj, "table": table}, config)
+
+
+def test_both_copies_are_found_identified_and_registered(result) -> None:
+    chosen = [d for d in result.instances]
+    assert sorted(d.chosen.library_name for d in chosen) == ["testobj", "testobj"]
+    for name, M in PLACED.items():
+        centre = M[:3, :3] @ ((OBJECT_LO + OBJECT_HI) / 2) + M[:3, 3]
+        mine = [d for d in chosen if np.linalg.norm(d.candidate.box.center[:2] - centre[:2]) < 0.3]
+        assert len(mine) == 1, f"copy {name}: {len(mine)} instances near it"
+        assert mine[0].tried[0].library_name == "testobj"  # its proportions ranked it first
+        truth = SimilarityTransform.from_matrix(
+            np.asarray(similarity_matrix(np.eye(3), np.zeros(3), LIBRARY_FACTOR)) @ np.linalg.inv(M))
+        r, t, s = errors(mine[0].chosen.result.transform, truth)
+        assert r <= 0.02 and t <= 0.01 and s <= 0.01, f"copy {name}: {r:.4f} rad, {t:.4f}, {s:.4f}"
+
+
+def test_the_lamp_the_library_lacks_stays_unmatched(result) -> None:
+    assert len(result.unmatched) == 1
+    lamp = result.unmatched[0]
+    np.testing.assert_allclose(lamp.candidate.box.center[:2], [0.9, -1.4], atol=0.05)
+    assert all(not t.result.accepted for t in lamp.tried)
+    assert len(result.discoveries) == 3
+
+
+def test_proportions_do_not_depend_on_scale_or_order_of_the_sides() -> None:
+    a = proportions(np.array([0.3, 0.2, 0.5]))
+    np.testing.assert_allclose(a, proportions(np.array([0.2, 0.3, 0.5]) * 7.0))
+    assert np.abs(a - proportions(np.array([0.3, 0.2, 0.2]))).sum() > 0.5
+
+
+def test_no_library_is_an_error() -> None:
+    with pytest.raises(ValueError, match="at least one library object"):
+        discover(Box((1.0, 1.0, 1.0)), {})
