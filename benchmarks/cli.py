@@ -190,6 +190,42 @@ class BenchRegistration:
 
 
 @dataclass
+class BenchDiscover:
+    """Discover the 3 rooms' furniture with no boxes and the whole library; score against the truth."""
+
+    json: Path = Path("out/bench_discover.json")
+    """Where to write the rows (JSON); one top view per room and coverage goes in a folder beside it."""
+    coverage: Literal["full", "low", "both"] = "both"
+    """Scene fields of the full-coverage captures, the low-coverage ones, or both."""
+    library: Literal["mesh", "rgbd"] = "mesh"
+    """Library fields distilled from the meshes or trained from RGB-D captures."""
+    markdown: Path | None = None
+    """Also write the table as Markdown here."""
+    device: str = "cpu"
+    """Torch device."""
+    cache_dir: Path = dataclasses.field(default_factory=default_cache_dir)
+    """Cache directory (fields are trained there if missing)."""
+
+    def run(self) -> None:
+        check_outputs(self)
+        from regnf.benchmarks.discover import markdown_table, run_discover_benchmark
+
+        command = f"regnf bench discover --json {self.json} --coverage {self.coverage} --library {self.library}"
+        coverages = ("full", "low") if self.coverage == "both" else (self.coverage,)
+        images = self.json.parent / (self.json.stem + "_png")
+        rows = run_discover_benchmark(Cache(self.cache_dir), coverages, self.library, images=images,
+                                      device=self.device)
+        write_json(self.json, {"meta": run_meta(command, self.device), "rows": rows})
+        table = f"Command: `{command}`\n\n{markdown_table(rows)}"
+        if self.markdown:
+            from regnf.core.atomic_io import write_text
+
+            write_text(self.markdown, table)
+        console.print(table)
+        console.print(f"results: {self.json}; top views: {images}/")
+
+
+@dataclass
 class BenchDistill:
     """Distil defective meshes (holes, flipped faces, parts...) and measure them against the clean shape."""
 

@@ -2,29 +2,45 @@
 
 1. :func:`~regnf.registration.candidates.find_candidates`: upright boxes around what stands in
    the room.
-2. A shortlist per candidate: library objects ranked by how well their shape's proportions
-   match the candidate's box (scale-free: the library need not share the scene's units).
-3. The full registration of each shortlisted object in the candidate's box; the candidate is
-   the accepted object of highest confidence, or unmatched.
+2. A short registration of every library object in every candidate's box: the scene is
+   sampled once per candidate and each library object once; each object's initial hypotheses
+   (features, RANSAC and the upright starts, screened by their SDF evidence) are found and the
+   best one scored, without any refinement step, by the confidence the full registration
+   would report (SDF evidence times containment). Scale-free: the library need not share the
+   scene's units.
+3. The full refinement of the ``shortlist`` best-scored objects, from the hypotheses already
+   found; the candidate is the accepted object of highest confidence, or unmatched.
 
 The same library object may be chosen for several candidates.
 """
 
 from __future__ import annotations
 
+import os
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
 import numpy as np
+from tqdm import tqdm
 
+from regnf.core.threads import one_thread
 from regnf.neural_fields.field import Field
-from regnf.neural_fields.meshing import extract_mesh
 from regnf.neural_fields.oriented_box import OrientedBox
-from regnf.registration.candidates import Candidate, CandidateConfig, find_candidates
-from regnf.registration.pipeline import RegistrationConfig, register
-from regnf.registration.result import RegistrationResult
+from regnf.registration.candidates import Candidate, CandidateConfig, Candidates, find_candidates
+from regnf.registration.initialisation import Hypothesis
+from regnf.registration.pipeline import (
+    RegistrationConfig,
+    check_fields,
+    initialise,
+    refine_hypotheses,
+    sample_tensors,
+    scored,
+)
+from regnf.registration.refinement import refine_many, without_steps
+from regnf.registration.result import RegistrationResult, registration_payload
+from regnf.registration.sampling import SurfaceSamples, sample_surface
 
 
 @dataclass(frozen=True)
@@ -34,39 +50,24 @@ class DiscoveryConfig:
     candidates: CandidateConfig = field(default_factory=CandidateConfig)
     """How candidates are found."""
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
-    """How each shortlisted object is registered (its acceptance threshold decides)."""
+    """How each library object is registered (its acceptance threshold decides)."""
     shortlist: int = 3
-    """Library objects registered per candidate, best-matching proportions first."""
-    proxy_resolution: int = 48
-    """Marching-cubes cells along a library object's longest side, for its proportions."""
+    """Library objects refined per candidate, best short-registration score first."""
 
     def __post_init__(self) -> None:
         if self.shortlist < 1:
             raise ValueError(f"shortlist must be >= 1, got {self.shortlist}")
 
 
-def proportions(half_extents: np.ndarray) -> np.ndarray:
-    """(2,) scale-free shape of an upright box: log of its height over its larger horizontal
-    side, and log of its smaller horizontal side over its larger one."""
-    a, b = sorted((float(half_extents[0]), float(half_extents[1])), reverse=True)
-    return np.log(np.array([float(half_extents[2]) / a, b / a]))
-
-
-def library_proportions(library_field: Field, resolution: int = 48) -> np.ndarray:
-    """:func:`proportions` of a library object standing in its canonical frame (+Z up): the
-    tight box of its marching-cubes surface in canonical units."""
-    mesh = extract_mesh(library_field, resolution, with_color=False, in_world=True)
-    lo, hi = np.asarray(mesh.bounds, dtype=np.float64)
-    return proportions(0.5 * (hi - lo))
-
-
 class Tried(NamedTuple):
-    """One library object registered in a candidate's box."""
+    """One library object tried in a candidate's box."""
 
     library_name: str
-    proportion_distance: float
-    """L1 distance of the log proportions (the shortlist's order)."""
-    result: RegistrationResult
+    screened: float
+    """Confidence of its best initial hypothesis before any refinement step (the shortlist's
+    order)."""
+    result: RegistrationResult | None
+    """The full registration; None when the object was not shortlisted."""
 
 
 class Discovery(NamedTuple):
@@ -77,7 +78,7 @@ class Discovery(NamedTuple):
     proposal: OrientedBox
     """The box in the scene field frame (what registration was given)."""
     tried: list[Tried]
-    """Every shortlisted object, in the shortlist's order."""
+    """Every library object, best screened first; the first ``shortlist`` were refined."""
     chosen: Tried | None
     """The accepted registration of highest confidence, or None: unmatched."""
 
@@ -86,6 +87,8 @@ class DiscoveryResult(NamedTuple):
     """Every candidate and what it became."""
 
     discoveries: list[Discovery]
+    found: Candidates
+    """The candidates with the support planes and surface points they came from."""
     seconds: dict
     """Time of ``candidates`` and ``registration``, and the ``total``."""
 
@@ -99,8 +102,20 @@ class DiscoveryResult(NamedTuple):
         return [d for d in self.discoveries if d.chosen is None]
 
 
+def screened_score(scene_field: Field, library_field: Field, proposal: OrientedBox,
+                   scene: SurfaceSamples, library: SurfaceSamples, hypothesis: Hypothesis,
+                   config: RegistrationConfig) -> float:
+    """The confidence :func:`~regnf.registration.pipeline.register` would report for
+    ``hypothesis`` with no refinement step: SDF evidence both ways, weighted by what the scene's
+    views observed, times the library's containment in the proposal."""
+    A, B = sample_tensors(scene, library, library_field.device)
+    at_start = refine_many(scene_field, library_field, A, B, [hypothesis.transform],
+                           without_steps(config.refine))[0]
+    return float(scored(at_start, library.points, proposal, config)[0])
+
+
 def discover(scene_field: Field, library: Mapping[str, Field],
-             config: DiscoveryConfig | None = None) -> DiscoveryResult:
+             config: DiscoveryConfig | None = None, progress: bool = False) -> DiscoveryResult:
     """Find, identify and register the library's objects in a scene field, with no boxes.
 
     Parameters
@@ -110,6 +125,8 @@ def discover(scene_field: Field, library: Mapping[str, Field],
     library : mapping of name -> Field
         Library objects standing upright in their canonical frames; on the scene's device.
     config : DiscoveryConfig
+    progress : bool
+        Show a progress bar over the candidates.
 
     Returns
     -------
@@ -117,23 +134,90 @@ def discover(scene_field: Field, library: Mapping[str, Field],
         One :class:`Discovery` per candidate, largest first.
     """
     cfg = config or DiscoveryConfig()
+    reg = cfg.registration
     if not library:
         raise ValueError("discovery needs at least one library object")
+    for f in library.values():
+        check_fields(scene_field, f)
     t0 = time.perf_counter()
     found = find_candidates(scene_field, cfg.candidates)
     t1 = time.perf_counter()
-    shapes = {name: library_proportions(f, cfg.proxy_resolution) for name, f in library.items()}
     S_inv = np.linalg.inv(scene_field.to_world.detach().cpu().double().numpy())
+    # One thread, as in register: the same hypotheses, hence the same identities, on any machine.
+    with one_thread():
+        lib_samples = {name: sample_surface(f, None, reg.library_sampling, side="library")
+                       for name, f in library.items()}
     discoveries = []
-    for cand in found.candidates:  # one iteration per candidate (a handful per room)
-        own = proportions(cand.box.half_extents)
-        ranked = sorted(shapes, key=lambda n: (float(np.abs(shapes[n] - own).sum()), n))
+    bar = tqdm(found.candidates, desc="discover: candidates", unit="candidate", disable=not progress)
+    for cand in bar:  # one iteration per candidate (a handful per room)
         proposal = cand.box.transformed(S_inv)
-        tried = [Tried(name, float(np.abs(shapes[name] - own).sum()),
-                       register(scene_field, library[name], proposal, cfg.registration))
-                 for name in ranked[:cfg.shortlist]]
-        accepted = [t for t in tried if t.result.accepted]
+        ts = time.perf_counter()
+        with one_thread():
+            scene_samples = sample_surface(scene_field, proposal, reg.scene_sampling, side="scene")
+            sampling = time.perf_counter() - ts
+            starts: dict[str, list[Hypothesis]] = {}
+            screened: dict[str, float] = {}
+            for name, f in library.items():  # one short registration per library object
+                starts[name] = initialise(scene_field, f, proposal, scene_samples, lib_samples[name], reg)
+                screened[name] = screened_score(scene_field, f, proposal, scene_samples, lib_samples[name],
+                                                starts[name][0], reg)
+        ranked = sorted(library, key=lambda n: (-round(screened[n], 6), n))
+        tried = []
+        for i, name in enumerate(ranked):
+            result = None
+            if i < cfg.shortlist:
+                result = refine_hypotheses(scene_field, library[name], proposal, scene_samples,
+                                           lib_samples[name], starts[name], reg,
+                                           timings={"sampling": sampling})
+            tried.append(Tried(name, screened[name], result))
+        accepted = [t for t in tried if t.result is not None and t.result.accepted]
         chosen = max(accepted, key=lambda t: t.result.confidence) if accepted else None
         discoveries.append(Discovery(cand, proposal, tried, chosen))
     t2 = time.perf_counter()
-    return DiscoveryResult(discoveries, {"candidates": t1 - t0, "registration": t2 - t1, "total": t2 - t0})
+    return DiscoveryResult(discoveries, found,
+                           {"candidates": t1 - t0, "registration": t2 - t1, "total": t2 - t0})
+
+
+def box_json(box: OrientedBox) -> dict:
+    """An oriented box as JSON data (``center``, ``half_extents``, ``rotation`` as lists)."""
+    return {k: np.asarray(v, dtype=np.float64).tolist() for k, v in box._asdict().items()}
+
+
+def discovery_record(discovery: Discovery, index: int) -> dict:
+    """What an instance's provenance keeps of how it was found (JSON data).
+
+    ``candidate`` is the candidate's index in the result (largest box first),
+    ``candidate_box_metres`` its box in scene metres, ``tried`` every library object in the
+    short registration's order with its ``screened`` score and, for those refined, the full
+    registration's ``confidence`` and ``accepted``.
+    """
+    return {
+        "found_by": "discovery",
+        "candidate": int(index),
+        "candidate_box_metres": box_json(discovery.candidate.box),
+        "candidate_points": len(discovery.candidate.points),
+        "chosen": None if discovery.chosen is None else discovery.chosen.library_name,
+        "tried": [{
+            "library": t.library_name,
+            "screened": round(float(t.screened), 6),
+            "confidence": None if t.result is None else round(float(t.result.confidence), 6),
+            "accepted": None if t.result is None else bool(t.result.accepted),
+        } for t in discovery.tried],
+    }
+
+
+def instance_payloads(result: DiscoveryResult, scene_field: Field, library: Mapping[str, Field],
+                      scene_path: str | os.PathLike, library_paths: Mapping[str, str | os.PathLike]
+                      ) -> list[tuple[int, dict]]:
+    """(candidate index, registration JSON) of every identified candidate: what ``regnf
+    register --out`` writes, with the ``discovery`` record (:func:`discovery_record`) that the
+    stage keeps as the instance's provenance."""
+    out = []
+    for i, d in enumerate(result.discoveries):
+        if d.chosen is None:
+            continue
+        name = d.chosen.library_name
+        payload = registration_payload(d.chosen.result, scene_field, library[name], scene_path, library_paths[name])
+        payload["discovery"] = discovery_record(d, i)
+        out.append((i, payload))
+    return out

@@ -202,27 +202,46 @@ def register(
     with one_thread():
         scene_samples, lib_samples = sample_pair(scene_field, library_field, proposal, cfg)
         timings["sampling"] = time.perf_counter() - t0
-
         t1 = time.perf_counter()
         if initial is None:
             hyps = initialise(scene_field, library_field, proposal, scene_samples, lib_samples, cfg)
         else:
             hyps = [Hypothesis(initial, float("nan"), float("nan"))]
-        A, B = sample_tensors(scene_samples, lib_samples, library_field.device)
         timings["initialisation"] = time.perf_counter() - t1
+    return refine_hypotheses(scene_field, library_field, proposal, scene_samples, lib_samples, hyps,
+                             cfg, method, timings)
 
+
+def refine_hypotheses(
+    scene_field: Field,
+    library_field: Field,
+    proposal: OrientedBox,
+    scene_samples: SurfaceSamples,
+    lib_samples: SurfaceSamples,
+    hypotheses: list[Hypothesis],
+    config: RegistrationConfig,
+    method: str = "regnf",
+    timings: dict[str, float] | None = None,
+) -> RegistrationResult:
+    """Stage 3 of :func:`register`: refine ``hypotheses`` and keep the best-scored one.
+
+    For callers that sampled and initialised themselves (discovery samples a candidate's box
+    once for every library object it tries). ``timings`` holds the earlier stages' seconds;
+    ``refinement`` is added and ``total`` is their sum.
+    """
+    timings = dict(timings or {})
+    A, B = sample_tensors(scene_samples, lib_samples, library_field.device)
     t2 = time.perf_counter()
-    refined = refine_many(scene_field, library_field, A, B, [h.transform for h in hyps], cfg.refine)
+    refined = refine_many(scene_field, library_field, A, B, [h.transform for h in hypotheses], config.refine)
     timings["refinement"] = time.perf_counter() - t2
-    timings["total"] = time.perf_counter() - t0
-
+    timings["total"] = sum(v for k, v in timings.items() if k != "total")
     # The adaptive NLL is not comparable across hypotheses (each learns its own alpha and c),
     # so rank by what is: the SDF evidence (the fraction of inlier residuals) times the fraction
     # of the library object that lies in the proposal, then the mean residual.
-    score, inside = zip(*(scored(r, lib_samples.points, proposal, cfg) for r in refined))
+    score, inside = zip(*(scored(r, lib_samples.points, proposal, config) for r in refined))
     reports = [
         HypothesisReport(h.transform, r.transform, float(h.fitness), float(r.loss), float(sc))
-        for h, r, sc in zip(hyps, refined, score)
+        for h, r, sc in zip(hypotheses, refined, score)
     ]
     order = sorted(
         range(len(refined)),
@@ -233,7 +252,7 @@ def register(
     return RegistrationResult(
         transform=best.transform,
         confidence=float(confidence),
-        accepted=bool(confidence >= cfg.acceptance_threshold),
+        accepted=bool(confidence >= config.acceptance_threshold),
         method=method,
         losses={
             "loss": float(best.loss),
@@ -249,8 +268,8 @@ def register(
         hypotheses=reports,
         proposal=proposal,
         thresholds={
-            "acceptance_threshold": cfg.acceptance_threshold,
-            "inlier_threshold": getattr(cfg.refine, "inlier_threshold", float("nan")),
+            "acceptance_threshold": config.acceptance_threshold,
+            "inlier_threshold": getattr(config.refine, "inlier_threshold", float("nan")),
         },
         history=list(best.history),
         samples=(np.asarray(scene_samples.points), np.asarray(lib_samples.points)),

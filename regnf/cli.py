@@ -42,6 +42,7 @@ EXIT_INTERRUPTED = 130
 def _commands() -> dict[str, type]:
     # Imported lazily so that `regnf --help` answers at once.
     from regnf.benchmarks.cli import (
+        BenchDiscover,
         BenchDistill,
         BenchEncodings,
         BenchFields,
@@ -50,6 +51,7 @@ def _commands() -> dict[str, type]:
         BenchViewer,
     )
     from regnf.commands_demo import Demo
+    from regnf.commands_discover import Discover
     from regnf.commands_fields import Distill, Mesh, Synth, Train
     from regnf.commands_generate import Generate
     from regnf.commands_registration import Register
@@ -65,6 +67,7 @@ def _commands() -> dict[str, type]:
         "distill": Distill,
         "mesh": Mesh,
         "register": Register,
+        "discover": Discover,
         "stage new": StageNew,
         "stage add-instance": StageAddInstance,
         "stage show": StageShow,
@@ -77,6 +80,7 @@ def _commands() -> dict[str, type]:
         "bench render": BenchRender,
         "bench encodings": BenchEncodings,
         "bench distill": BenchDistill,
+        "bench discover": BenchDiscover,
         "bench viewer": BenchViewer,
     }
 

@@ -29,7 +29,7 @@ from .locking import STAGE_LOCK_TIMEOUT_S, check_writable, stage_lock
 from .model import ComposedScene, FieldRecord, InstanceRecord, ProxyMesh, RegistrationProvenance
 from .package import export_stage
 from .replacement import make_replacement_layer, original_selections
-from .summary import summarize
+from .summary import discovery_line, summarize
 from .usd_read import read_stage, replacement_base
 from .usd_write import write_stage
 from .validation import validate_stage
@@ -49,6 +49,7 @@ __all__ = [
     "add_instance_from_registration",
     "add_library_object",
     "check_writable",
+    "discovery_line",
     "export_stage",
     "field_record",
     "instance_path",

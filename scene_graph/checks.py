@@ -91,6 +91,23 @@ def check_box(center: np.ndarray, half_extents: np.ndarray, rotation: np.ndarray
                          f"|R^T R - I| = {err:.3g}, det = {det:.6g}")
 
 
+def check_json_data(value: object, what: str) -> None:
+    """Refuse what JSON cannot hold exactly: a mapping with string keys, lists, strings, bools,
+    None and finite numbers (NaN and infinity are not JSON)."""
+    if isinstance(value, dict):
+        for k, v in value.items():
+            if not isinstance(k, str):
+                raise ValueError(f"{what}: key {k!r} is not a string")  # noqa: TRY004 (callers make it a StageError)
+            check_json_data(v, f"{what}.{k}")
+    elif isinstance(value, (list, tuple)):
+        for i, v in enumerate(value):
+            check_json_data(v, f"{what}[{i}]")
+    elif isinstance(value, float) and not math.isfinite(value):
+        raise ValueError(f"{what} is {value} (not JSON)")
+    elif not (value is None or isinstance(value, (str, bool, int, float))):
+        raise ValueError(f"{what} is a {type(value).__name__}, not JSON data")
+
+
 def check_registration(reg: RegistrationProvenance) -> None:
     """Refuse a registration record that cannot be written, read back or rendered.
 
@@ -125,6 +142,8 @@ def check_registration(reg: RegistrationProvenance) -> None:
         bad = [k for k, v in group.items() if not is_number(v)]
         if bad:
             raise ValueError(f"registration {label} {bad} are not numbers")
+    if reg.discovery is not None:
+        check_json_data(reg.discovery, "the registration's discovery record")
     box = (reg.proposal_center, reg.proposal_half_extents, reg.proposal_rotation)
     if any(b is not None for b in box):
         if any(b is None for b in box):

@@ -264,7 +264,8 @@ def parse_registration(
         number); optionally ``method`` (str), ``transform_scene_to_library.matrix`` ((4, 4)
         similarity), ``losses`` / ``timings`` / ``thresholds`` (objects of numbers) and
         ``proposal_box`` (``center`` (3,), ``half_extents`` (3,) all > 0, ``rotation`` (3, 3)
-        orthonormal with det +1), or null.
+        orthonormal with det +1), or null; ``discovery`` (an object of JSON data: how
+        discovery found the instance), or null.
     forced : bool
         Recorded on the provenance (written although not accepted).
     stage_path : str or PathLike
@@ -309,6 +310,9 @@ def parse_registration(
         fail(f"'transform_scene_to_library' must be an object with a 'matrix', got {_short(T)}")
     box = result.get("proposal_box")
     center = half = rotation = None
+    found = result.get("discovery")
+    if found is not None and not isinstance(found, Mapping):
+        fail(f"'discovery' must be null or an object, got {_short(found)}")
     if box is not None:
         if not isinstance(box, Mapping) or not {"center", "half_extents", "rotation"} <= set(box):
             fail(f"'proposal_box' must be null or an object with center, half_extents and rotation, got {_short(box)}")
@@ -330,6 +334,7 @@ def parse_registration(
         proposal_half_extents=half,
         proposal_rotation=rotation,
         forced=bool(forced),
+        discovery=None if found is None else dict(found),
     )
     try:
         check_registration(reg)

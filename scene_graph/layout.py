@@ -53,6 +53,8 @@ A_THRESHOLDS = R + "thresholds:"
 A_BOX_CENTER = R + "proposal:center"
 A_BOX_HALF = R + "proposal:halfExtents"
 A_BOX_ROTATION = R + "proposal:rotation"
+A_DISCOVERY = R + "discovery"
+"""JSON text: how discovery found the instance (absent when the registration was given a box)."""
 
 KEY_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 """Keys of losses / timings / thresholds: they become attribute name parts."""

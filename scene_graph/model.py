@@ -89,6 +89,10 @@ class RegistrationProvenance:
     """(3, 3) float64 proposal box axes (columns), or None."""
     forced: bool = False
     """Written although not accepted (``force``)."""
+    discovery: dict | None = None
+    """How ``regnf discover`` found the instance with no box given (the candidate's box, every
+    library object tried there with its confidence), as JSON-compatible data; None when the
+    registration was given its box."""
 
 
 @dataclass

@@ -8,6 +8,16 @@ from .model import ComposedScene
 from .xform import ops_from_matrix
 
 
+def discovery_line(record: dict) -> str:
+    """``found by discovery (tried c 0.81, dc 0.42, ...)`` from an instance's discovery record."""
+    tried = record.get("tried") or []
+    shown = ", ".join(
+        f"{t.get('library')} {t['confidence']:.2f}" for t in tried
+        if isinstance(t, dict) and isinstance(t.get("confidence"), (int, float))
+    )
+    return "found by discovery" + (f" (tried {shown})" if shown else "")
+
+
 def _yaw_deg(M: np.ndarray) -> float:
     """Heading of the object's +X axis in the scene's XY plane, degrees."""
     x = M[:3, 0]
@@ -34,6 +44,7 @@ def summarize(scene: ComposedScene) -> str:
             f"{reg.method}, confidence {reg.confidence:.3f}"
             + ("" if reg.accepted else " (NOT accepted, forced)")
             + ("" if reg.library_name == inst.library_name else f", registered as {reg.library_name}")
+            + ("" if reg.discovery is None else ", " + discovery_line(reg.discovery))
         )
         t = ", ".join(f"{v:.3f}" for v in ops.translate)
         lines.append(

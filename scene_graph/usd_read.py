@@ -226,6 +226,20 @@ def _instance_matrix(prim: Usd.Prim, file: str) -> np.ndarray:
     return M
 
 
+def _discovery(prim: Usd.Prim, file: str) -> dict | None:
+    """The discovery record of an instance prim (JSON text), None when there is none."""
+    text = _get(prim, L.A_DISCOVERY, file, required=False)
+    if text is None:
+        return None
+    try:
+        value = json.loads(str(text))
+    except json.JSONDecodeError as exc:
+        raise StageError(file, str(prim.GetPath()), f"'{L.A_DISCOVERY}' is not JSON ({exc})") from exc
+    if not isinstance(value, dict):
+        raise StageError(file, str(prim.GetPath()), f"'{L.A_DISCOVERY}' must be a JSON object")
+    return value
+
+
 def _registration(prim: Usd.Prim, file: str) -> RegistrationProvenance | None:
     if not prim.GetAttribute(L.A_METHOD):
         return None
@@ -252,6 +266,7 @@ def _registration(prim: Usd.Prim, file: str) -> RegistrationProvenance | None:
         proposal_half_extents=(np.array(_get(prim, L.A_BOX_HALF, file), dtype=np.float64) if box else None),
         proposal_rotation=(np.array([[rot[i][j] for j in range(3)] for i in range(3)]).T if rot is not None else None),
         forced=bool(_get(prim, L.A_FORCED, file, required=False) or False),
+        discovery=_discovery(prim, file),
     )
     try:
         check_registration(reg)  # the writer's rules: a stage edited by hand must still render

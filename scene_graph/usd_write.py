@@ -208,6 +208,8 @@ def _author_instance(parent: Sdf.PrimSpec, inst: InstanceRecord, label: str) -> 
         _attr(spec, L.A_BOX_CENTER, T.Double3, Gf.Vec3d(*np.asarray(reg.proposal_center, float).tolist()))
         _attr(spec, L.A_BOX_HALF, T.Double3, Gf.Vec3d(*np.asarray(reg.proposal_half_extents, float).tolist()))
         _attr(spec, L.A_BOX_ROTATION, T.Matrix3d, Gf.Matrix3d(np.asarray(reg.proposal_rotation, float).T.tolist()))
+    if reg.discovery is not None:
+        _attr(spec, L.A_DISCOVERY, T.String, json.dumps(reg.discovery, sort_keys=True))
 
 
 def root_layer_data(scene: ComposedScene) -> dict:

@@ -59,6 +59,7 @@ from regnf.scene_graph import (
     SCENE_PRIM,
     ComposedScene,
     add_instance_from_registration,
+    discovery_line,
     instance_path,
     load_record_field,
     original_selections,
@@ -661,6 +662,8 @@ class StageViewer:
                          f"{'accepted' if reg.accepted else 'not accepted'}"
                          f"{' (forced)' if reg.forced else ''}")
             lines += [f"{k}: {v:.4g}" for k, v in sorted(reg.timings.items())]
+            if reg.discovery is not None:
+                lines.append(discovery_line(reg.discovery))
             if reg.proposal_center is not None and reg.proposal_half_extents is not None:
                 S = self.scene.scene.to_world
                 s = float(np.cbrt(abs(np.linalg.det(S[:3, :3]))))

@@ -177,3 +177,26 @@ def test_failure_while_staging_leaves_no_trace(stage_path, monkeypatch):
     with pytest.raises(RuntimeError, match="simulated"):
         add_instance(stage_path, "dc", similarity(0.1, (0, 0, 0), 1.0), instance_id="x")
     assert snapshot(stage_path.parent) == before
+
+
+def test_discovery_record_round_trips_and_bad_ones_are_refused(stage_path):
+    lib = stage_path.parent / "fields" / "dc.safetensors"
+    record = {"found_by": "discovery", "candidate": 2, "chosen": "dc",
+              "tried": [{"library": "dc", "screened": 0.61, "confidence": 0.83, "accepted": True},
+                        {"library": "fc-nop", "screened": 0.2, "confidence": None, "accepted": None}]}
+    result = {**registration_json("dc", lib, similarity(1.0, (0, 1, 0), 1.0)), "discovery": record}
+    iid = add_instance_from_registration(stage_path, result)
+    assert read_stage(stage_path).instances[iid].registration.discovery == record
+    before = snapshot(stage_path.parent)
+    for bad, words in (("a string", "'discovery' must be null or an object"),
+                       ({"tried": [{"confidence": float("nan")}]}, r"confidence is nan \(not JSON\)"),
+                       ({"what": object()}, "not JSON data")):
+        with pytest.raises(StageError, match=words):
+            add_instance_from_registration(stage_path, {**result, "discovery": bad})
+    assert snapshot(stage_path.parent) == before
+    # Edited by hand into something that is not JSON: reading names the prim and the file.
+    text = stage_path.read_text()
+    stage_path.write_text(text.replace('"found_by"', 'found_by', 1))
+    with pytest.raises(StageError, match="regnf:registration:discovery' is not JSON") as err:
+        read_stage(stage_path)
+    assert str(stage_path) in str(err.value)

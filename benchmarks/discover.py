@@ -1,0 +1,170 @@
+"""``regnf bench discover``: discovery on the three rooms against their true instances.
+
+Per room and coverage, :func:`~regnf.registration.discovery.discover` runs on the room's
+scene field with the whole 8-object library, no boxes given. Each true instance is matched
+to the candidate whose box overlaps its true box most (IoU, :func:`box_iou`); it is ``found``
+when that IoU is at least :data:`FOUND_IOU` (each candidate matches one instance at most,
+greedily by IoU), ``identified`` when that candidate's chosen library object is the
+instance's, and ``within_bars`` when the registration's errors against the true pose are
+within :data:`regnf.registration.metrics.BARS`. An instance written that matches no true
+instance, or another object than its match, is a ``false_instance``.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+from tqdm import tqdm
+
+from regnf.neural_fields.cache import Cache
+from regnf.neural_fields.checkpoint import load_field
+from regnf.neural_fields.oriented_box import OrientedBox
+from regnf.registration.candidates import box_iou
+from regnf.registration.discovery import DiscoveryResult, discover
+from regnf.registration.discovery_view import draw_top_view
+from regnf.registration.ground_truth import evaluate, pair_truth
+from regnf.registration.metrics import within_bars
+from regnf.synthetic.capture import RoomCaptureConfig
+
+ROOMS = ("ac-room", "atbl-room", "mix-room")
+LIBRARY = ("c", "dc", "fc", "fc-nop", "mc", "et", "t", "wt")
+"""The whole library: every object of the data set."""
+FOUND_IOU = 0.5
+"""A true instance is found when a candidate's box has at least this IoU with its true box."""
+
+
+def match(truth: list[OrientedBox], found: list[OrientedBox]) -> tuple[dict[int, int], list[list[float]]]:
+    """Greedy one-to-one matching by IoU: {true index: candidate index} for pairs with IoU >=
+    :data:`FOUND_IOU`, and the (true, candidate) IoU matrix as lists."""
+    iou = [[box_iou(t, f) for f in found] for t in truth]
+    pairs = sorted(((iou[i][j], i, j) for i in range(len(truth)) for j in range(len(found))), reverse=True)
+    matched: dict[int, int] = {}
+    used: set[int] = set()
+    for value, i, j in pairs:
+        if value < FOUND_IOU:
+            break
+        if i not in matched and j not in used:
+            matched[i] = j
+            used.add(j)
+    return matched, iou
+
+
+def score_room(scene_name: str, coverage: str, library_source: str, result: DiscoveryResult, scene, library,
+               instances) -> dict:
+    """The benchmark row of one discovery (see the module)."""
+    truth_boxes = [OrientedBox.from_corners(inst.box_corners) for inst in instances]
+    boxes = [d.candidate.box for d in result.discoveries]
+    matched, iou = match(truth_boxes, boxes)
+    per_instance = []
+    for i, inst in enumerate(instances):
+        row = {"instance": inst.id, "object": inst.library,
+               "iou": max(iou[i], default=0.0), "candidate": matched.get(i), "chosen": None,
+               "confidence": None, "identified": False, "within_bars": False}
+        if i in matched:
+            d = result.discoveries[matched[i]]
+            tried = {t.library_name: t for t in d.tried}
+            right = tried.get(inst.library)
+            row["right_object_screened_rank"] = [t.library_name for t in d.tried].index(inst.library)
+            row["right_object_confidence"] = (None if right is None or right.result is None
+                                              else float(right.result.confidence))
+            if d.chosen is not None:
+                row["chosen"] = d.chosen.library_name
+                row["confidence"] = float(d.chosen.result.confidence)
+                row["identified"] = d.chosen.library_name == inst.library
+            if row["identified"]:
+                lib = library[inst.library]
+                truth = pair_truth(inst, scene, lib)
+                errors = evaluate(d.chosen.result, truth.truth, scene, lib, truth.surface_lib, truth.diagonal_m)
+                sym = "_sym" if lib.symmetry.order != 1 else ""
+                row.update(rot_geodesic_rad=errors[f"rot_geodesic{sym}_rad"],
+                           trans_rel_diag=errors[f"trans_rel_diag{sym}"], scale_rel=errors["scale_rel"],
+                           within_bars=within_bars(errors))
+        per_instance.append(row)
+    true_of = {j: i for i, j in matched.items()}
+    false = [{"candidate": j, "chosen": d.chosen.library_name,
+              "matches": None if j not in true_of else instances[true_of[j]].library}
+             for j, d in enumerate(result.discoveries)
+             if d.chosen is not None and (j not in true_of or instances[true_of[j]].library != d.chosen.library_name)]
+    return {
+        "scene": scene_name,
+        "coverage": coverage,
+        "library_source": library_source,
+        "true_instances": len(instances),
+        "candidates": len(result.discoveries),
+        "found": len(matched),
+        "identified": sum(r["identified"] for r in per_instance),
+        "within_bars": sum(r["within_bars"] for r in per_instance),
+        "false_instances": len(false),
+        "unmatched_candidates": len(result.unmatched),
+        "seconds": float(result.seconds["total"]),
+        "seconds_candidates": float(result.seconds["candidates"]),
+        "instances": per_instance,
+        "false": false,
+        "candidate_boxes": [{"size": (2 * d.candidate.box.half_extents).tolist(),
+                             "chosen": None if d.chosen is None else d.chosen.library_name,
+                             "tried": [[t.library_name, round(t.screened, 4),
+                                        None if t.result is None else round(t.result.confidence, 4)]
+                                       for t in d.tried]}
+                            for d in result.discoveries],
+    }
+
+
+def run_discover_benchmark(cache: Cache, coverages: tuple[str, ...] = ("full", "low"),
+                           library_source: str = "mesh", rooms: tuple[str, ...] = ROOMS,
+                           images: Path | None = None, device: str = "cpu") -> list[dict]:
+    """One row per room and coverage (fields are trained into ``cache`` first if missing).
+
+    ``images``: a folder for one top view per room and coverage (true boxes dotted).
+    """
+    paths = {name: cache.object_field(name, library_source, device) for name in LIBRARY}
+    for scene_name in rooms:
+        for coverage in coverages:
+            cache.scene_field(scene_name, coverage, device)
+    library = {name: load_field(p, device=device) for name, p in paths.items()}
+    rows = []
+    jobs = [(s, c) for s in rooms for c in coverages]
+    for scene_name, coverage in tqdm(jobs, desc="bench discover", disable=not cache.progress):
+        capture = cache.room_capture(scene_name, RoomCaptureConfig(coverage=coverage))
+        scene = load_field(cache.scene_field(scene_name, coverage, device), device=device)
+        t0 = time.perf_counter()
+        result = discover(scene, library)
+        row = score_room(scene_name, coverage, library_source, result, scene, library, capture.instances)
+        row["wall_seconds"] = time.perf_counter() - t0
+        rows.append(row)
+        if images is not None:
+            truth = [(inst.library, OrientedBox.from_corners(inst.box_corners)) for inst in capture.instances]
+            draw_top_view(result, images / f"{scene_name}_{coverage}.png", truth,
+                          title=f"{scene_name}, {coverage} coverage, {library_source} library")
+    return rows
+
+
+def markdown_table(rows: list[dict]) -> str:
+    """One line per room and coverage, and the misses spelled out."""
+    head = ("| scene | coverage | true instances | candidates | found | identified | within the bars "
+            "| false instances | unmatched candidates | seconds |\n|---|---|---|---|---|---|---|---|---|---|\n")
+    lines = [f"| {r['scene']} | {r['coverage']} | {r['true_instances']} | {r['candidates']} | {r['found']} "
+             f"| {r['identified']} | {r['within_bars']} | {r['false_instances']} | {r['unmatched_candidates']} "
+             f"| {r['seconds']:.0f} |" for r in rows]
+    notes = []
+    for r in rows:
+        for inst in r["instances"]:
+            if inst["within_bars"]:
+                continue
+            where = f"{r['scene']} ({r['coverage']}) `{inst['object']}`"
+            if inst["candidate"] is None:
+                notes.append(f"- {where}: not found (best box IoU {inst['iou']:.2f})")
+            elif not inst["identified"]:
+                got = inst["chosen"] or "unmatched"
+                notes.append(f"- {where}: box IoU {inst['iou']:.2f}, chosen {got}"
+                             + ("" if inst["confidence"] is None else f" ({inst['confidence']:.3f})")
+                             + f"; the right object ranked {inst['right_object_screened_rank'] + 1} by the short "
+                             "registration" + ("" if inst.get("right_object_confidence") is None
+                                               else f", confidence {inst['right_object_confidence']:.3f}"))
+            else:
+                notes.append(f"- {where}: identified, outside the bars (ΔR {inst['rot_geodesic_rad']:.4f} rad, "
+                             f"Δt {100 * inst['trans_rel_diag']:.2f} %, Δs {100 * inst['scale_rel']:.2f} %)")
+        for f in r["false"]:
+            notes.append(f"- {r['scene']} ({r['coverage']}): false instance `{f['chosen']}` in candidate "
+                         f"{f['candidate']}" + ("" if f["matches"] is None else f" (holds `{f['matches']}`)"))
+    return head + "\n".join(lines) + "\n" + ("\n" + "\n".join(notes) + "\n" if notes else "")

@@ -1,0 +1,133 @@
+"""CLI command ``regnf discover``: find, identify and register library objects with no boxes."""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from rich.console import Console
+
+from regnf.core.preflight import PreflightError, check_input_file
+from regnf.neural_fields.checkpoint import load_field
+from regnf.registration.discovery import DiscoveryConfig
+
+console = Console(stderr=True)
+
+DISCOVER_KIND = "discover"
+"""The output-folder kind of ``regnf discover`` (:mod:`regnf.core.output_dir`)."""
+ENTRIES = ("discovery.json", "registration", "top_view.png")
+"""What ``regnf discover`` writes in its output folder."""
+
+
+def file_sha256(path: Path) -> str:
+    """SHA-256 of a file's bytes (read in 1 MiB blocks)."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def check_stage_scene(stage: Path, scene: Path, allow_outside: bool) -> None:
+    """An existing stage must hold the scene field being searched (its checkpoint's bytes):
+    instances registered in one field are wrong in another."""
+    from regnf.scene_graph import check_writable, read_stage
+
+    check_writable(stage, allow_outside=allow_outside)
+    held = read_stage(stage, allow_outside=allow_outside).scene.checkpoint
+    if file_sha256(held) != file_sha256(scene):
+        raise PreflightError(f"--stage {stage}: its scene field ({held.name}) is not the field of --scene {scene}; "
+                             "discover into a new stage, or a stage made from this scene field")
+
+
+@dataclass
+class Discover:
+    """Find, identify and register library objects in a scene field, with no boxes given."""
+
+    scene: Path
+    """Scene field checkpoint (.safetensors)."""
+    library: tuple[Path, ...]
+    """Library object checkpoints (.safetensors): the objects discovery may find (each may stand
+    in several places)."""
+    out: Path
+    """Output folder: discovery.json (every candidate, the library objects tried in it with their
+    confidences, what it became), registration/candidate_<k>.json (each identified one, as
+    `regnf register --out` writes it) and top_view.png (the room from above, the boxes found)."""
+    stage: Path | None = None
+    """Write every identified instance into this stage, with how it was found as its
+    provenance; made from --scene and --library if it does not exist."""
+    discovery: DiscoveryConfig = field(default_factory=DiscoveryConfig)
+    """Candidates, the short registration's shortlist and the registration itself."""
+    device: str = "cpu"
+    """Torch device of the fields."""
+    reuse: bool = False
+    """Write into an output folder that holds other files (nothing of theirs is removed)."""
+    allow_outside: bool = False
+    """Open asset paths of an existing stage that lie outside its folder (refused by default: a
+    stage is a self-contained folder, and a path out of it may name anybody's file)."""
+
+    def run(self) -> None:
+        from regnf.core.atomic_io import write_json
+        from regnf.core.output_dir import inspect_output_dir, owned_output_dir
+        from regnf.registration.discovery import discover, discovery_record, instance_payloads
+        from regnf.registration.discovery_view import draw_top_view
+        from regnf.scene_graph import add_instance_from_registration, new_stage
+
+        # Everything that can be checked is checked before the minute of work.
+        if not self.library:
+            raise PreflightError("--library: give at least one library object checkpoint")
+        check_input_file(self.scene, "--scene", "scene field checkpoint")
+        for path in self.library:
+            check_input_file(path, "--library", "library field checkpoint")
+        if self.stage is not None:
+            if self.stage.suffix not in (".usda", ".usdc"):
+                raise PreflightError(f"--stage {self.stage}: must end in .usda or .usdc")
+            if self.stage.exists():
+                check_stage_scene(self.stage, self.scene, self.allow_outside)
+        inspect_output_dir(self.out, DISCOVER_KIND, self.reuse).require_free(ENTRIES)
+        scene = load_field(self.scene, device=self.device)
+        library, paths = {}, {}
+        for path in self.library:
+            f = load_field(path, device=self.device)
+            if f.name in library:
+                raise PreflightError(f"--library {path}: holds {f.name!r}, as {paths[f.name]} does; "
+                                     "library names must be unique")
+            library[f.name], paths[f.name] = f, path
+        with owned_output_dir(self.out, DISCOVER_KIND, self.reuse, "the discovery folder") as folder:
+            folder = folder.reserve(ENTRIES)
+            result = discover(scene, library, self.discovery, progress=True)
+            payloads = instance_payloads(result, scene, library, self.scene, paths)
+            if folder.owns("registration") and (folder.path / "registration").exists():
+                folder.remove("registration")  # an earlier run's: this run's replaces it
+            for index, payload in payloads:
+                write_json(folder.path / "registration" / f"candidate_{index}.json", payload)
+            written: dict[int, str] = {}
+            if self.stage is not None and payloads:
+                if not self.stage.exists():
+                    new_stage(self.stage, self.scene, list(paths.values()))
+                for index, payload in payloads:
+                    written[index] = add_instance_from_registration(self.stage, payload,
+                                                                    allow_outside=self.allow_outside)
+            write_json(folder.path / "discovery.json", {
+                "scene_field": str(self.scene),
+                "library_fields": {name: str(p) for name, p in paths.items()},
+                "stage": None if self.stage is None else str(self.stage),
+                "seconds": result.seconds,
+                "support_planes": len(result.found.supports),
+                "candidates": [{**discovery_record(d, i), "stage_instance": written.get(i)}
+                               for i, d in enumerate(result.discoveries)],
+            })
+            draw_top_view(result, folder.path / "top_view.png", title=f"regnf discover: {self.scene.name}")
+        for i, d in enumerate(result.discoveries):
+            size = " x ".join(f"{2 * h:.2f}" for h in d.candidate.box.half_extents)
+            if d.chosen is None:
+                best = max((t for t in d.tried if t.result is not None), key=lambda t: t.result.confidence)
+                console.print(f"  candidate {i} ({size} m): [red]unmatched[/] (best: {best.library_name}, "
+                              f"confidence {best.result.confidence:.2f})")
+            else:
+                where = f" -> {written[i]}" if i in written else ""
+                console.print(f"  candidate {i} ({size} m): [green]{d.chosen.library_name}[/], confidence "
+                              f"{d.chosen.result.confidence:.2f}{where}")
+        console.print(f"[green]discovered[/] {len(result.instances)} instances in {len(result.discoveries)} "
+                      f"candidates, {result.seconds['total']:.0f} s -> {self.out}")
