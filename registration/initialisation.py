@@ -104,6 +104,9 @@ class InitConfig:
     """ICP correspondence distance; also the inlier distance of fitness and RMSE."""
     icp_max_iteration: int = 100
     """ICP iterations at most."""
+    icp_downsampled: bool = False
+    """ICP on the clouds downsampled to ``voxel_size`` (RANSAC's) instead of every sample: a
+    coarser, faster start (discovery's short registration uses it to rank library objects)."""
     icp_relative_change: float = 1e-6
     """ICP stops when fitness and inlier RMSE change relatively less than this."""
     max_scale_ratio: float = 2.0
@@ -298,8 +301,8 @@ def _icp(prep: _Prepared, M0: np.ndarray, config: InitConfig) -> np.ndarray:
     else:
         est = reg.TransformationEstimationPointToPlane()
     res = reg.registration_icp(
-        prep.src,
-        prep.tgt,
+        prep.src_down if config.icp_downsampled else prep.src,
+        prep.tgt_down if config.icp_downsampled else prep.tgt,
         config.icp_distance_voxels * config.voxel_size,
         M0,
         est,
