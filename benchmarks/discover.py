@@ -20,10 +20,9 @@ from tqdm import tqdm
 from regnf.neural_fields.cache import Cache
 from regnf.neural_fields.checkpoint import load_field
 from regnf.neural_fields.oriented_box import OrientedBox
-from regnf.registration.candidates import box_iou
 from regnf.registration.discovery import DiscoveryResult, discover
 from regnf.registration.discovery_view import draw_top_view
-from regnf.registration.ground_truth import evaluate, pair_truth
+from regnf.registration.ground_truth import evaluate, match_boxes, pair_truth
 from regnf.registration.metrics import within_bars
 from regnf.synthetic.capture import RoomCaptureConfig
 
@@ -34,28 +33,12 @@ FOUND_IOU = 0.5
 """A true instance is found when a candidate's box has at least this IoU with its true box."""
 
 
-def match(truth: list[OrientedBox], found: list[OrientedBox]) -> tuple[dict[int, int], list[list[float]]]:
-    """Greedy one-to-one matching by IoU: {true index: candidate index} for pairs with IoU >=
-    :data:`FOUND_IOU`, and the (true, candidate) IoU matrix as lists."""
-    iou = [[box_iou(t, f) for f in found] for t in truth]
-    pairs = sorted(((iou[i][j], i, j) for i in range(len(truth)) for j in range(len(found))), reverse=True)
-    matched: dict[int, int] = {}
-    used: set[int] = set()
-    for value, i, j in pairs:
-        if value < FOUND_IOU:
-            break
-        if i not in matched and j not in used:
-            matched[i] = j
-            used.add(j)
-    return matched, iou
-
-
 def score_room(scene_name: str, coverage: str, library_source: str, result: DiscoveryResult, scene, library,
                instances) -> dict:
     """The benchmark row of one discovery (see the module)."""
     truth_boxes = [OrientedBox.from_corners(inst.box_corners) for inst in instances]
     boxes = [d.candidate.box for d in result.discoveries]
-    matched, iou = match(truth_boxes, boxes)
+    matched, iou = match_boxes(truth_boxes, boxes, FOUND_IOU)
     per_instance = []
     for i, inst in enumerate(instances):
         row = {"instance": inst.id, "object": inst.library,

@@ -1,6 +1,7 @@
 """Registration: the 7-DoF similarity (rotation, translation, scale) that maps a scene field's
-frame onto a library object's field frame, found inside a proposal box (:func:`register`), and
-its errors against ground truth (:func:`registration_errors`).
+frame onto a library object's field frame, found inside a proposal box (:func:`register`) or,
+with no boxes, for every library object standing in the scene (:func:`discover`), and its
+errors against ground truth (:func:`registration_errors`).
 
 Names load their module on first use (:mod:`regnf.core.lazy_exports`), so that the metrics do
 not load Open3D.
@@ -14,6 +15,9 @@ from regnf.core.lazy_exports import lazy_exports
 
 _EXPORTS = {
     "register": "pipeline",
+    "discover": "discovery",
+    "DiscoveryConfig": "discovery",
+    "DiscoveryResult": "discovery",
     "RegistrationConfig": "pipeline",
     "RegistrationResult": "result",
     "OrientedBox": "regnf.neural_fields.oriented_box",
@@ -27,6 +31,7 @@ __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
 if TYPE_CHECKING:  # static analysers see the real names
     from regnf.neural_fields.oriented_box import OrientedBox
 
+    from .discovery import DiscoveryConfig, DiscoveryResult, discover
     from .metrics import RegistrationErrors, registration_errors
     from .pipeline import RegistrationConfig, register
     from .result import RegistrationResult

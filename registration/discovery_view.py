@@ -67,6 +67,7 @@ def draw_top_view(result: DiscoveryResult, path: str | os.PathLike,
             ax.annotate(f"{d.chosen.library_name} {d.chosen.result.confidence:.2f}", xy[0], fontsize=7,
                         color="tab:green", xytext=(2, -9), textcoords="offset points")
     ax.set_aspect("equal")
+    ax.margins(0.12)  # room for the labels at the edges
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
     legend = "green: identified, red dashed: unmatched" + (", black dotted: true boxes" if truth else "")

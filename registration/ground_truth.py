@@ -82,3 +82,25 @@ def pair_truth(inst: Instance, scene: Field, library: Field, seed: int = 0) -> P
     pts_m, _ = trimesh.sample.sample_surface(mesh, 2000, seed=seed)
     surface_lib = (np.asarray(pts_m) - L[:3, 3]) @ np.linalg.inv(L[:3, :3]).T
     return PairTruth(truth, proposal_from_instance(inst, S), surface_lib, diag)
+
+
+def match_boxes(truth: list[OrientedBox], found: list[OrientedBox], min_iou: float = 0.5
+                ) -> tuple[dict[int, int], list[list[float]]]:
+    """Greedy one-to-one matching of found boxes to true ones by IoU (discovery's evaluation).
+
+    Returns {true index: found index} for the pairs with IoU >= ``min_iou`` (highest IoU
+    first, each box used once) and the (true, found) IoU matrix as lists.
+    """
+    from regnf.registration.candidates import box_iou
+
+    iou = [[box_iou(t, f) for f in found] for t in truth]
+    pairs = sorted(((iou[i][j], i, j) for i in range(len(truth)) for j in range(len(found))), reverse=True)
+    matched: dict[int, int] = {}
+    used: set[int] = set()
+    for value, i, j in pairs:
+        if value < min_iou:
+            break
+        if i not in matched and j not in used:
+            matched[i] = j
+            used.add(j)
+    return matched, iou

@@ -179,41 +179,76 @@ def machine() -> dict[str, Any]:
             "torch": torch.__version__, "python": platform.python_version(), "platform": platform.platform()}
 
 
-def _register_all(stage: Path, out: Path, scene_path: Path, library_paths: dict[str, Path],
-                   capture: Capture, device: str) -> list[dict[str, Any]]:
-    """Register every capture instance with its library object; accepted ones go into the stage."""
+def _discover_all(stage: Path, out: Path, scene_path: Path, library_paths: dict[str, Path],
+                  capture: Capture, device: str) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+    """Discover the library's objects in the scene field with no boxes; write the identified ones
+    to the stage; compare every true instance with what became of it.
+
+    Returns one row per true instance (its errors when the right object was identified) and a
+    summary of the discovery: candidates, false instances, seconds, the top view.
+    """
     from regnf.core.atomic_io import write_json
     from regnf.neural_fields.checkpoint import load_field
-    from regnf.registration.ground_truth import evaluate, pair_truth
+    from regnf.neural_fields.oriented_box import OrientedBox
+    from regnf.registration.discovery import discover, instance_payloads
+    from regnf.registration.discovery_view import draw_top_view
+    from regnf.registration.ground_truth import evaluate, match_boxes, pair_truth
     from regnf.registration.metrics import within_bars
-    from regnf.registration.pipeline import register
-    from regnf.registration.result import registration_payload
     from regnf.scene_graph import add_instance_from_registration
 
     scene = load_field(scene_path, device=device)
+    library = {name: load_field(p, device=device) for name, p in library_paths.items()}
+    result = discover(scene, library, progress=True)
+    written: dict[int, tuple[str, str]] = {}
+    for index, payload in instance_payloads(result, scene, library, scene_path, library_paths):
+        rel = f"registration/candidate_{index}.json"
+        write_json(out / rel, payload)
+        written[index] = (add_instance_from_registration(stage, payload), rel)
+    truth_boxes = [OrientedBox.from_corners(inst.box_corners) for inst in capture.instances]
+    matched, iou = match_boxes(truth_boxes, [d.candidate.box for d in result.discoveries])
     rows = []
-    for inst in capture.instances:  # a handful of objects
-        library = load_field(library_paths[inst.library], device=device)
-        truth = pair_truth(inst, scene, library)
-        t0 = time.perf_counter()
-        result = register(scene, library, truth.proposal)
-        seconds = time.perf_counter() - t0
-        payload = registration_payload(result, scene, library, scene_path, library_paths[inst.library])
-        write_json(out / "registration" / f"{inst.id}.json", payload)
-        written = add_instance_from_registration(stage, payload) if result.accepted else None
-        errors = evaluate(result, truth.truth, scene, library, truth.surface_lib, truth.diagonal_m)
-        sym = "_sym" if library.symmetry.order != 1 else ""
-        rows.append({
-            "instance": inst.id, "object": inst.library, "label": library.label,
-            "stage_instance": written, "accepted": bool(result.accepted), "confidence": float(result.confidence),
-            "rot_geodesic_rad": errors[f"rot_geodesic{sym}_rad"], "trans_m": errors[f"trans_m{sym}"],
-            "trans_rel_diag": errors[f"trans_rel_diag{sym}"], "scale_rel": errors["scale_rel"],
-            "within_bars": within_bars(errors), "seconds": seconds, "history": result.history,
-        })
-        console.print(f"  {inst.id}: confidence {result.confidence:.2f}, rotation "
-                      f"{np.degrees(rows[-1]['rot_geodesic_rad']):.2f} deg, translation "
-                      f"{100 * rows[-1]['trans_rel_diag']:.2f} % of its size, {seconds:.1f} s")
-    return rows
+    for i, inst in enumerate(capture.instances):  # a handful of objects
+        library_field = library[inst.library]
+        row: dict[str, Any] = {
+            "instance": inst.id, "object": inst.library, "label": library_field.label,
+            "box_iou": max(iou[i], default=0.0), "found_as": "not found", "stage_instance": None,
+            "accepted": False, "confidence": None, "rot_geodesic_rad": None, "trans_m": None,
+            "trans_rel_diag": None, "scale_rel": None, "within_bars": False, "seconds": None, "history": [],
+        }
+        if i in matched:
+            d = result.discoveries[matched[i]]
+            row["found_as"] = "unmatched" if d.chosen is None else d.chosen.library_name
+            right = next((t for t in d.tried if t.library_name == inst.library and t.result is not None), None)
+            if right is not None:
+                row["confidence"] = float(right.result.confidence)
+        if i in matched and row["found_as"] == inst.library:
+            chosen = result.discoveries[matched[i]].chosen
+            truth = pair_truth(inst, scene, library_field)
+            errors = evaluate(chosen.result, truth.truth, scene, library_field, truth.surface_lib, truth.diagonal_m)
+            sym = "_sym" if library_field.symmetry.order != 1 else ""
+            row.update({
+                "stage_instance": written[matched[i]][0], "registration_file": written[matched[i]][1],
+                "accepted": True, "confidence": float(chosen.result.confidence),
+                "rot_geodesic_rad": errors[f"rot_geodesic{sym}_rad"], "trans_m": errors[f"trans_m{sym}"],
+                "trans_rel_diag": errors[f"trans_rel_diag{sym}"], "scale_rel": errors["scale_rel"],
+                "within_bars": within_bars(errors), "seconds": chosen.result.timings.get("total"),
+                "history": chosen.result.history,
+            })
+            console.print(f"  {inst.id}: found as {row['found_as']}, confidence {row['confidence']:.2f}, rotation "
+                          f"{np.degrees(row['rot_geodesic_rad']):.2f} deg, translation "
+                          f"{100 * row['trans_rel_diag']:.2f} % of its size, scale {100 * row['scale_rel']:.2f} %")
+        else:
+            console.print(f"  {inst.id}: {row['found_as']} (box IoU {row['box_iou']:.2f})")
+        rows.append(row)
+    true_of = {j: i for i, j in matched.items()}
+    false = [f"{d.chosen.library_name} in candidate {j}" for j, d in enumerate(result.discoveries)
+             if d.chosen is not None and (j not in true_of or capture.instances[true_of[j]].library != d.chosen.library_name)]
+    image = draw_top_view(result, out / "top_view.png",
+                          [(inst.library, box) for inst, box in zip(capture.instances, truth_boxes)],
+                          title="discovery: the room from above")
+    return rows, {"candidates": len(result.discoveries), "identified": len(result.instances),
+                  "unmatched": len(result.unmatched), "false_instances": false, "seconds": result.seconds,
+                  "image": str(image)}
 
 
 def _completion(stage: Path, room: Room, config: DemoConfig, out: Path) -> dict[str, Any]:
@@ -326,8 +361,10 @@ def _run_demo(folder: OutputFolder, config: DemoConfig, cache: Cache | None) -> 
     with log.step("write the USD stage", "scene field and library, proxy meshes"):
         new_stage(stage, scene_path, [library_paths[n] for n in names],
                   provenance={"made_by": "regnf demo", "room": config.room, "coverage": config.coverage})
-    with log.step("register every object", "multi-view sampling, FPFH + RANSAC and upright starts, SDF screening and refinement"):
-        registrations = _register_all(stage, out / "stage", scene_path, library_paths, capture, config.device)
+    with log.step("discover and register the objects", "no boxes: candidates from the field's surface, "
+                  "a short registration of every library object in each, the best two fully registered"):
+        registrations, discovery = _discover_all(stage, out / "stage", scene_path, library_paths, capture,
+                                                 config.device)
     accepted = [r for r in registrations if r["accepted"]]
     if not accepted:
         raise RuntimeError("no registration was accepted: nothing to composite")
@@ -352,8 +389,8 @@ def _run_demo(folder: OutputFolder, config: DemoConfig, cache: Cache | None) -> 
         export_stage(stage, usdz)
         validation = validate_stage(usdz)
 
-    summary = _summary(config, out, stage, usdz, log, registrations, renders, completion, replacements,
-                       validation, time.perf_counter() - t_start)
+    summary = _summary(config, out, stage, usdz, log, registrations, discovery, renders, completion,
+                       replacements, validation, time.perf_counter() - t_start)
     write_json(out / "summary.json", summary)
     report = write_report(out, summary)
     console.print(f"[green]demo done[/] in {summary['total_seconds']:.0f} s: open {report}")
@@ -362,7 +399,7 @@ def _run_demo(folder: OutputFolder, config: DemoConfig, cache: Cache | None) -> 
 
 
 def _summary(config: DemoConfig, out: Path, stage: Path, usdz: Path, log: StepLog, registrations: list,
-             renders: dict, completion: dict, replacements: list, validation: ValidationReport,
+             discovery: dict[str, Any], renders: dict, completion: dict, replacements: list, validation: ValidationReport,
              total: float) -> dict[str, Any]:
     """Everything the report shows (see :func:`regnf.report.write_report` for the keys)."""
     rel = lambda p: str(Path(p).relative_to(out))
@@ -370,6 +407,11 @@ def _summary(config: DemoConfig, out: Path, stage: Path, usdz: Path, log: StepLo
     gain = np.nanmean([o["psnr_substitute"] - o["psnr_scene"] for o in objs]) if objs else float("nan")
     per_obj = ", ".join(f"{o['instance']} {o['psnr_scene']:.1f} -> {o['psnr_substitute']:.1f} dB" for o in objs)
     sections = [
+        {"title": "Discovery",
+         "text": ("The room from above: the scene field's observed surface (grey), the candidates discovery "
+                  "found (green: identified, with the library object and its confidence; red dashed: "
+                  "unmatched) and the true boxes (black dotted), which discovery never saw."),
+         "images": [{"path": rel(discovery["image"]), "caption": "discovery against the true boxes"}]},
         {"title": "Object completion",
          "text": (f"Each row is one object seen from a side the {config.coverage}-coverage capture never saw: "
                   f"ground truth | the scene field alone | the library object substituted at its registered "
@@ -391,17 +433,20 @@ def _summary(config: DemoConfig, out: Path, stage: Path, usdz: Path, log: StepLo
          "images": [{"path": f"replacements/seed_{r['seed']}/contact_sheet.png", "caption": f"seed {r['seed']}"}
                     for r in replacements]},
     ]
-    rejected = [r for r in registrations if not r["accepted"]]
-    note = (f"The room was captured with {config.coverage} coverage. The proposals are the objects' "
-            f"true boxes (the paper's assumption); the errors are measured against the true poses. "
-            f"{len(registrations) - len(rejected)} of {len(registrations)} registrations were accepted; "
+    missed = [r for r in registrations if not r["accepted"]]
+    note = (f"The room was captured with {config.coverage} coverage. No boxes were given: discovery found "
+            f"{discovery['candidates']} candidates in the scene field, identified {discovery['identified']} of them "
+            f"(a short registration of every library object in each, the best two fully registered) and left "
+            f"{discovery['unmatched']} unmatched, in {discovery['seconds']['total']:.0f} s; the errors are measured "
+            f"against the true poses. {len(registrations) - len(missed)} of {len(registrations)} objects were found, "
+            f"identified as the right library object and written to the stage; "
             f"{sum(r['accepted'] and r['within_bars'] for r in registrations)} of them are within the bars (rotation <= "
             f"{THRESHOLDS['rot_geodesic_rad']} rad, translation <= {100 * THRESHOLDS['trans_rel_diag']:g} % of "
-            f"the object's diagonal, scale <= {100 * THRESHOLDS['scale_rel']:g} %).")
-    if rejected:
-        note += (" Rejected (confidence below the acceptance threshold, so not written to the stage "
-                 "and not substituted): " + ", ".join(f"{r['instance']} ({r['confidence']:.2f})" for r in rejected)
-                 + ". Failing loudly instead of placing a wrong object is the intended behaviour.")
+            f"the object's diagonal, scale <= {100 * THRESHOLDS['scale_rel']:g} %). False instances: "
+            + (", ".join(discovery["false_instances"]) or "none") + ".")
+    if missed:
+        note += (" Not written to the stage: " + ", ".join(f"{r['instance']} ({r['found_as']})" for r in missed)
+                 + ". Leaving an object out instead of placing a wrong one is the intended behaviour.")
     if config.coverage == "low":
         note += (" The bars are the registration benchmark's (docs/benchmarks.md); a low-coverage field "
                  "shows each object from one or two sides only.")
@@ -411,8 +456,8 @@ def _summary(config: DemoConfig, out: Path, stage: Path, usdz: Path, log: StepLo
              {"path": "summary.json", "what": "every number of this report"}]
     files += [{"path": f"replacements/seed_{r['seed']}/transforms.json",
                "what": f"seed {r['seed']}: nerfstudio cameras, depth and instance masks"} for r in replacements]
-    files += [{"path": f"stage/registration/{r['instance']}.json", "what": f"registration of {r['instance']}"}
-              for r in registrations]
+    files += [{"path": f"stage/{r['registration_file']}", "what": f"registration of {r['instance']}"}
+              for r in registrations if r.get("registration_file")]
     return {
         "title": f"regnf demo: {config.room}",
         "command": "regnf demo --out " + str(out),
