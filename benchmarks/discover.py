@@ -29,13 +29,22 @@ from regnf.synthetic.capture import RoomCaptureConfig
 ROOMS = ("ac-room", "atbl-room", "mix-room")
 LIBRARY = ("c", "dc", "fc", "fc-nop", "mc", "et", "t", "wt")
 """The whole library: every object of the data set."""
+LEAVE_OUT = (("ac-room", "mc"),)
+"""(room, object) runs with one object missing from the library: its candidate must stay unmatched."""
 FOUND_IOU = 0.5
 """A true instance is found when a candidate's box has at least this IoU with its true box."""
 
 
 def score_room(scene_name: str, coverage: str, library_source: str, result: DiscoveryResult, scene, library,
-               instances) -> dict:
-    """The benchmark row of one discovery (see the module)."""
+               all_instances) -> dict:
+    """The benchmark row of one discovery (see the module).
+
+    Instances of objects the library lacks (a leave-one-out run) are not counted as true
+    instances: ``left_out`` says what their candidates became (right: ``unmatched``), and an
+    instance written there is a false instance.
+    """
+    instances = [inst for inst in all_instances if inst.library in library]
+    left_out = [inst for inst in all_instances if inst.library not in library]
     truth_boxes = [OrientedBox.from_corners(inst.box_corners) for inst in instances]
     boxes = [d.candidate.box for d in result.discoveries]
     matched, iou = match_boxes(truth_boxes, boxes, FOUND_IOU)
@@ -64,6 +73,13 @@ def score_room(scene_name: str, coverage: str, library_source: str, result: Disc
                            trans_rel_diag=errors[f"trans_rel_diag{sym}"], scale_rel=errors["scale_rel"],
                            within_bars=within_bars(errors))
         per_instance.append(row)
+    gone, _ = match_boxes([OrientedBox.from_corners(inst.box_corners) for inst in left_out],
+                          [b for j, b in enumerate(boxes) if j not in matched.values()], FOUND_IOU)
+    free = [j for j in range(len(boxes)) if j not in matched.values()]
+    left = {}
+    for k, inst in enumerate(left_out):
+        d = result.discoveries[free[gone[k]]] if k in gone else None
+        left[inst.library] = "not found" if d is None else ("unmatched" if d.chosen is None else d.chosen.library_name)
     true_of = {j: i for i, j in matched.items()}
     false = [{"candidate": j, "chosen": d.chosen.library_name,
               "matches": None if j not in true_of else instances[true_of[j]].library}
@@ -80,6 +96,7 @@ def score_room(scene_name: str, coverage: str, library_source: str, result: Disc
         "within_bars": sum(r["within_bars"] for r in per_instance),
         "false_instances": len(false),
         "unmatched_candidates": len(result.unmatched),
+        "left_out": left,
         "seconds": float(result.seconds["total"]),
         "seconds_candidates": float(result.seconds["candidates"]),
         "instances": per_instance,
@@ -95,8 +112,11 @@ def score_room(scene_name: str, coverage: str, library_source: str, result: Disc
 
 def run_discover_benchmark(cache: Cache, coverages: tuple[str, ...] = ("full", "low"),
                            library_source: str = "mesh", rooms: tuple[str, ...] = ROOMS,
-                           images: Path | None = None, device: str = "cpu") -> list[dict]:
-    """One row per room and coverage (fields are trained into ``cache`` first if missing).
+                           images: Path | None = None, device: str = "cpu",
+                           leave_out: tuple[tuple[str, str], ...] = LEAVE_OUT) -> list[dict]:
+    """One row per room and coverage (fields are trained into ``cache`` first if missing), and
+    one per ``leave_out`` entry (room, object) and coverage: the room with that object missing
+    from the library.
 
     ``images``: a folder for one top view per room and coverage (true boxes dotted).
     """
@@ -106,16 +126,18 @@ def run_discover_benchmark(cache: Cache, coverages: tuple[str, ...] = ("full", "
             cache.scene_field(scene_name, coverage, device)
     library = {name: load_field(p, device=device) for name, p in paths.items()}
     rows = []
-    jobs = [(s, c) for s in rooms for c in coverages]
-    for scene_name, coverage in tqdm(jobs, desc="bench discover", disable=not cache.progress):
+    jobs = [(s, c, None) for s in rooms for c in coverages]
+    jobs += [(s, c, obj) for s, obj in leave_out if s in rooms for c in coverages]
+    for scene_name, coverage, lacking in tqdm(jobs, desc="bench discover", disable=not cache.progress):
         capture = cache.room_capture(scene_name, RoomCaptureConfig(coverage=coverage))
         scene = load_field(cache.scene_field(scene_name, coverage, device), device=device)
         t0 = time.perf_counter()
-        result = discover(scene, library)
-        row = score_room(scene_name, coverage, library_source, result, scene, library, capture.instances)
+        used = {name: f for name, f in library.items() if name != lacking}
+        result = discover(scene, used)
+        row = score_room(scene_name, coverage, library_source, result, scene, used, capture.instances)
         row["wall_seconds"] = time.perf_counter() - t0
         rows.append(row)
-        if images is not None:
+        if images is not None and lacking is None:
             truth = [(inst.library, OrientedBox.from_corners(inst.box_corners)) for inst in capture.instances]
             draw_top_view(result, images / f"{scene_name}_{coverage}.png", truth,
                           title=f"{scene_name}, {coverage} coverage, {library_source} library")
@@ -124,9 +146,10 @@ def run_discover_benchmark(cache: Cache, coverages: tuple[str, ...] = ("full", "
 
 def markdown_table(rows: list[dict]) -> str:
     """One line per room and coverage, and the misses spelled out."""
-    head = ("| scene | coverage | true instances | candidates | found | identified | within the bars "
-            "| false instances | unmatched candidates | seconds |\n|---|---|---|---|---|---|---|---|---|---|\n")
-    lines = [f"| {r['scene']} | {r['coverage']} | {r['true_instances']} | {r['candidates']} | {r['found']} "
+    head = ("| scene | library | coverage | true instances | candidates | found | identified | within the bars "
+            "| false instances | unmatched candidates | seconds |\n|---|---|---|---|---|---|---|---|---|---|---|\n")
+    lines = [f"| {r['scene']} | {'all 8' if not r['left_out'] else 'without ' + ', '.join(r['left_out'])} "
+             f"| {r['coverage']} | {r['true_instances']} | {r['candidates']} | {r['found']} "
              f"| {r['identified']} | {r['within_bars']} | {r['false_instances']} | {r['unmatched_candidates']} "
              f"| {r['seconds']:.0f} |" for r in rows]
     notes = []
@@ -147,6 +170,9 @@ def markdown_table(rows: list[dict]) -> str:
             else:
                 notes.append(f"- {where}: identified, outside the bars (ΔR {inst['rot_geodesic_rad']:.4f} rad, "
                              f"Δt {100 * inst['trans_rel_diag']:.2f} %, Δs {100 * inst['scale_rel']:.2f} %)")
+        for name, became in r["left_out"].items():
+            notes.append(f"- {r['scene']} ({r['coverage']}), `{name}` left out of the library: its candidate "
+                         f"became {became}")
         for f in r["false"]:
             notes.append(f"- {r['scene']} ({r['coverage']}): false instance `{f['chosen']}` in candidate "
                          f"{f['candidate']}" + ("" if f["matches"] is None else f" (holds `{f['matches']}`)"))
