@@ -60,6 +60,7 @@ def score_room(scene_name: str, coverage: str, library_source: str, result: Disc
             row["right_object_screened_rank"] = [t.library_name for t in d.tried].index(inst.library)
             row["right_object_confidence"] = (None if right is None or right.result is None
                                               else float(right.result.confidence))
+            row["ambiguous"] = list(d.ambiguous)
             if d.chosen is not None:
                 row["chosen"] = d.chosen.library_name
                 row["confidence"] = float(d.chosen.result.confidence)
@@ -103,6 +104,7 @@ def score_room(scene_name: str, coverage: str, library_source: str, result: Disc
         "false": false,
         "candidate_boxes": [{"size": (2 * d.candidate.box.half_extents).tolist(),
                              "chosen": None if d.chosen is None else d.chosen.library_name,
+                             "ambiguous": list(d.ambiguous),
                              "tried": [[t.library_name, round(t.screened, 4),
                                         None if t.result is None else round(t.result.confidence, 4)]
                                        for t in d.tried]}
@@ -160,6 +162,10 @@ def markdown_table(rows: list[dict]) -> str:
             where = f"{r['scene']} ({r['coverage']}) `{inst['object']}`"
             if inst["candidate"] is None:
                 notes.append(f"- {where}: not found (best box IoU {inst['iou']:.2f})")
+            elif inst.get("ambiguous"):
+                a, b = inst["ambiguous"]
+                notes.append(f"- {where}: box IoU {inst['iou']:.2f}, left unmatched: `{a}` and `{b}` both fit, and "
+                             "they differ only where no view of the scene looked")
             elif not inst["identified"]:
                 got = inst["chosen"] or "unmatched"
                 notes.append(f"- {where}: box IoU {inst['iou']:.2f}, chosen {got}"

@@ -121,7 +121,10 @@ class Discover:
             draw_top_view(result, folder.path / "top_view.png", title=f"regnf discover: {self.scene.name}")
         for i, d in enumerate(result.discoveries):
             size = " x ".join(f"{2 * h:.2f}" for h in d.candidate.box.half_extents)
-            if d.chosen is None:
+            if d.ambiguous:
+                console.print(f"  candidate {i} ({size} m): [red]unmatched[/], ambiguous: {' or '.join(d.ambiguous)} "
+                              "(they differ only where no view of the scene looked)")
+            elif d.chosen is None:
                 best = max((t for t in d.tried if t.result is not None), key=lambda t: t.result.confidence)
                 console.print(f"  candidate {i} ({size} m): [red]unmatched[/] (best: {best.library_name}, "
                               f"confidence {best.result.confidence:.2f})")

@@ -217,7 +217,8 @@ def _discover_all(stage: Path, out: Path, scene_path: Path, library_paths: dict[
         }
         if i in matched:
             d = result.discoveries[matched[i]]
-            row["found_as"] = "unmatched" if d.chosen is None else d.chosen.library_name
+            row["found_as"] = (d.chosen.library_name if d.chosen is not None else
+                               f"ambiguous: {' or '.join(d.ambiguous)}" if d.ambiguous else "unmatched")
             right = next((t for t in d.tried if t.library_name == inst.library and t.result is not None), None)
             if right is not None:
                 row["confidence"] = float(right.result.confidence)

@@ -38,7 +38,9 @@ def test_the_table_explains_every_miss() -> None:
                 "chosen": None, "confidence": None, "right_object_screened_rank": 1,
                 "right_object_confidence": 0.55},
                {"object": "c", "candidate": 1, "iou": 0.9, "within_bars": False, "identified": True,
-                "rot_geodesic_rad": 0.004, "trans_rel_diag": 0.0159, "scale_rel": 0.0102}],
+                "rot_geodesic_rad": 0.004, "trans_rel_diag": 0.0159, "scale_rel": 0.0102},
+               {"object": "fc", "candidate": 2, "iou": 0.92, "within_bars": False, "identified": False,
+                "chosen": None, "ambiguous": ["fc-nop", "fc"]}],
            "false": [{"candidate": 3, "chosen": "t", "matches": None}]}
     text = markdown_table([row])
     assert "| r | without mc | low | 3 | 4 | 2 | 1 | 0 | 1 | 1 | 61 |" in text
@@ -47,3 +49,4 @@ def test_the_table_explains_every_miss() -> None:
     assert "`c`: identified, outside the bars (ΔR 0.0040 rad, Δt 1.59 %, Δs 1.02 %)" in text
     assert "`mc` left out of the library: its candidate became unmatched" in text
     assert "false instance `t` in candidate 3" in text
+    assert "`fc`: box IoU 0.92, left unmatched: `fc-nop` and `fc` both fit, and they differ only where no view" in text

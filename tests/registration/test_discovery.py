@@ -59,3 +59,39 @@ def test_the_lamp_the_library_lacks_stays_unmatched(result) -> None:
 def test_no_library_is_an_error() -> None:
     with pytest.raises(ValueError, match="at least one library object"):
         discover(Box((1.0, 1.0, 1.0)), {})
+
+
+@pytest.mark.parametrize("pillow_seen", [True, False])
+def test_two_objects_that_differ_only_where_no_view_looked_are_ambiguous(pillow_seen: bool) -> None:
+    import torch
+
+    from regnf.neural_fields.analytic import Sphere
+    from regnf.neural_fields.visibility import VisibilityGrid
+    from regnf.registration.discovery import observed_difference
+    from regnf.registration.result import RegistrationResult
+    from regnf.registration.sampling import sample_surface
+
+    M = PLACED["a"]
+    pillow_at = np.array([0.2, -0.1, 0.45])  # canonical object metres, above the seat
+    plain = make_object()
+    with_pillow = Union(make_object(), Sphere(0.1, tuple(pillow_at)), name="pillow")
+    scene = Union(Box((3.0, 3.0, 0.05), (0.0, 0.0, -0.05)), Transformed(make_object(), M), label="scene")
+    lo, hi = np.array([-3.0, -3.0, -0.2]), np.array([3.0, 3.0, 2.0])
+    res = np.array([60, 60, 22])  # 10 cm voxels
+    counts = torch.full(tuple(res), 255, dtype=torch.uint8)
+    if not pillow_seen:  # no view saw the space where the pillow would be
+        centres = lo + (np.stack(np.meshgrid(*[np.arange(r) for r in res], indexing="ij"), -1) + 0.5) * (hi - lo) / res
+        where = M[:3, :3] @ pillow_at + M[:3, 3]
+        counts[torch.as_tensor(np.linalg.norm(centres - where, axis=-1) < 0.3)] = 0
+    scene.visibility = VisibilityGrid(counts, np.stack([lo, hi]))
+    truth = SimilarityTransform.from_matrix(np.linalg.inv(M))  # scene -> canonical = library frame
+    results = [RegistrationResult(truth, 0.9, True, "regnf",
+                                  samples=(np.zeros((1, 3)), sample_surface(f, None, side="library").points))
+               for f in (plain, with_pillow)]
+    seen = observed_difference(scene, plain, results[0], with_pillow, results[1])
+    if pillow_seen:
+        assert seen > 0.9
+    else:
+        assert seen < 0.05
+    # The same object twice does not differ anywhere.
+    assert np.isnan(observed_difference(scene, plain, results[0], plain, results[0]))
