@@ -11,7 +11,10 @@
 3. The full registration (every sample, initialisation and refinement, exactly as
    :func:`~regnf.registration.pipeline.register` in the candidate's box) of the ``shortlist``
    best-scored objects; the candidate is the accepted object of highest confidence, or
-   unmatched.
+   unmatched: none was accepted, or the two best accepted ones differ only where the views did
+   not look (ambiguous, :func:`observed_difference`).
+4. The chosen registration is refined once more, from its pose, in the registered object's
+   box (:func:`object_box`).
 
 The same library object may be chosen for several candidates.
 """
@@ -299,7 +302,8 @@ def discovery_record(discovery: Discovery, index: int) -> dict:
     ``candidate`` is the candidate's index in the result (largest box first),
     ``candidate_box_metres`` its box in scene metres, ``tried`` every library object in the
     short registration's order with its ``screened`` score and, for those refined, the full
-    registration's ``confidence`` and ``accepted``.
+    registration's ``confidence`` and ``accepted``; ``chosen`` and ``chosen_confidence`` what
+    became of it (after the refit), ``ambiguous`` the two objects it could not tell apart.
     """
     return {
         "found_by": "discovery",
