@@ -234,10 +234,11 @@ def discover(scene_field: Field, library: Mapping[str, Field],
     for f in library.values():
         check_fields(scene_field, f)
     t0 = time.perf_counter()
-    found = find_candidates(scene_field, cfg.candidates)
+    # One thread, as in register: the same surface, hypotheses and identities on any machine.
+    with one_thread():
+        found = find_candidates(scene_field, cfg.candidates)
     t1 = time.perf_counter()
     S_inv = np.linalg.inv(scene_field.to_world.detach().cpu().double().numpy())
-    # One thread, as in register: the same hypotheses, hence the same identities, on any machine.
     with one_thread():
         lib_samples = {name: sample_surface(f, None, reg.library_sampling, side="library")
                        for name, f in library.items()}
