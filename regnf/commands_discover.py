@@ -8,7 +8,7 @@ from pathlib import Path
 
 from rich.console import Console
 
-from regnf.core.preflight import PreflightError, check_input_file
+from regnf.core.preflight import PreflightError, check_input_file, check_output_file
 from regnf.neural_fields.checkpoint import load_field
 from regnf.registration.discovery import DiscoveryConfig
 
@@ -85,6 +85,8 @@ class Discover:
                 raise PreflightError(f"--stage {self.stage}: must end in .usda or .usdc")
             if self.stage.exists():
                 check_stage_scene(self.stage, self.scene, self.allow_outside)
+            else:
+                check_output_file(self.stage, "--stage")
         inspect_output_dir(self.out, DISCOVER_KIND, self.reuse).require_free(ENTRIES)
         scene = load_field(self.scene, device=self.device)
         library, paths = {}, {}
