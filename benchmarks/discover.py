@@ -22,8 +22,7 @@ from regnf.neural_fields.checkpoint import load_field
 from regnf.neural_fields.oriented_box import OrientedBox
 from regnf.registration.discovery import DiscoveryResult, discover
 from regnf.registration.discovery_view import draw_top_view
-from regnf.registration.ground_truth import evaluate, match_boxes, pair_truth
-from regnf.registration.metrics import within_bars
+from regnf.registration.ground_truth import match_boxes, score_discovery
 from regnf.synthetic.capture import RoomCaptureConfig
 
 ROOMS = ("ac-room", "atbl-room", "mix-room")
@@ -45,35 +44,8 @@ def score_room(scene_name: str, coverage: str, library_source: str, result: Disc
     """
     instances = [inst for inst in all_instances if inst.library in library]
     left_out = [inst for inst in all_instances if inst.library not in library]
-    truth_boxes = [OrientedBox.from_corners(inst.box_corners) for inst in instances]
+    per_instance, false, matched = score_discovery(result, instances, scene, library, FOUND_IOU)
     boxes = [d.candidate.box for d in result.discoveries]
-    matched, iou = match_boxes(truth_boxes, boxes, FOUND_IOU)
-    per_instance = []
-    for i, inst in enumerate(instances):
-        row = {"instance": inst.id, "object": inst.library,
-               "iou": max(iou[i], default=0.0), "candidate": matched.get(i), "chosen": None,
-               "confidence": None, "identified": False, "within_bars": False}
-        if i in matched:
-            d = result.discoveries[matched[i]]
-            tried = {t.library_name: t for t in d.tried}
-            right = tried.get(inst.library)
-            row["right_object_screened_rank"] = [t.library_name for t in d.tried].index(inst.library)
-            row["right_object_confidence"] = (None if right is None or right.result is None
-                                              else float(right.result.confidence))
-            row["ambiguous"] = list(d.ambiguous)
-            if d.chosen is not None:
-                row["chosen"] = d.chosen.library_name
-                row["confidence"] = float(d.chosen.result.confidence)
-                row["identified"] = d.chosen.library_name == inst.library
-            if row["identified"]:
-                lib = library[inst.library]
-                truth = pair_truth(inst, scene, lib)
-                errors = evaluate(d.chosen.result, truth.truth, scene, lib, truth.surface_lib, truth.diagonal_m)
-                sym = "_sym" if lib.symmetry.order != 1 else ""
-                row.update(rot_geodesic_rad=errors[f"rot_geodesic{sym}_rad"],
-                           trans_rel_diag=errors[f"trans_rel_diag{sym}"], scale_rel=errors["scale_rel"],
-                           within_bars=within_bars(errors))
-        per_instance.append(row)
     gone, _ = match_boxes([OrientedBox.from_corners(inst.box_corners) for inst in left_out],
                           [b for j, b in enumerate(boxes) if j not in matched.values()], FOUND_IOU)
     free = [j for j in range(len(boxes)) if j not in matched.values()]
@@ -81,11 +53,6 @@ def score_room(scene_name: str, coverage: str, library_source: str, result: Disc
     for k, inst in enumerate(left_out):
         d = result.discoveries[free[gone[k]]] if k in gone else None
         left[inst.library] = "not found" if d is None else ("unmatched" if d.chosen is None else d.chosen.library_name)
-    true_of = {j: i for i, j in matched.items()}
-    false = [{"candidate": j, "chosen": d.chosen.library_name,
-              "matches": None if j not in true_of else instances[true_of[j]].library}
-             for j, d in enumerate(result.discoveries)
-             if d.chosen is not None and (j not in true_of or instances[true_of[j]].library != d.chosen.library_name)]
     return {
         "scene": scene_name,
         "coverage": coverage,

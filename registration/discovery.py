@@ -242,6 +242,7 @@ def discover(scene_field: Field, library: Mapping[str, Field],
     with one_thread():
         lib_samples = {name: sample_surface(f, None, reg.library_sampling, side="library")
                        for name, f in library.items()}
+    lib_few = {name: subset(samples, cfg.ranking_points) for name, samples in lib_samples.items()}
     discoveries = []
     bar = tqdm(found.candidates, desc="discover: candidates", unit="candidate", disable=not progress)
     for cand in bar:  # one iteration per candidate (a handful per room)
@@ -254,9 +255,8 @@ def discover(scene_field: Field, library: Mapping[str, Field],
             few = subset(scene_samples, cfg.ranking_points)
             screened: dict[str, float] = {}
             for name, f in library.items():  # one short registration per library object
-                lib_few = subset(lib_samples[name], cfg.ranking_points)
-                starts = initialise(scene_field, f, proposal, few, lib_few, quick)
-                screened[name] = screened_score(scene_field, f, proposal, few, lib_few, starts[0], quick)
+                starts = initialise(scene_field, f, proposal, few, lib_few[name], quick)
+                screened[name] = screened_score(scene_field, f, proposal, few, lib_few[name], starts[0], quick)
         ranked = sorted(library, key=lambda n: (-round(screened[n], 6), n))
         tried = []
         for i, name in enumerate(ranked):

@@ -3,18 +3,22 @@ instance, its box, and the error columns of a registration against it."""
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from collections.abc import Mapping
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 import trimesh
 
 from regnf.neural_fields.field import Field
 from regnf.neural_fields.oriented_box import OrientedBox
-from regnf.registration.metrics import registration_errors
+from regnf.registration.metrics import registration_errors, within_bars
 from regnf.registration.result import RegistrationResult
 from regnf.registration.transform import SimilarityTransform
 from regnf.synthetic.instance import Instance
 from regnf.synthetic.library import make_library_object
+
+if TYPE_CHECKING:
+    from regnf.registration.discovery import Discovery, DiscoveryResult
 
 
 def true_scene_to_library(
@@ -104,3 +108,60 @@ def match_boxes(truth: list[OrientedBox], found: list[OrientedBox], min_iou: flo
             matched[i] = j
             used.add(j)
     return matched, iou
+
+
+def scored_instance(inst: Instance, discovery: Discovery | None, iou: float, candidate: int | None,
+                    scene: Field, library: Mapping[str, Field]) -> dict:
+    """What discovery made of one true instance, against its truth (JSON data).
+
+    ``discovery`` is the candidate matched to it (:func:`match_boxes`), None when none was.
+    Always: ``instance``, ``object``, ``iou``, ``candidate``, ``chosen``, ``confidence`` (the
+    chosen object's), ``identified``, ``within_bars``; with a candidate also ``ambiguous``,
+    ``right_object_screened_rank`` and ``right_object_confidence`` (its full registration, None
+    if not shortlisted); once identified, the symmetry-aware errors ``rot_geodesic_rad``,
+    ``trans_m``, ``trans_rel_diag`` and ``scale_rel``.
+    """
+    row = {"instance": inst.id, "object": inst.library, "iou": iou, "candidate": candidate, "chosen": None,
+           "confidence": None, "identified": False, "within_bars": False}
+    if discovery is None:
+        return row
+    names = [t.library_name for t in discovery.tried]
+    right = discovery.tried[names.index(inst.library)]
+    row["right_object_screened_rank"] = names.index(inst.library)
+    row["right_object_confidence"] = None if right.result is None else float(right.result.confidence)
+    row["ambiguous"] = list(discovery.ambiguous)
+    if discovery.chosen is not None:
+        row["chosen"] = discovery.chosen.library_name
+        row["confidence"] = float(discovery.chosen.result.confidence)
+        row["identified"] = discovery.chosen.library_name == inst.library
+    if row["identified"]:
+        lib = library[inst.library]
+        truth = pair_truth(inst, scene, lib)
+        errors = evaluate(discovery.chosen.result, truth.truth, scene, lib, truth.surface_lib, truth.diagonal_m)
+        sym = "_sym" if lib.symmetry.order != 1 else ""
+        row.update(rot_geodesic_rad=errors[f"rot_geodesic{sym}_rad"], trans_m=errors[f"trans_m{sym}"],
+                   trans_rel_diag=errors[f"trans_rel_diag{sym}"], scale_rel=errors["scale_rel"],
+                   within_bars=within_bars(errors))
+    return row
+
+
+def score_discovery(result: DiscoveryResult, instances: list[Instance], scene: Field, library: Mapping[str, Field],
+                    min_iou: float = 0.5) -> tuple[list[dict], list[dict], dict[int, int]]:
+    """Every true instance scored (:func:`scored_instance`), the false instances, and the
+    matching {true index: candidate index} (:func:`match_boxes`).
+
+    A false instance is a candidate identified as a library object where no true instance is,
+    or as another object than the one there: ``candidate``, ``chosen`` and ``matches`` (the
+    library object of the true instance there, or None).
+    """
+    truth_boxes = [OrientedBox.from_corners(inst.box_corners) for inst in instances]
+    matched, iou = match_boxes(truth_boxes, [d.candidate.box for d in result.discoveries], min_iou)
+    rows = [scored_instance(inst, result.discoveries[matched[i]] if i in matched else None,
+                            max(iou[i], default=0.0), matched.get(i), scene, library)
+            for i, inst in enumerate(instances)]
+    true_of = {j: i for i, j in matched.items()}
+    false = [{"candidate": j, "chosen": d.chosen.library_name,
+              "matches": None if j not in true_of else instances[true_of[j]].library}
+             for j, d in enumerate(result.discoveries)
+             if d.chosen is not None and (j not in true_of or instances[true_of[j]].library != d.chosen.library_name)]
+    return rows, false, matched

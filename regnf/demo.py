@@ -192,8 +192,7 @@ def _discover_all(stage: Path, out: Path, scene_path: Path, library_paths: dict[
     from regnf.neural_fields.oriented_box import OrientedBox
     from regnf.registration.discovery import discover, instance_payloads
     from regnf.registration.discovery_view import draw_top_view
-    from regnf.registration.ground_truth import evaluate, match_boxes, pair_truth
-    from regnf.registration.metrics import within_bars
+    from regnf.registration.ground_truth import score_discovery
     from regnf.scene_graph import add_instance_from_registration
 
     scene = load_field(scene_path, device=device)
@@ -204,40 +203,32 @@ def _discover_all(stage: Path, out: Path, scene_path: Path, library_paths: dict[
         rel = f"registration/candidate_{index}.json"
         write_json(out / rel, payload)
         written[index] = (add_instance_from_registration(stage, payload), rel)
-    truth_boxes = [OrientedBox.from_corners(inst.box_corners) for inst in capture.instances]
-    matched, iou = match_boxes(truth_boxes, [d.candidate.box for d in result.discoveries])
+    scores, false, matched = score_discovery(result, capture.instances, scene, library)
     rows = []
-    for i, inst in enumerate(capture.instances):  # a handful of objects
-        library_field = library[inst.library]
+    for i, (inst, score) in enumerate(zip(capture.instances, scores)):  # a handful of objects
+        d = result.discoveries[matched[i]] if i in matched else None
         row: dict[str, Any] = {
-            "instance": inst.id, "object": inst.library, "label": library_field.label,
-            "box_iou": max(iou[i], default=0.0), "found_as": "not found", "stage_instance": None,
+            "instance": inst.id, "object": inst.library, "label": library[inst.library].label,
+            "box_iou": score["iou"], "found_as": "not found", "stage_instance": None,
             "accepted": False, "confidence": None, "rot_geodesic_rad": None, "trans_m": None,
             "trans_rel_diag": None, "scale_rel": None, "within_bars": False, "seconds": None, "history": [],
         }
-        if i in matched:
-            d = result.discoveries[matched[i]]
+        if d is not None:
             row["found_as"] = (d.chosen.library_name if d.chosen is not None else
                                f"ambiguous: {' or '.join(d.ambiguous)}" if d.ambiguous else "unmatched")
-            right = next((t for t in d.tried if t.library_name == inst.library and t.result is not None), None)
-            if right is not None:
-                row["confidence"] = float(right.result.confidence)
-        if i in matched and row["found_as"] == inst.library:
-            chosen = result.discoveries[matched[i]].chosen
-            truth = pair_truth(inst, scene, library_field)
-            errors = evaluate(chosen.result, truth.truth, scene, library_field, truth.surface_lib, truth.diagonal_m)
-            sym = "_sym" if library_field.symmetry.order != 1 else ""
+            row["confidence"] = score["right_object_confidence"]
+        if score["identified"]:
+            row.update({k: score[k] for k in ("confidence", "rot_geodesic_rad", "trans_m", "trans_rel_diag",
+                                              "scale_rel", "within_bars")})
             row.update({
                 "stage_instance": written[matched[i]][0], "registration_file": written[matched[i]][1],
-                "accepted": True, "confidence": float(chosen.result.confidence),
-                "rot_geodesic_rad": errors[f"rot_geodesic{sym}_rad"], "trans_m": errors[f"trans_m{sym}"],
-                "trans_rel_diag": errors[f"trans_rel_diag{sym}"], "scale_rel": errors["scale_rel"],
+                "accepted": True,
                 # The object's full registration in the candidate's box and the refit (not the
                 # short registrations, shared by every object of the candidate).
-                "within_bars": within_bars(errors), "seconds": sum(
-                    t.result.timings.get("total", 0.0) for t in result.discoveries[matched[i]].tried
-                    if t.library_name == inst.library and t.result is not None) + chosen.result.timings.get("total", 0.0),
-                "history": chosen.result.history,
+                "seconds": sum(t.result.timings.get("total", 0.0) for t in d.tried
+                               if t.library_name == inst.library and t.result is not None)
+                + d.chosen.result.timings.get("total", 0.0),
+                "history": d.chosen.result.history,
             })
             console.print(f"  {inst.id}: found as {row['found_as']}, confidence {row['confidence']:.2f}, rotation "
                           f"{np.degrees(row['rot_geodesic_rad']):.2f} deg, translation "
@@ -245,9 +236,8 @@ def _discover_all(stage: Path, out: Path, scene_path: Path, library_paths: dict[
         else:
             console.print(f"  {inst.id}: {row['found_as']} (box IoU {row['box_iou']:.2f})")
         rows.append(row)
-    true_of = {j: i for i, j in matched.items()}
-    false = [f"{d.chosen.library_name} in candidate {j}" for j, d in enumerate(result.discoveries)
-             if d.chosen is not None and (j not in true_of or capture.instances[true_of[j]].library != d.chosen.library_name)]
+    false = [f"{f['chosen']} in candidate {f['candidate']}" for f in false]
+    truth_boxes = [OrientedBox.from_corners(inst.box_corners) for inst in capture.instances]
     image = draw_top_view(result, out / "top_view.png",
                           [(inst.library, box) for inst, box in zip(capture.instances, truth_boxes)],
                           title="discovery: the room from above")
