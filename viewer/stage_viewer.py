@@ -108,8 +108,9 @@ class ViewerConfig:
     opening_rest_seconds: float = 3.0
     """A newly opened page's first view is refined only after this long: the browser is still
     building the page, and a render then takes the CPU from it (measured on the demo's stage,
-    2 cores, headless Chromium: with the refined render at once, the panel and the first image
-    appeared 6.4 s after the page request; waiting 3 s, ...)."""
+    2 cores, headless Chromium, the page's own record of when it listed the instances: waiting
+    3 s, the panel and first image at 2.2-2.4 s and the refined image at 11.3-12.3 s after the
+    page request; waiting 0.4 s, 2.3-3.3 s and 7.8-9.7 s)."""
     opening_fov: float = 1.1
     """Vertical field of view (radians) of the camera a browser opens with (viser's default
     is 1.31: wider than a room needs)."""
@@ -424,7 +425,9 @@ def instance_table(scene: ComposedScene) -> str:
             conf, how = "-", "placed by hand"
         else:
             conf = f"{reg.confidence:.3f}"
-            how = f"{reg.method}, {'accepted' if reg.accepted else 'forced' if reg.forced else 'rejected'}"
+            how = "discovery" if reg.discovery is not None else reg.method
+            if not reg.accepted:
+                how += ", forced" if reg.forced else ", rejected"
         rows.append(f"| {iid} | {label} | {inst.library_name} | {conf} | {how} |")
     if not scene.instances:
         rows.append("| (no instances) | | | | |")
