@@ -92,9 +92,12 @@ visible text (``innerText``: not hidden, not folded away) first holds every id, 
 after the page changes."""
 
 
-def watch_instances(browser, ids: list[str]) -> None:
-    """Have every page ``browser`` opens from now on record when it shows all of ``ids``."""
-    browser.execute_cdp_cmd("Page.addScriptToEvaluateOnNewDocument", {"source": PAGE_WATCH % json.dumps(ids)})
+def watch_instances(browser, ids: list[str]) -> str:
+    """Have every page ``browser`` opens from now on record when it shows all of ``ids``;
+    returns the script's identifier (``Page.removeScriptToEvaluateOnNewDocument`` stops it)."""
+    added = browser.execute_cdp_cmd("Page.addScriptToEvaluateOnNewDocument",
+                                    {"source": PAGE_WATCH % json.dumps(ids)})
+    return str(added["identifier"])
 
 
 def listed_seconds(browser, timeout: float) -> float:

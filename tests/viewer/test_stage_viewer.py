@@ -21,7 +21,7 @@ import pytest
 import torch
 from PIL import Image
 
-from regnf.benchmarks.viewer import free_port, headless_chromium
+from regnf.benchmarks.viewer import free_port, headless_chromium, listed_seconds, watch_instances
 from regnf.cli import main
 from regnf.compositor.from_stage import composite_from_stage
 from regnf.compositor.stage_config import StageCompositeConfig
@@ -122,6 +122,28 @@ def test_the_browser_shows_the_instances_and_the_compositors_render(stage: Path,
         assert got.std() > 5, "the screenshot is blank"
         close = np.abs(got - want).max(axis=-1) <= 24
         assert close.mean() > 0.85, f"only {close.mean():.2f} of the pixels match the render"
+
+
+def test_the_page_records_when_it_lists_the_instances(stage: Path, browser) -> None:
+    # What `regnf bench viewer` times by: the page's own record, not text polled from outside.
+    watcher = watch_instances(browser, ["c_1", "dc_1", "t_1"])
+    viewer = StageViewer(stage, ViewerConfig(port=free_port()))
+    try:
+        t0 = time.monotonic()
+        browser.get(f"http://127.0.0.1:{viewer.port}")
+        listed = listed_seconds(browser, 60)
+        elapsed = time.monotonic() - t0
+        assert 0.0 < listed <= elapsed
+        text = browser.find_element("tag name", "body").text
+        assert all(i in text for i in ("c_1", "dc_1", "t_1"))
+        # An id the page never shows is never recorded.
+        browser.execute_cdp_cmd("Page.removeScriptToEvaluateOnNewDocument", {"identifier": watcher})
+        watch_instances(browser, ["no_such_instance"])
+        browser.get(f"http://127.0.0.1:{viewer.port}")
+        with pytest.raises(ValueError, match="did not list its instances within 3 s"):
+            listed_seconds(browser, 3)
+    finally:
+        viewer.close()
 
 
 def test_a_stage_that_cannot_be_opened_fails_like_stage_show(tmp_path: Path, capsys) -> None:
