@@ -3,7 +3,9 @@
 Every valid depth pixel back-projects to a surface point with its colour, the ray it was
 seen along, and (away from depth discontinuities) a normal from the depth image's local
 tangent plane. Pixels with no depth (the void around a library object) become free rays:
-nothing lies along them, which carves the silhouette.
+nothing lies along them, which carves the silhouette. Rays beside an occluding edge (a depth
+step to a closer neighbour, or no depth next to a pixel with depth) are kept apart as well:
+they pass within about a pixel footprint of the occluder's outline.
 """
 
 from __future__ import annotations
@@ -49,6 +51,20 @@ class RGBDSamples(NamedTuple):
     """(k, 3) origins of rays that hit nothing."""
     free_dirs: torch.Tensor
     """(k, 3) unit directions of rays that hit nothing."""
+    edge_origins: torch.Tensor
+    """(e, 3) origins of the rays that pass an occluding edge (see :func:`edge_depths`)."""
+    edge_dirs: torch.Tensor
+    """(e, 3) unit directions of those rays."""
+    edge_t: torch.Tensor
+    """(e,) distance along the ray at which it passes the edge (the occluder's depth)."""
+    edge_limit: torch.Tensor
+    """(e,) distance along the ray to its own hit; ``inf`` for a ray that hit nothing."""
+
+
+def camera_rays(K: np.ndarray, h: int, w: int) -> np.ndarray:
+    """(h, w, 3) camera-frame rays K^-1 [u + 0.5, v + 0.5, 1] through the pixel centres (z = 1)."""
+    u, v = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
+    return np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1)
 
 
 def backproject_frame(
@@ -69,11 +85,7 @@ def backproject_frame(
     dirs : (h, w, 3) float     unit ray directions in world
     valid : (h, w) bool
     """
-    h, w = depth.shape
-    u = np.arange(w) + 0.5
-    v = np.arange(h) + 0.5
-    uu, vv = np.meshgrid(u, v)
-    cam = np.stack([(uu - K[0, 2]) / K[0, 0], (vv - K[1, 2]) / K[1, 1], np.ones_like(uu)], -1)
+    cam = camera_rays(K, *depth.shape)
     R, t = camtoworld[:3, :3], camtoworld[:3, 3]
     d_world = cam @ R.T
     valid = np.isfinite(depth) & (depth > 0)
@@ -83,13 +95,50 @@ def backproject_frame(
     return points, dirs, valid
 
 
+EDGE_STEP_FOOTPRINTS = 8.0
+"""A depth step between neighbouring pixels larger than this many pixel footprints (z / f) is
+a discontinuity (an occluding edge), not a slanted surface."""
+
+
+def edge_depths(depth: np.ndarray, valid: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """(h, w) float: for each pixel beside an occluding edge, the z-depth of the occluder; else 0.
+
+    A pixel is beside an occluding edge when one of its 4 neighbours has depth and lies closer by
+    more than :data:`EDGE_STEP_FOOTPRINTS` pixel footprints (every neighbour with depth counts
+    for a pixel that has none). Its ray then passes within about a pixel footprint of the
+    occluder's silhouette at the occluder's depth, through space that is empty (it is in front
+    of the pixel's own surface): the samples that pin a silhouette where it was seen.
+
+    Parameters
+    ----------
+    depth : (h, w) float
+        z-depth, 0 where nothing was hit.
+    valid : (h, w) bool
+    K : (3, 3) float
+
+    Returns
+    -------
+    (h, w) float
+        The smallest closer neighbour depth, 0 where the pixel is beside no edge.
+    """
+    z = np.where(valid, depth, np.inf)
+    pad = np.pad(z, 1, constant_values=np.inf)
+    neigh = np.stack([pad[1:-1, 2:], pad[1:-1, :-2], pad[2:, 1:-1], pad[:-2, 1:-1]])
+    nearest = neigh.min(0)
+    step = EDGE_STEP_FOOTPRINTS * np.where(valid, depth, nearest) / K[0, 0]
+    # A pixel without depth is beside an edge as soon as it has a neighbour with depth.
+    edge = np.isfinite(nearest) & (~valid | (nearest < depth - step))
+    return np.where(edge, nearest, 0.0)
+
+
 def depth_normals(
     points: np.ndarray, depth: np.ndarray, valid: np.ndarray, K: np.ndarray, dirs: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
     """Normals (h, w, 3) from central differences of back-projected points, and a mask.
 
-    A pixel's normal is trusted only when its 4 neighbours have depth and neither one-sided
-    depth step exceeds ``8`` pixel footprints (a discontinuity, not a slanted surface).
+    A pixel's normal is trusted only when its 4 neighbours have depth and no one-sided depth
+    step exceeds :data:`EDGE_STEP_FOOTPRINTS` pixel footprints (a discontinuity, not a slanted
+    surface).
     """
     h, w = depth.shape
     normals = np.zeros_like(points)
@@ -113,7 +162,7 @@ def depth_normals(
         -1,
     ).max(-1)
     neigh = valid[c] & valid[1:-1, 2:] & valid[1:-1, :-2] & valid[2:, 1:-1] & valid[:-2, 1:-1]
-    good = neigh & (steps < 8.0 * footprint) & (norm[..., 0] > 0)
+    good = neigh & (steps < EDGE_STEP_FOOTPRINTS * footprint) & (norm[..., 0] > 0)
     normals[c] = np.where(good[..., None], n, 0.0)
     ok[c] = good
     return normals, ok
@@ -135,6 +184,7 @@ def build_samples(capture: CaptureLike, indices: Sequence[int]) -> RGBDSamples:
         (:meth:`regnf.synthetic.sdfstudio_format.Capture.depth` names the file and the frame).
     """
     pts, cols, nrm, nok, org, tt, forg, fdir = [], [], [], [], [], [], [], []
+    eorg, edir, et, elim = [], [], [], []
     for i in indices:
         frame = capture.frames[i]
         depth = capture.depth(i)
@@ -156,6 +206,15 @@ def build_samples(capture: CaptureLike, indices: Sequence[int]) -> RGBDSamples:
         tt.append(np.linalg.norm(p[valid] - origin, axis=-1))
         forg.append(np.broadcast_to(origin, (int((~valid).sum()), 3)))
         fdir.append(d[~valid])
+        z_edge = edge_depths(depth.astype(np.float64), valid, K)
+        at_edge = z_edge > 0
+        # z-depth to distance along the unit ray, as backproject_frame measures it.
+        ray_len = np.linalg.norm(camera_rays(K, *depth.shape) @ c2w[:3, :3].T, axis=-1)
+        own = np.where(valid, depth * ray_len, np.inf)
+        eorg.append(np.broadcast_to(origin, (int(at_edge.sum()), 3)))
+        edir.append(d[at_edge])
+        et.append((z_edge * ray_len)[at_edge])
+        elim.append(own[at_edge])
 
     def cat(a: list, width: int | None = 3) -> torch.Tensor:
         arr = np.concatenate(a, 0) if a else np.zeros((0, width) if width else (0,))
@@ -165,6 +224,7 @@ def build_samples(capture: CaptureLike, indices: Sequence[int]) -> RGBDSamples:
         points=cat(pts), colors=cat(cols), normals=cat(nrm),
         normal_ok=torch.from_numpy(np.concatenate(nok, 0)) if nok else torch.zeros(0, dtype=torch.bool),
         origins=cat(org), ray_t=cat(tt, None), free_origins=cat(forg), free_dirs=cat(fdir),
+        edge_origins=cat(eorg), edge_dirs=cat(edir), edge_t=cat(et, None), edge_limit=cat(elim, None),
     )
 
 

@@ -14,6 +14,7 @@ from regnf.neural_fields.rgbd_samples import (
     backproject_frame,
     build_samples,
     depth_normals,
+    edge_depths,
     ray_box_interval,
 )
 from regnf.synthetic.sdfstudio_format import Capture
@@ -22,6 +23,7 @@ from .capture_helpers import (
     BOX_CENTER,
     BOX_COLOR,
     BOX_HALF,
+    FOCAL,
     HEIGHT,
     N_VIEWS,
     SPHERE_CENTER,
@@ -240,6 +242,40 @@ def test_pixels_without_depth_become_free_rays_that_miss_the_object(capture: Cap
         ho, hit_dirs, SPHERE_CENTER, SPHERE_RADIUS + eps
     ) | ~_ray_misses_box(ho, hit_dirs, BOX_CENTER - BOX_HALF - eps, BOX_CENTER + BOX_HALF + eps)
     assert hit_any.all()
+
+
+def test_edge_depths_of_a_step_a_slant_and_a_hole() -> None:
+    K = np.array([[100.0, 0.0, 5.0], [0.0, 100.0, 4.0], [0.0, 0.0, 1.0]])
+    h, w = 8, 10
+    # A background plane at 3 m, slanted gently along u (no edge), with a box at 1 m in front.
+    depth = 3.0 + 0.01 * np.arange(w)[None, :].repeat(h, 0)
+    depth[3:5, 4:6] = 1.0
+    depth[0, 0] = 0.0  # no hit, beside the background
+    valid = depth > 0
+    z = edge_depths(depth, valid, K)
+    expect = np.zeros((h, w))
+    # The 4-neighbours of the box on the background see the box's depth; the box itself and
+    # the slanted background (steps of 0.01 m, far under 8 footprints of 0.03 m) see no edge.
+    for v, u in [(2, 4), (2, 5), (5, 4), (5, 5), (3, 3), (4, 3), (3, 6), (4, 6)]:
+        expect[v, u] = 1.0
+    # A pixel without depth is beside an edge: the nearest of its neighbours with depth.
+    expect[0, 0] = min(depth[0, 1], depth[1, 0])
+    np.testing.assert_allclose(z, expect)
+
+
+def test_edge_rays_pass_just_outside_the_analytic_silhouette(capture: Capture) -> None:
+    s = build_samples(capture, capture.train_indices())
+    assert s.edge_t.shape[0] > 100
+    x = (s.edge_origins + s.edge_t[:, None] * s.edge_dirs).double().numpy()
+    sdf = analytic_sdf(x)
+    # Every edge ray misses the occluder (it hit something farther, or nothing), so the point
+    # at the occluder's depth is outside the object, and within about a pixel footprint of it.
+    footprint = s.edge_t.double().numpy() / FOCAL
+    assert (sdf > -1e-4).all()
+    assert np.median(sdf / footprint) < 1.0
+    assert np.percentile(sdf / footprint, 95) < 3.0
+    # The ray's own hit (inf: none) lies beyond the edge.
+    assert (s.edge_limit > s.edge_t).all()
 
 
 def test_build_samples_of_a_frame_subset(capture: Capture) -> None:
