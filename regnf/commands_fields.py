@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -102,6 +103,9 @@ class Train:
     """Architecture and schedule: a library object or a room seen from inside."""
     steps: int | None = None
     """Override the preset's number of optimisation steps."""
+    edge_weight: float | None = None
+    """Override the preset's weight of the occluding-edge loss (0: off, the presets' value; see
+    ``RGBDTrainConfig.w_edge`` for what 1 does on the rooms)."""
     seed: int = 0
     """Seed of initialisation and sampling (training is deterministic on CPU)."""
     device: str = "cpu"
@@ -113,11 +117,15 @@ class Train:
         check_checkpoint_out(self.out)
         if self.steps is not None and self.steps < 1:
             raise SystemExit(f"--steps must be at least 1, got {self.steps}")
+        if self.edge_weight is not None and not (math.isfinite(self.edge_weight) and self.edge_weight >= 0):
+            raise SystemExit(f"--edge-weight must be a finite number >= 0, got {self.edge_weight}")
         capture = load_capture(self.capture)
         preset = object_rgbd_preset if self.preset == "object" else scene_rgbd_preset
         cfg = preset(self.device, self.seed)
         if self.steps is not None:
             cfg = dataclasses.replace(cfg, steps=self.steps)
+        if self.edge_weight is not None:
+            cfg = dataclasses.replace(cfg, w_edge=self.edge_weight)
         path = Cache(self.cache_dir).rgbd_field(capture, cfg)
         console.print(f"field {capture_info(capture).name!r}: {path}")
         copy_out(path, self.out)
