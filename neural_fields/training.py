@@ -94,13 +94,20 @@ class RGBDTrainConfig:
     observed silhouette, near the occluder's depth (``RGBDSamples.edge_t``). The uniform
     free-space samples almost never land within a pixel footprint of a thin part's outline,
     so without them an outline seen against a far background can grow outward freely.
-    Measured on the low-coverage atbl-room (room preset, mesh library, 2026-12-03): with
-    weight 1 the scene SDF at the observed true surface of the end table `et` went from a
-    median of -3.1 to -0.7 mm and of the table `t` from -9.0 to -1.6 mm; registration of `et`
-    from confidence 0.57 (rejected; Δt 0.73 %, Δs 1.70 %) to 0.69 (0.09 %, 0.04 %), of `t` from
-    0.24 % / 0.22 % to 0.06 % / 0.04 %; the round table `wt` got worse (Δt 1.65 -> 4.48 %, Δs
-    2.94 -> 2.14 %: it slides along the one arc of its rim the views saw). Off in the presets
-    until every room and benchmark has been measured with it."""
+    Measured on the three low-coverage rooms (room preset, `regnf train --preset scene
+    --edge-weight 1` against the preset, the 11 pairs registered with the mesh library from
+    their true boxes, 2026-12-03). Median SDF at each instance's observed true surface
+    (20 000 points on its mesh, kept where a training view's depth is within 1 cm of them):
+    -9.0 to +1.0 mm without, -2.6 to +3.5 mm with (thin parts no longer grow outward: `t` in
+    the atbl-room -9.0 -> -1.6 mm, `et` -3.1 -> -0.7 mm; in the ac-room and mix-room the
+    outlines now sit 1.6-3.5 mm inside instead of up to 3.7 mm outside). Registration: 10 of
+    11 pairs accepted and within the bars with the loss, 9 of 11 without (`et` 0.57, rejected,
+    -> 0.69, Δt 0.73 -> 0.09 %, Δs 1.70 -> 0.04 %); ac-room `fc` 0.0090 rad / 0.60 % / 0.94 %
+    -> 0.0022 / 0.06 / 0.07 %, `c` Δt 0.77 -> 0.14 %; mix-room `fc` Δs 0.03 -> 0.50 % (the
+    one pair clearly worse but `wt`). The round table `wt` got worse (Δt 1.65 -> 4.48 %, Δs
+    2.94 -> 2.14 %): the views see its rim along one arc of about 60 degrees, and it slides
+    along that arc's tangent. Off in the presets until the full-coverage rooms and every
+    benchmark have been measured with it."""
     batch_edge: int = 2048
     """Samples per step on the rays that pass an occluding edge."""
     edge_band_m: tuple[float, float] = (0.02, 0.05)
