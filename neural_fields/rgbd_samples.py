@@ -195,8 +195,9 @@ def build_samples(capture: CaptureLike, indices: Sequence[int]) -> RGBDSamples:
         rgb = capture.rgb(i)
         K = np.asarray(frame.intrinsics, dtype=np.float64)
         c2w = np.asarray(frame.camtoworld, dtype=np.float64)
-        p, d, valid = backproject_frame(depth.astype(np.float64), K, c2w)
-        n, ok = depth_normals(p, depth.astype(np.float64), valid, K, d)
+        depth = depth.astype(np.float64)
+        p, d, valid = backproject_frame(depth, K, c2w)
+        n, ok = depth_normals(p, depth, valid, K, d)
         origin = c2w[:3, 3]
         pts.append(p[valid])
         cols.append(rgb[valid])
@@ -206,7 +207,7 @@ def build_samples(capture: CaptureLike, indices: Sequence[int]) -> RGBDSamples:
         tt.append(np.linalg.norm(p[valid] - origin, axis=-1))
         forg.append(np.broadcast_to(origin, (int((~valid).sum()), 3)))
         fdir.append(d[~valid])
-        z_edge = edge_depths(depth.astype(np.float64), valid, K)
+        z_edge = edge_depths(depth, valid, K)
         at_edge = z_edge > 0
         # z-depth to distance along the unit ray, as backproject_frame measures it.
         ray_len = np.linalg.norm(camera_rays(K, *depth.shape) @ c2w[:3, :3].T, axis=-1)
