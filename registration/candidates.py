@@ -269,6 +269,15 @@ def grown_to_floor(box: OrientedBox, levels: np.ndarray, scene_field: Field, con
     return OrientedBox(centre, half, box.rotation)
 
 
+def candidate_of(points: np.ndarray, supports: list[Plane], scene_field: Field, config: CandidateConfig) -> Candidate:
+    """The candidate of surface points ``points`` (n, 3, scene metres): their upright box, grown
+    to the floor among ``supports`` where the views did not observe below it."""
+    up = np.asarray(config.up, dtype=np.float64)
+    up = up / np.linalg.norm(up)
+    box = grown_to_floor(upright_box(points, up), level_supports(supports, up), scene_field, config)
+    return Candidate(box, points)
+
+
 def find_candidates(scene_field: Field, config: CandidateConfig | None = None) -> Candidates:
     """Object candidates of a scene field, with no boxes given.
 
@@ -289,17 +298,13 @@ def find_candidates(scene_field: Field, config: CandidateConfig | None = None) -
     points = surface_points(scene_field, cfg)
     rest, supports = remove_supports(points, cfg)
     labels = groups(rest, cfg.link_distance)
-    up = np.asarray(cfg.up, dtype=np.float64)
-    levels = level_supports(supports, up / np.linalg.norm(up))
     found = []
     sizes = np.bincount(labels) if len(labels) else np.zeros(0, dtype=np.int64)
     for label in np.flatnonzero(sizes >= cfg.min_points):  # one iteration per large group
-        member = rest[labels == label]
-        box = upright_box(member, up)
-        box = grown_to_floor(box, levels, scene_field, cfg)
-        if not cfg.min_size <= 2.0 * box.half_extents.max() <= cfg.max_size:
+        cand = candidate_of(rest[labels == label], supports, scene_field, cfg)
+        if not cfg.min_size <= 2.0 * cand.box.half_extents.max() <= cfg.max_size:
             continue
-        found.append(Candidate(box, member))
+        found.append(cand)
     found.sort(key=lambda c: -float(np.prod(c.box.half_extents)))
     return Candidates(found, supports, len(points))
 

@@ -95,3 +95,41 @@ def test_two_objects_that_differ_only_where_no_view_looked_are_ambiguous(pillow_
         assert seen < 0.05
     # The same object twice does not differ anywhere.
     assert np.isnan(observed_difference(scene, plain, results[0], plain, results[0]))
+
+
+def test_two_unmatched_halves_of_one_object_are_tried_as_one() -> None:
+    from regnf.registration.candidates import Candidates, candidate_of
+    from regnf.registration.discovery import Discovery, Tried, joined_halves
+
+    from .fixtures import make_object
+
+    rng = np.random.default_rng(0)
+
+    def cloud(lo: list[float], hi: list[float]) -> np.ndarray:
+        return rng.uniform(lo, hi, size=(300, 3))
+
+    field, cfg = make_object(), DiscoveryConfig()
+    left, right = cloud([0.0, 0.0, 0.0], [0.5, 1.0, 0.8]), cloud([0.4, 0.0, 0.0], [1.0, 1.0, 0.8])
+    far, touching = cloud([3.0, 0.0, 0.0], [3.6, 0.5, 0.8]), cloud([0.9, 0.5, 0.0], [1.5, 1.2, 0.8])
+    cands = [candidate_of(p, [], field, cfg.candidates) for p in (left, right, far, touching)]
+    matched = Tried("other", 0.9, None)
+    found = [Discovery(cands[0], cands[0].box, [], None), Discovery(cands[1], cands[1].box, [], None),
+             Discovery(cands[2], cands[2].box, [], None), Discovery(cands[3], cands[3].box, [], matched)]
+    seen: list[int] = []
+
+    def examine(cand):  # the union of the two halves is the object; anything else matches nothing
+        seen.append(len(cand.points))
+        whole = len(cand.points) == 600 and np.allclose(np.sort(cand.points, 0), np.sort(np.vstack([left, right]), 0))
+        return Discovery(cand, cand.box, [], Tried("obj", 1.0, None) if whole else None)
+
+    out = joined_halves(found, examine, Candidates(cands, [], 1200), field, cfg)
+    assert seen == [600]  # only the overlapping unmatched pair was tried again; the matched one never
+    assert len(out) == 3 and sum(d.chosen is not None and d.chosen.library_name == "obj" for d in out) == 1
+    joined = next(d for d in out if d.chosen is not None and d.chosen.library_name == "obj")
+    np.testing.assert_allclose(joined.candidate.box.center[:2], [0.5, 0.5], atol=0.03)
+    assert any(d.candidate is cands[2] for d in out) and any(d.candidate is cands[3] for d in out)
+    # A union that matches nothing leaves both halves as they were.
+    none = joined_halves(found, lambda c: Discovery(c, c.box, [], None), Candidates(cands, [], 1200), field, cfg)
+    assert [d.candidate for d in none] == [d.candidate for d in sorted(found, key=lambda d: -np.prod(d.candidate.box.half_extents))]
+    with pytest.raises(ValueError, match="join_overlap"):
+        DiscoveryConfig(join_overlap=2.0)

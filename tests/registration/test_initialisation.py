@@ -68,15 +68,21 @@ def test_best_hypothesis_recovers_the_placement(results, name: str) -> None:
     assert 0 <= hyps[0].inlier_rmse < 0.01 * DIAG  # library units
 
 
-def test_hypotheses_are_distinct_and_ranked(results) -> None:
+def test_hypotheses_are_distinct_and_ranked(results, library: SurfaceSamples) -> None:
+    cfg = InitConfig()
+    lo, hi = library.points.min(0), library.points.max(0)
+    centre, size = 0.5 * (lo + hi), float((hi - lo).max())
     for hyps, _ in results.values():
-        assert 1 <= len(hyps) <= InitConfig().top_k
+        assert 1 <= len(hyps) <= cfg.top_k
         fits = [h.fitness for h in hyps]
         assert fits == sorted(fits, reverse=True)
         for i in range(len(hyps)):
-            for j in range(i):
-                a = geodesic_angle(hyps[i].transform.R.T @ hyps[j].transform.R)
-                assert np.degrees(a) >= InitConfig().min_rotation_deg
+            for j in range(i):  # another turn, another size or another place
+                a, b = hyps[i].transform, hyps[j].transform
+                turn = np.degrees(geodesic_angle(a.R.T @ b.R)) >= cfg.min_rotation_deg
+                size_ = abs(np.log(a.s / b.s)) >= np.log1p(cfg.min_scale_change)
+                shift = np.linalg.norm(a.inverse().apply(centre[None]) - b.inverse().apply(centre[None])) * a.s
+                assert turn or size_ or shift >= cfg.min_shift * size
 
 
 def test_top_k_one_and_more_runs(library: SurfaceSamples) -> None:
@@ -161,3 +167,30 @@ def test_hypotheses_a_symmetry_maps_onto_each_other_are_merged() -> None:
     quarter = [Hypothesis(SimilarityTransform(_rot(axis, k * np.pi / 2) @ R1, np.zeros(3), 1.0), 0.9 - k / 10, 0.01)
                for k in range(4)]
     assert len(_select(quarter, cfg, ObjectSymmetry(4, axis))) == 1
+
+
+def test_hypotheses_of_one_turn_at_another_size_or_place_are_kept_apart() -> None:
+    from regnf.registration.initialisation import ObjectSymmetry, _select
+
+    axis = np.array([0.0, 0.0, 1.0])
+    R = _rot([1.0, 0.5, 0.2], 0.7)
+    centre, size = np.array([0.0, 0.0, 0.5]), 2.0
+
+    def hyp(angle: float, s: float, shift: float, fit: float) -> Hypothesis:
+        # Spun about the library's axis, at scale s, the library centre moved by shift (library units).
+        Q = _rot(axis, angle) @ R
+        t = centre - s * Q @ (R.T @ centre) + np.array([shift, 0.0, 0.0])
+        return Hypothesis(SimilarityTransform(Q, t, s), fit, 0.01)
+
+    cfg = InitConfig(top_k=6)
+    round_table = ObjectSymmetry(0, axis)
+    spun = [hyp(a, 1.0, 0.0, 0.9 - a / 10) for a in (0.0, 0.5, 1.0)]
+    assert len(_select(spun, cfg, round_table, centre=centre, size=size)) == 1  # one pose, spun
+    larger = hyp(0.3, 1.27, 0.0, 0.95)  # ICP grown onto part of the object: the best fitness
+    shifted = hyp(0.0, 1.0, 0.25 * size, 0.5)
+    kept = _select([*spun, larger, shifted], cfg, round_table, centre=centre, size=size)
+    assert [h.fitness for h in kept] == [0.95, 0.9, 0.5]
+    near = [hyp(0.0, 1.05, 0.0, 0.8), hyp(0.0, 1.0, 0.05 * size, 0.7)]  # within 10 %: the same
+    assert len(_select([spun[0], *near], cfg, round_table, centre=centre, size=size)) == 1
+    with pytest.raises(ValueError, match="min_shift"):
+        InitConfig(min_shift=-1.0)
