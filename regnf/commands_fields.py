@@ -104,8 +104,8 @@ class Train:
     steps: int | None = None
     """Override the preset's number of optimisation steps."""
     edge_weight: float | None = None
-    """Override the preset's weight of the occluding-edge loss (0: off, the presets' value; see
-    ``RGBDTrainConfig.w_edge`` for what 1 does on the rooms)."""
+    """Override the preset's weight of the occluding-edge loss (0: off; the room preset uses 1,
+    the object preset 0; ``RGBDTrainConfig.w_edge`` gives what it does on the rooms)."""
     seed: int = 0
     """Seed of initialisation and sampling (training is deterministic on CPU)."""
     device: str = "cpu"
