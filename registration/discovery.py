@@ -309,33 +309,33 @@ def discover(scene_field: Field, library: Mapping[str, Field],
     bar = tqdm(found.candidates, desc="discover: candidates", unit="candidate", disable=not progress)
     discoveries = [examine(cand) for cand in bar]  # a handful of candidates per room
     if cfg.join_overlap > 0:
-        discoveries = joined_halves(discoveries, examine, found, scene_field, cfg)
+        discoveries = joined_halves(discoveries, examine, found, scene_field, cfg, progress)
     t2 = time.perf_counter()
     return DiscoveryResult(discoveries, found,
                            {"candidates": t1 - t0, "registration": t2 - t1, "total": t2 - t0})
 
 
 def joined_halves(discoveries: list[Discovery], examine: Callable[[Candidate], Discovery],
-                  found: Candidates, scene_field: Field, config: DiscoveryConfig) -> list[Discovery]:
+                  found: Candidates, scene_field: Field, config: DiscoveryConfig,
+                  progress: bool = False) -> list[Discovery]:
     """``discoveries`` with each pair of unmatched, overlapping candidates replaced by their
     union where ``examine`` matches that union (see :attr:`DiscoveryConfig.join_overlap`);
     largest box first."""
     open_ = [i for i, d in enumerate(discoveries) if d.chosen is None and not d.ambiguous]
+    pairs = [(i, j) for k, i in enumerate(open_) for j in open_[k + 1:]  # a few unmatched at most
+             if box_iou(discoveries[i].candidate.box, discoveries[j].candidate.box) >= config.join_overlap]
     used: set[int] = set()
     joined = []
-    for a_i, i in enumerate(open_):  # unmatched candidates: a few at most
-        for j in open_[a_i + 1:]:
-            if i in used or j in used:
-                continue
-            a, b = discoveries[i].candidate, discoveries[j].candidate
-            if box_iou(a.box, b.box) < config.join_overlap:
-                continue
-            union = candidate_of(np.concatenate([a.points, b.points]), found.supports, scene_field,
-                                 config.candidates)
-            d = examine(union)
-            if d.chosen is not None:
-                used |= {i, j}
-                joined.append(d)
+    for i, j in tqdm(pairs, desc="discover: overlapping unmatched pairs", unit="pair", disable=not progress):
+        if i in used or j in used:
+            continue
+        a, b = discoveries[i].candidate, discoveries[j].candidate
+        union = candidate_of(np.concatenate([a.points, b.points]), found.supports, scene_field,
+                             config.candidates)
+        d = examine(union)
+        if d.chosen is not None:
+            used |= {i, j}
+            joined.append(d)
     out = [d for i, d in enumerate(discoveries) if i not in used] + joined
     return sorted(out, key=lambda d: -float(np.prod(d.candidate.box.half_extents)))
 
