@@ -527,8 +527,12 @@ class _Batch:
         # jitter whether it is refined alone or in a batch.
         self.gens = [torch.Generator().manual_seed(int(cfg.seed)) for _ in range(K)]
         self.bidirectional = cfg.bidirectional
-        self.A = [A.detach() for _ in range(K)]
-        self.B = [B.detach() for _ in range(K)] if self.bidirectional else []
+        # One tensor shared by every hypothesis until its resampling replaces it: what does not
+        # move with the pose is computed once per distinct tensor (see _fixed_values).
+        self.A = [A.detach()] * K
+        self.B = [B.detach()] * K if self.bidirectional else []
+        self.fixed_A: dict[int, tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]] = {}
+        self.fixed_B: dict[int, tuple[torch.Tensor, torch.Tensor, torch.Tensor | None, _Nearest | None]] = {}
         self.active = list(range(K))
         self.stopped: dict[int, dict[str, torch.Tensor]] = {}
         self._rebuild()
@@ -550,28 +554,61 @@ class _Batch:
 
     # -- samples ----------------------------------------------------------------------------
     def _rebuild(self) -> None:
-        """Stack the active hypotheses' samples and cache the SDFs that do not move."""
+        """Stack the active hypotheses' samples and the SDFs that do not move with the pose."""
         act = self.active
         dev = self.A[0].device
+        self._fixed_values()
         self.gA = torch.cat([torch.full((self.A[k].shape[0],), i, dtype=torch.long, device=dev)
                              for i, k in enumerate(act)])
         self.xA = torch.cat([self.A[k] for k in act])
         self.nA = torch.tensor([float(self.A[k].shape[0]) for k in act], device=dev)
-        with torch.no_grad():
-            self.sA = self.scene.sdf(self.xA)  # S_scene(A): fixed in the scene frame
-            self.wA = self._observed(self.xA)
-        _check_finite(self.sA, "the scene field (at A)")
+        self.sA = torch.cat([self.fixed_A[k][1] for k in act])  # S_scene(A): fixed in the scene frame
+        self.wA = None if self.visibility is None else torch.cat([self.fixed_A[k][2] for k in act])
         if self.bidirectional:
             self.gB = torch.cat([torch.full((self.B[k].shape[0],), i, dtype=torch.long, device=dev)
                                  for i, k in enumerate(act)])
             self.yB = torch.cat([self.B[k] for k in act])
             self.nB = torch.tensor([float(self.B[k].shape[0]) for k in act], device=dev)
+            self.sB = torch.cat([self.fixed_B[k][1] for k in act])  # S_lib(B): fixed in the library frame
+            # Outward library normals at B, for the visibility lookup in front of them.
+            self.normal_B = torch.cat([self.fixed_B[k][2] for k in act]) if self.lookahead > 0 else None
+            self.nearest = [self.fixed_B[k][3] for k in act] if self.cfg.regulariser_weight > 0 else []
+
+    def _fixed_values(self) -> None:
+        """Evaluate, for the active hypotheses whose samples changed, what does not move with the
+        pose: S_scene and the visibility at A; S_lib, the library normals and the nearest-sample
+        lookup at B. Once per distinct sample tensor, in one field query per side (the fields
+        are the cost: measured, re-evaluating them whenever a hypothesis stopped took a third of
+        the refinement)."""
+        act = self.active
+        todo_A = {id(self.A[k]): self.A[k] for k in act if self.fixed_A.get(k, (None,))[0] is not self.A[k]}
+        if todo_A:
+            x = torch.cat(list(todo_A.values()))
             with torch.no_grad():
-                self.sB = self.library.sdf(self.yB)  # S_lib(B): fixed in the library frame
-                # Outward library normals at B, for the visibility lookup in front of them.
-                self.normal_B = self.library.normal(self.yB) if self.lookahead > 0 else None
-            _check_finite(self.sB, "the library field (at B)")
-            self.nearest = [_Nearest(self.B[k]) for k in act] if self.cfg.regulariser_weight > 0 else []
+                sdf = self.scene.sdf(x)
+                w = self._observed(x)
+            _check_finite(sdf, "the scene field (at A)")
+            sizes = [t.shape[0] for t in todo_A.values()]
+            parts = dict(zip(todo_A, zip(sdf.split(sizes), w.split(sizes) if w is not None else [None] * len(sizes))))
+            for k in act:
+                if id(self.A[k]) in parts:
+                    self.fixed_A[k] = (self.A[k], *parts[id(self.A[k])])
+        if not self.bidirectional:
+            return
+        todo_B = {id(self.B[k]): self.B[k] for k in act if self.fixed_B.get(k, (None,))[0] is not self.B[k]}
+        if todo_B:
+            y = torch.cat(list(todo_B.values()))
+            with torch.no_grad():
+                sdf = self.library.sdf(y)
+                normal = self.library.normal(y) if self.lookahead > 0 else None
+            _check_finite(sdf, "the library field (at B)")
+            sizes = [t.shape[0] for t in todo_B.values()]
+            nearest = [_Nearest(t) if self.cfg.regulariser_weight > 0 else None for t in todo_B.values()]
+            normals = normal.split(sizes) if normal is not None else [None] * len(sizes)
+            parts = dict(zip(todo_B, zip(sdf.split(sizes), normals, nearest)))
+            for k in act:
+                if id(self.B[k]) in parts:
+                    self.fixed_B[k] = (self.B[k], *parts[id(self.B[k])])
 
     def resample(self) -> None:
         """Jitter every sample by rho; keep new ones on both surfaces, spaced apart, up to the cap."""

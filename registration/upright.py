@@ -68,9 +68,10 @@ def yaw_starts(
     library_points: np.ndarray,
     prior: UprightPrior,
     n_yaws: int,
+    period: float = 2.0 * np.pi,
     tail: float = 0.005,
 ) -> list[SimilarityTransform]:
-    """``n_yaws`` upright scene -> library starts, evenly spaced in yaw (see the module).
+    """Upright scene -> library starts, evenly spaced in yaw (see the module).
 
     Parameters
     ----------
@@ -80,7 +81,11 @@ def yaw_starts(
         Samples of the whole library object, library field frame.
     prior : UprightPrior
     n_yaws : int
-        Number of yaws, ``2 pi k / n_yaws``.
+        Yaws to a whole turn: the starts are at ``2 pi k / n_yaws``.
+    period : float
+        Only the yaws in ``[0, period)`` start (at least yaw 0): the turn after which the
+        object looks the same again (``2 pi / k`` for a k-fold symmetry about the up axis,
+        0 for a continuous one), since the other yaws would start the same poses again.
     tail : float
         Quantile cut off each end of the vertical extents.
 
@@ -105,8 +110,10 @@ def yaw_starts(
     c_flat = prior.centre - (prior.centre @ us) * us
     align = rotation_between(us, ul)
     out = []
-    for k in range(n_yaws):  # a couple of dozen starts
-        R = axis_rotation(ul, 2.0 * np.pi * k / n_yaws) @ align
+    yaws = 2.0 * np.pi * np.arange(n_yaws) / n_yaws
+    yaws = yaws[(yaws < period - 1e-9) | (np.arange(n_yaws) == 0)]
+    for yaw in yaws:  # a couple of dozen starts at most
+        R = axis_rotation(ul, float(yaw)) @ align
         # Across: the box centre onto the library centre; along up: the bases level.
         t = l_mid_flat - s * (R @ c_flat) + (l_lo - s * s_lo) * ul
         out.append(SimilarityTransform(R, t, float(s)))

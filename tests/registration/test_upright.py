@@ -100,3 +100,30 @@ def test_screening_puts_the_true_pose_before_a_half_turn(pair: dict) -> None:
     finally:
         scene.visibility = None
     assert ranked[0].transform is truth
+
+
+def test_the_sweep_covers_one_period_of_the_symmetry(pair: dict) -> None:
+    """A k-fold object gets the yaws of its first 1/k turn, a round one yaw 0 only: the other
+    yaws start poses the symmetry maps onto these."""
+    args = (pair["scene_s"].points, pair["lib_s"].points, pair["prior"], N_YAWS)
+    full = yaw_starts(*args)
+    for period, expected in ((2 * np.pi, N_YAWS), (2 * np.pi / 4, N_YAWS // 4), (np.pi, N_YAWS // 2),
+                             (0.0, 1)):
+        starts = yaw_starts(*args, period=period)
+        assert len(starts) == expected
+        for a, b in zip(starts, full):  # the same starts, in order
+            assert np.allclose(a.matrix(), b.matrix())
+
+
+def test_the_sweep_period_follows_the_declared_symmetry_about_the_up_axis() -> None:
+    from regnf.registration.initialisation import ObjectSymmetry, _yaw_period
+
+    up = UprightPrior(np.array([0.0, 0.0, 1.0]), np.array([0.0, 0.0, 1.0]), np.zeros(3))
+    z, x = np.array([0.0, 0.0, 1.0]), np.array([1.0, 0.0, 0.0])
+    assert _yaw_period(None, up) == pytest.approx(2 * np.pi)
+    assert _yaw_period(ObjectSymmetry(1, z), up) == pytest.approx(2 * np.pi)
+    assert _yaw_period(ObjectSymmetry(4, z), up) == pytest.approx(np.pi / 2)
+    assert _yaw_period(ObjectSymmetry(4, -z), up) == pytest.approx(np.pi / 2)
+    assert _yaw_period(ObjectSymmetry(0, z), up) == 0.0
+    # A symmetry about another axis leaves every yaw distinct.
+    assert _yaw_period(ObjectSymmetry(2, x), up) == pytest.approx(2 * np.pi)
