@@ -49,7 +49,7 @@ import open3d as o3d
 
 from regnf.core.threads import one_thread
 
-from .metrics import symmetric_angle
+from .metrics import ObjectSymmetry, symmetric_angle
 from .sampling import SurfaceSamples
 from .transform import SimilarityTransform
 from .upright import UprightPrior, yaw_starts
@@ -390,15 +390,6 @@ def _ransac_runs(prep: _Prepared, config: InitConfig) -> list[np.ndarray]:
         mapped = Ps[corr[:, 0]] @ M[:3, :3].T + M[:3, 3]
         corr = corr[np.linalg.norm(mapped - Pl[corr[:, 1]], axis=1) > dist]
     return out
-
-
-class ObjectSymmetry(NamedTuple):
-    """The library object's declared symmetry, in the library field frame."""
-
-    order: int
-    """1: none; k > 1: k-fold; 0: continuous (``regnf.neural_fields.field.Symmetry.order``)."""
-    axis: np.ndarray
-    """(3,) unit axis in the library field frame (``metrics.symmetry_axis`` of its to_world)."""
 
 
 def _yaw_period(symmetry: ObjectSymmetry | None, upright: UprightPrior) -> float:

@@ -149,6 +149,15 @@ def symmetry_axis(library_to_world: np.ndarray) -> np.ndarray:
     return Rw.T @ np.array([0.0, 0.0, 1.0])
 
 
+class ObjectSymmetry(NamedTuple):
+    """The library object's declared symmetry, in the library field frame."""
+
+    order: int
+    """1: none; k > 1: k-fold; 0: continuous (``regnf.neural_fields.field.Symmetry.order``)."""
+    axis: np.ndarray
+    """(3,) unit axis in the library field frame (``metrics.symmetry_axis`` of its to_world)."""
+
+
 def symmetric_angle(Q: np.ndarray, axis: np.ndarray, order: int) -> float:
     """Geodesic angle from the rotation ``Q`` to the nearest symmetry rotation about ``axis``.
 

@@ -232,7 +232,8 @@ def refine_hypotheses(
     timings = dict(timings or {})
     A, B = sample_tensors(scene_samples, lib_samples, library_field.device)
     t2 = time.perf_counter()
-    refined = refine_many(scene_field, library_field, A, B, [h.transform for h in hypotheses], config.refine)
+    refined = refine_many(scene_field, library_field, A, B, [h.transform for h in hypotheses], config.refine,
+                          symmetry=library_symmetry(library_field))
     timings["refinement"] = time.perf_counter() - t2
     timings["total"] = sum(v for k, v in timings.items() if k != "total")
     # The adaptive NLL is not comparable across hypotheses (each learns its own alpha and c),
