@@ -398,3 +398,52 @@ def test_lm_jacobian_matches_finite_differences(problem: dict) -> None:
         close = ((lin.Jq[:, :, j] - fd).abs() <= 1e-6 + 1e-4 * fd.abs()).all(dim=1)
         assert float(close.double().mean()) > 0.995, (j, float(close.double().mean()))
     torch.testing.assert_close(lin.J, torch.stack(numeric, dim=1), rtol=1e-4, atol=1e-6)
+
+
+def test_a_hypothesis_heading_for_a_better_ones_pose_stops(problem: dict) -> None:
+    """Two starts at one pose: from the merge iteration on the later one stops (the earlier one
+    wins the tie) and the earlier one still reaches the truth; with merging off both run on."""
+    T_gt, size = problem["T_gt"], problem["size"]
+    T0 = perturbed(T_gt, 0.15, [0.05 * size, -0.02 * size, 0.01 * size], 1.07)
+    cfg = replace(TEST_CFG, lm_prune_after=2)
+    first, second = refine_many(problem["scene"], problem["lib"], problem["A"], problem["B"], [T0, T0], cfg)
+    assert second.iterations == cfg.lm_prune_after + 1 < first.iterations
+    rot, dt, ds = errors(first.transform, T_gt)
+    assert rot < 1e-5 and dt / size < 1e-5 and ds < 1e-5
+    off = replace(cfg, lm_merge_rotation_deg=0.0)
+    both = refine_many(problem["scene"], problem["lib"], problem["A"], problem["B"], [T0, T0], off)
+    assert both[0].iterations == both[1].iterations == first.iterations
+    # A start half a turn away is another pose of an asymmetric object: never merged.
+    flipped = SimilarityTransform(rotation([0, 0, 1], math.pi) @ np.asarray(T0.R), T0.t, T0.s)
+    apart = refine_many(problem["scene"], problem["lib"], problem["A"], problem["B"], [T0, flipped], cfg)
+    assert apart[1].iterations > cfg.lm_prune_after + 1 or apart[1].inlier_fraction < 0.5
+
+
+def test_motion_about_a_continuous_symmetry_axis_is_no_motion() -> None:
+    """Turning a pose about the library's symmetry axis (through its bounds' centre) moves it
+    by nothing modulo a continuous symmetry, and by the turn without one; a tilt or a shift
+    along the axis still counts."""
+    from regnf.registration.metrics import ObjectSymmetry
+    from regnf.registration.refinement import _Batch
+
+    lib = Cylinder(radius=0.4, half_height=0.3, center=(0.1, -0.2, 0.3))
+    A = surface_samples(lib, 500, seed=3)
+    batch = _Batch(lib, lib, A, A, [SimilarityTransform(np.eye(3), np.zeros(3), 1.0)], TEST_CFG)
+    before = batch.pose_snapshot()
+    axis, centre = np.array([0.0, 0.0, 1.0]), lib.bounds.double().mean(dim=0).numpy()
+    round_table = ObjectSymmetry(0, axis)
+
+    def moved_by(R: np.ndarray, shift: np.ndarray) -> tuple[float, float, float, float]:
+        with torch.no_grad():  # the pose x -> R (x - centre) + centre + shift, as the new base pose
+            batch.R0[0] = torch.as_tensor(R)
+            batch.t0[0] = torch.as_tensor(centre - R @ centre + shift)
+        plain, sym = batch.motion(before), batch.motion(before, round_table)
+        return float(plain[0][0]), float(plain[1][0]), float(sym[0][0]), float(sym[1][0])
+
+    turn = moved_by(rotation([0, 0, 1], 0.7), np.zeros(3))
+    assert turn[0] == pytest.approx(0.7, abs=1e-9) and turn[1] > 0.01
+    assert turn[2] < 1e-6 and turn[3] < 1e-9
+    tilt = moved_by(rotation([1, 0, 0], 0.05), np.zeros(3))
+    assert tilt[2] == pytest.approx(0.05, abs=1e-6)
+    lift = moved_by(np.eye(3), np.array([0.0, 0.0, 0.02]))
+    assert lift[3] == pytest.approx(0.02 / batch.L, rel=1e-6)
