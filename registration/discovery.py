@@ -301,7 +301,8 @@ def discover(scene_field: Field, library: Mapping[str, Field],
                 chosen, ambiguous = None, (a.library_name, b.library_name)
         if chosen is not None and cfg.refit_box:
             refit = register(scene_field, library[chosen.library_name], object_box(chosen.result), reg,
-                             initial=chosen.result.transform)
+                             initial=chosen.result.transform,
+                             library_samples=lib_samples[chosen.library_name])
             if refit.accepted:
                 chosen = chosen._replace(result=refit)
         return Discovery(cand, proposal, tried, chosen, ambiguous)

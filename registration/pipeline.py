@@ -170,6 +170,7 @@ def register(
     config: RegistrationConfig | None = None,
     method: str = "regnf",
     initial: SimilarityTransform | None = None,
+    library_samples: SurfaceSamples | None = None,
 ) -> RegistrationResult:
     """Register ``library_field`` to the object inside ``proposal`` of ``scene_field``.
 
@@ -186,6 +187,10 @@ def register(
         A start given by the caller (scene field -> library field; for example a pose a user
         dragged near its place): the refinement starts from it alone, without the
         initialisation's hypotheses. The sampling, refinement and confidence are the same.
+    library_samples : SurfaceSamples, optional
+        The library field's samples, taken earlier with ``config.library_sampling`` (they do
+        not depend on the scene): reused instead of sampled again (discovery registers each
+        library object in several boxes).
 
     Returns
     -------
@@ -200,7 +205,11 @@ def register(
     # sums and Open3D's parallel RANSAC come out differently on other thread counts, and the
     # screening's ranking turns such last bits into other hypotheses (regnf.core.threads).
     with one_thread():
-        scene_samples, lib_samples = sample_pair(scene_field, library_field, proposal, cfg)
+        if library_samples is None:
+            scene_samples, lib_samples = sample_pair(scene_field, library_field, proposal, cfg)
+        else:
+            scene_samples = sample_surface(scene_field, proposal, cfg.scene_sampling, side="scene")
+            lib_samples = library_samples
         timings["sampling"] = time.perf_counter() - t0
         t1 = time.perf_counter()
         if initial is None:

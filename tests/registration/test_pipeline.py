@@ -135,3 +135,21 @@ def test_single_hypothesis_config_refines_one() -> None:
     cfg = single_hypothesis(RegistrationConfig())
     assert cfg.init.top_k == 1
     assert dataclasses.replace(cfg).init.top_k == 1
+
+
+def test_library_samples_taken_earlier_give_the_same_registration() -> None:
+    """Reusing the library's samples (discovery's refit) is the same registration, bit for bit,
+    as sampling them again."""
+    from regnf.registration.pipeline import sample_pair
+
+    scene, proposal, truth = scene_and_truth(2.3, 1.0)
+    library = library_at_scale(1.0)
+    cfg = RegistrationConfig()
+    _, lib_samples = sample_pair(scene, library, proposal, cfg)
+    again = register(scene, library, proposal, cfg)
+    reused = register(scene, library, proposal, cfg, library_samples=lib_samples)
+    assert np.array_equal(again.transform.matrix(), reused.transform.matrix())
+    assert again.confidence == reused.confidence
+    assert np.array_equal(again.samples[1], reused.samples[1])
+    r, t, s = errors(reused.transform, truth)
+    assert r < 0.02 and t < 0.01 and s < 0.01
