@@ -49,7 +49,7 @@ import open3d as o3d
 
 from regnf.core.threads import one_thread
 
-from .metrics import ObjectSymmetry, symmetric_angle
+from .metrics import ObjectSymmetry, same_pose
 from .sampling import SurfaceSamples
 from .transform import SimilarityTransform
 from .upright import UprightPrior, yaw_starts
@@ -422,17 +422,13 @@ def _select(cands: list[Hypothesis], config: InitConfig,
     cands = sorted(cands, key=lambda h: (-h.fitness, h.inlier_rmse))
     kept: list[Hypothesis] = []
     min_angle = np.radians(config.min_rotation_deg)
-    order, axis = (1, np.array([0.0, 0.0, 1.0])) if symmetry is None else symmetry
     c = np.zeros(3) if centre is None else np.asarray(centre, dtype=np.float64)
 
     def same(h: Hypothesis, k: Hypothesis) -> bool:
-        Rh, Rk = np.asarray(h.transform.R), np.asarray(k.transform.R)
-        if symmetric_angle(Rh @ Rk.T, axis, order) >= min_angle:
-            return False
-        if abs(np.log(h.transform.s / k.transform.s)) >= np.log1p(config.min_scale_change):
-            return False
         shift = h.transform.inverse().apply(c[None])[0] - k.transform.inverse().apply(c[None])[0]
-        return float(np.linalg.norm(shift)) * h.transform.s < config.min_shift * size
+        return same_pose(h.transform.R, k.transform.R, h.transform.s, k.transform.s,
+                         float(np.linalg.norm(shift)) * h.transform.s, symmetry, min_angle,
+                         config.min_scale_change, config.min_shift * size)
 
     for h in cands:
         if len(kept) == (limit or config.top_k):

@@ -158,6 +158,31 @@ class ObjectSymmetry(NamedTuple):
     """(3,) unit axis in the library field frame (``metrics.symmetry_axis`` of its to_world)."""
 
 
+def same_pose(R1: np.ndarray, R2: np.ndarray, s1: float, s2: float, shift: float,
+              symmetry: ObjectSymmetry | None, max_angle: float, max_scale: float,
+              max_shift: float) -> bool:
+    """Whether two scene -> library poses are one within tolerances.
+
+    Parameters
+    ----------
+    R1, R2 : (3, 3) float
+        Their rotations.
+    s1, s2 : float
+        Their scales.
+    shift : float
+        How far apart they put one point (the caller's choice of point and unit).
+    symmetry : ObjectSymmetry or None
+        Rotations a symmetry maps onto each other are one (None: no symmetry).
+    max_angle, max_scale, max_shift : float
+        The rotations are less than ``max_angle`` radians apart (modulo the symmetry), the
+        scales less than the fraction ``max_scale`` and ``shift`` is below ``max_shift``.
+    """
+    if shift >= max_shift or abs(math.log(s1 / s2)) >= math.log1p(max_scale):
+        return False
+    order, axis = (1, np.array([0.0, 0.0, 1.0])) if symmetry is None else symmetry
+    return symmetric_angle(np.asarray(R1) @ np.asarray(R2).T, axis, order) < max_angle
+
+
 def symmetric_angle(Q: np.ndarray, axis: np.ndarray, order: int) -> float:
     """Geodesic angle from the rotation ``Q`` to the nearest symmetry rotation about ``axis``.
 

@@ -60,7 +60,7 @@ import contextlib
 import dataclasses
 import math
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Literal, NamedTuple
 
@@ -77,7 +77,7 @@ from regnf.registration.irls import (
     segment_gram,
     segment_normal_equations,
 )
-from regnf.registration.metrics import ObjectSymmetry, symmetric_angle
+from regnf.registration.metrics import ObjectSymmetry, same_pose, symmetric_angle
 from regnf.registration.robust_loss import AdaptiveRobustLoss, general_rho, log_partition
 from regnf.registration.transform import SimilarityTransform
 
@@ -383,6 +383,12 @@ def _segment_mean(values: torch.Tensor, group: torch.Tensor, counts: torch.Tenso
     return out.index_add(0, group, values) / counts.clamp(min=1)
 
 
+def _split_rows(columns: list[torch.Tensor | None], tensors: list[torch.Tensor]) -> list[tuple]:
+    """Per tensor of ``tensors`` (stacked in that order), its rows of each column (None: None)."""
+    sizes = [t.shape[0] for t in tensors]
+    return list(zip(*(c.split(sizes) if c is not None else [None] * len(sizes) for c in columns)))
+
+
 def _segment_sum(values: torch.Tensor, group: torch.Tensor, k: int) -> torch.Tensor:
     """(k,) sum of ``values`` (n,) per group (n,) long."""
     return values.new_zeros(k).index_add(0, group, values)
@@ -598,35 +604,41 @@ class _Batch:
         lookup at B. Once per distinct sample tensor, in one field query per side (the fields
         are the cost: measured, re-evaluating them whenever a hypothesis stopped took a third of
         the refinement)."""
-        act = self.active
-        todo_A = {id(self.A[k]): self.A[k] for k in act if self.fixed_A.get(k, (None,))[0] is not self.A[k]}
-        if todo_A:
-            x = torch.cat(list(todo_A.values()))
-            with torch.no_grad():
-                sdf = self.scene.sdf(x)
-                w = self._observed(x)
-            _check_finite(sdf, "the scene field (at A)")
-            sizes = [t.shape[0] for t in todo_A.values()]
-            parts = dict(zip(todo_A, zip(sdf.split(sizes), w.split(sizes) if w is not None else [None] * len(sizes))))
-            for k in act:
-                if id(self.A[k]) in parts:
-                    self.fixed_A[k] = (self.A[k], *parts[id(self.A[k])])
-        if not self.bidirectional:
+        self._cache_per_tensor(self.A, self.fixed_A, self._fixed_at_A)
+        if self.bidirectional:
+            self._cache_per_tensor(self.B, self.fixed_B, self._fixed_at_B)
+
+    def _cache_per_tensor(self, sets: list[torch.Tensor], cache: dict,
+                          evaluate: Callable[[list[torch.Tensor]], list[tuple]]) -> None:
+        """``cache[k] = (sets[k], *values)`` for each active hypothesis whose sample tensor the
+        cache does not hold yet; ``evaluate`` gets each such tensor once and returns its values."""
+        todo = {id(sets[k]): sets[k] for k in self.active if cache.get(k, (None,))[0] is not sets[k]}
+        if not todo:
             return
-        todo_B = {id(self.B[k]): self.B[k] for k in act if self.fixed_B.get(k, (None,))[0] is not self.B[k]}
-        if todo_B:
-            y = torch.cat(list(todo_B.values()))
-            with torch.no_grad():
-                sdf = self.library.sdf(y)
-                normal = self.library.normal(y) if self.lookahead > 0 else None
-            _check_finite(sdf, "the library field (at B)")
-            sizes = [t.shape[0] for t in todo_B.values()]
-            nearest = [_Nearest(t) if self.cfg.regulariser_weight > 0 else None for t in todo_B.values()]
-            normals = normal.split(sizes) if normal is not None else [None] * len(sizes)
-            parts = dict(zip(todo_B, zip(sdf.split(sizes), normals, nearest)))
-            for k in act:
-                if id(self.B[k]) in parts:
-                    self.fixed_B[k] = (self.B[k], *parts[id(self.B[k])])
+        values = dict(zip(todo, evaluate(list(todo.values()))))
+        for k in self.active:
+            if id(sets[k]) in values:
+                cache[k] = (sets[k], *values[id(sets[k])])
+
+    def _fixed_at_A(self, tensors: list[torch.Tensor]) -> list[tuple]:
+        """Per scene sample tensor: S_scene and the visibility (None without) at its points."""
+        x = torch.cat(tensors)
+        with torch.no_grad():
+            sdf = self.scene.sdf(x)
+            w = self._observed(x)
+        _check_finite(sdf, "the scene field (at A)")
+        return _split_rows([sdf, w], tensors)
+
+    def _fixed_at_B(self, tensors: list[torch.Tensor]) -> list[tuple]:
+        """Per library sample tensor: S_lib, the outward normals (None without a lookahead) and
+        the nearest-sample lookup (None without the regulariser)."""
+        y = torch.cat(tensors)
+        with torch.no_grad():
+            sdf = self.library.sdf(y)
+            normal = self.library.normal(y) if self.lookahead > 0 else None
+        _check_finite(sdf, "the library field (at B)")
+        return [(*row, _Nearest(t) if self.cfg.regulariser_weight > 0 else None)
+                for row, t in zip(_split_rows([sdf, normal], tensors), tensors)]
 
     def resample(self) -> None:
         """Jitter every sample by rho; keep new ones on both surfaces, spaced apart, up to the cap."""
@@ -1130,20 +1142,12 @@ def _merged(batch: _Batch, fraction: list[float], symmetry: ObjectSymmetry | Non
     cfg = batch.cfg
     if cfg.lm_merge_rotation_deg <= 0 or batch.K < 2:
         return []
-    order, axis = (1, np.array([0.0, 0.0, 1.0])) if symmetry is None else symmetry
     R, c, s = (v.detach().cpu().numpy() for v in batch.pose_snapshot())
     limit = math.radians(cfg.lm_merge_rotation_deg)
-    out = []
-    for k in batch.active:
-        for j in range(batch.K):
-            if j == k or (fraction[j], -j) <= (fraction[k], -k):
-                continue
-            if (abs(math.log(s[k] / s[j])) < math.log1p(cfg.lm_merge_scale)
-                    and np.linalg.norm(c[k] - c[j]) < cfg.lm_merge_shift * batch.L
-                    and symmetric_angle(R[k] @ R[j].T, axis, order) < limit):
-                out.append(k)
-                break
-    return out
+    return [k for k in batch.active
+            if any(same_pose(R[k], R[j], float(s[k]), float(s[j]), float(np.linalg.norm(c[k] - c[j])),
+                             symmetry, limit, cfg.lm_merge_scale, cfg.lm_merge_shift * batch.L)
+                   for j in range(batch.K) if j != k and (fraction[j], -j) > (fraction[k], -k))]
 
 
 def _run_lm(batch: _Batch, histories: list[list[dict]], steps: list[int],
