@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import torch
 
 from regnf.neural_fields.analytic import Box, Cylinder, Transformed, Union
 from regnf.neural_fields.similarity import similarity_matrix
@@ -97,9 +98,9 @@ def test_two_objects_that_differ_only_where_no_view_looked_are_ambiguous(pillow_
     assert np.isnan(observed_difference(scene, plain, results[0], plain, results[0]))
 
 
-def test_two_unmatched_halves_of_one_object_are_tried_as_one() -> None:
+def _halves():
+    """Two overlapping halves of one object, one far candidate and one that touches a half."""
     from regnf.registration.candidates import Candidates, candidate_of
-    from regnf.registration.discovery import Discovery, Tried, joined_halves
 
     from .fixtures import make_object
 
@@ -112,24 +113,92 @@ def test_two_unmatched_halves_of_one_object_are_tried_as_one() -> None:
     left, right = cloud([0.0, 0.0, 0.0], [0.5, 1.0, 0.8]), cloud([0.4, 0.0, 0.0], [1.0, 1.0, 0.8])
     far, touching = cloud([3.0, 0.0, 0.0], [3.6, 0.5, 0.8]), cloud([0.9, 0.5, 0.0], [1.5, 1.2, 0.8])
     cands = [candidate_of(p, [], field, cfg.candidates) for p in (left, right, far, touching)]
-    matched = Tried("other", 0.9, None)
-    found = [Discovery(cands[0], cands[0].box, [], None), Discovery(cands[1], cands[1].box, [], None),
-             Discovery(cands[2], cands[2].box, [], None), Discovery(cands[3], cands[3].box, [], matched)]
+    return field, cfg, Candidates(cands, [], 1200), np.vstack([left, right])
+
+
+def _union_of(cand, points: np.ndarray) -> bool:
+    return len(cand.points) == len(points) and np.allclose(np.sort(cand.points, 0), np.sort(points, 0))
+
+
+def test_overlapping_candidates_are_examined_first_as_one() -> None:
+    from regnf.registration.discovery import Discovery, Tried, examined, overlapping_pairs
+
+    field, cfg, found, whole = _halves()
+    cands = found.candidates
+    # The halves overlap most; the right half also touches the fourth candidate, but belongs to
+    # one pair only. A zero threshold joins nothing.
+    assert overlapping_pairs(cands, cfg.join_overlap) == [(0, 1)]
+    assert overlapping_pairs(cands, 0.0) == []
     seen: list[int] = []
 
-    def examine(cand):  # the union of the two halves is the object; anything else matches nothing
-        seen.append(len(cand.points))
-        whole = len(cand.points) == 600 and np.allclose(np.sort(cand.points, 0), np.sort(np.vstack([left, right]), 0))
-        return Discovery(cand, cand.box, [], Tried("obj", 1.0, None) if whole else None)
+    def examine(cand):  # the halves' union is the object; the fourth candidate is matched alone
+        seen.append(next((k for k, c in enumerate(cands) if c is cand), -1))
+        chosen = None
+        if _union_of(cand, whole):
+            chosen = Tried("obj", 1.0, None)
+        elif cand is cands[3]:
+            chosen = Tried("other", 0.9, None)
+        return Discovery(cand, cand.box, [], chosen)
 
-    out = joined_halves(found, examine, Candidates(cands, [], 1200), field, cfg)
-    assert seen == [600]  # only the overlapping unmatched pair was tried again; the matched one never
-    assert len(out) == 3 and sum(d.chosen is not None and d.chosen.library_name == "obj" for d in out) == 1
+    out = examined(found, examine, lambda d, half: True, field, cfg)
+    assert seen == [-1, 2, 3]  # the union first; its halves never on their own
+    assert [d.chosen.library_name if d.chosen else None for d in out].count("obj") == 1
     joined = next(d for d in out if d.chosen is not None and d.chosen.library_name == "obj")
     np.testing.assert_allclose(joined.candidate.box.center[:2], [0.5, 0.5], atol=0.03)
-    assert any(d.candidate is cands[2] for d in out) and any(d.candidate is cands[3] for d in out)
-    # A union that matches nothing leaves both halves as they were.
-    none = joined_halves(found, lambda c: Discovery(c, c.box, [], None), Candidates(cands, [], 1200), field, cfg)
-    assert [d.candidate for d in none] == [d.candidate for d in sorted(found, key=lambda d: -np.prod(d.candidate.box.half_extents))]
+    assert len(out) == 3 and any(d.candidate is cands[2] for d in out) and any(d.candidate is cands[3] for d in out)
+    volumes = [float(np.prod(d.candidate.box.half_extents)) for d in out]
+    assert volumes == sorted(volumes, reverse=True)
+
+
+def test_a_union_that_does_not_explain_its_halves_yields_to_them() -> None:
+    from regnf.registration.discovery import Discovery, Tried, examined
+
+    field, cfg, found, whole = _halves()
+    cands = found.candidates
+
+    def examine_with(left_alone: bool):
+        def examine(cand):
+            chosen = None
+            if _union_of(cand, whole):
+                chosen = Tried("big", 1.0, None)
+            elif cand is cands[0] and left_alone:
+                chosen = Tried("small", 0.9, None)
+            return Discovery(cand, cand.box, [], chosen)
+        return examine
+
+    def left_only(d, half) -> bool:  # the union's object explains the left half alone
+        return half is cands[0]
+
+    # One half matched on its own: both halves stay, the union is dropped.
+    out = examined(found, examine_with(True), left_only, field, cfg)
+    assert sorted(d.chosen.library_name for d in out if d.chosen) == ["small"]
+    assert len(out) == 4
+    # Neither half matched: the union replaces them, as an unexplained match is still the best.
+    out = examined(found, examine_with(False), left_only, field, cfg)
+    assert sorted(d.chosen.library_name for d in out if d.chosen) == ["big"]
+    assert len(out) == 3
+    # A union that matches nothing leaves all four as they were, largest first.
+    none = examined(found, lambda c: Discovery(c, c.box, [], None), left_only, field, cfg)
+    assert [d.candidate for d in none] == sorted(cands, key=lambda c: -np.prod(c.box.half_extents))
     with pytest.raises(ValueError, match="join_overlap"):
         DiscoveryConfig(join_overlap=2.0)
+    with pytest.raises(ValueError, match="half_explained"):
+        DiscoveryConfig(half_explained=-0.1)
+
+
+def test_explained_fraction_measures_metres_to_the_registered_surface() -> None:
+    from regnf.neural_fields.analytic import Sphere
+    from regnf.registration.discovery import explained_fraction
+    from regnf.registration.result import RegistrationResult
+
+    # Scene field frame = metres / 2 (to_world scales by 2); the library sphere, radius 1 in its
+    # own units, stands at (1, 0, 0) metres with radius 0.25 m: scene field -> library is x -> 8 (x - (0.5, 0, 0)).
+    scene = Box((3.0, 3.0, 0.05), to_world=torch.diag(torch.tensor([2.0, 2.0, 2.0, 1.0])))
+    truth = SimilarityTransform.from_matrix(np.asarray(similarity_matrix(np.eye(3), [-4.0, 0.0, 0.0], 8.0)))
+    result = RegistrationResult(truth, 0.9, True, "regnf")
+    d = np.array([[1.0, 0.0, 1.0]]) / np.sqrt(2.0)
+    radii = np.array([0.25, 0.26, 0.27, 0.30, 0.40])[:, None]  # metres from the centre
+    points = np.array([1.0, 0.0, 0.0]) + radii * d
+    # 0, 1, 2, 5 and 15 cm from the surface: within 3 cm, the first three.
+    assert explained_fraction(scene, Sphere(1.0), result, points, 0.03) == pytest.approx(0.6)
+    assert explained_fraction(scene, Sphere(1.0), result, points, 0.055) == pytest.approx(0.8)
