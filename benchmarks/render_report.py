@@ -13,11 +13,15 @@ from regnf.core.atomic_io import atomic_path
 
 def markdown_tables(result: dict) -> str:
     """The speed rows and the completion summary as Markdown."""
-    out = ["| scene | renderer | size | evals / pixel | s / frame | PSNR vs reference (dB) |",
-           "|---|---|---|---|---|---|"]
+    out = [("| scene | renderer | size | evals / pixel | s / frame | PSNR vs reference (dB) | "
+            "PSNR vs neural (dB) | bake s |"),
+           "|---|---|---|---|---|---|---|---|"]
     for r in result["rows"]:
+        vs = f"{r['psnr_vs_neural']:.2f} (min {r['psnr_vs_neural_min']:.2f})" if "psnr_vs_neural" in r else ""
+        bake = f"{r['bake_seconds']:.0f}" if "bake_seconds" in r else ""
         out.append(f"| {r['scene']} | {r['renderer']} | {r['width']}x{r['height']} | "
-                   f"{r['evals_per_pixel']:.1f} | {r['seconds']:.2f} | {r['psnr_vs_reference']:.2f} |")
+                   f"{r['evals_per_pixel']:.1f} | {r['seconds_per_frame']:.2f} | {r['psnr_vs_reference']:.2f} | "
+                   f"{vs} | {bake} |")
     c = result["completion"]
     out += ["", (f"Object completion, {c['scene']}, {c['views_per_object']} unseen views per object "
                  "(object pixels only):"), "",
@@ -41,8 +45,8 @@ def markdown_tables(result: dict) -> str:
 
 
 def write_images(images: dict[str, list[np.ndarray]], folder: Path, stem: str) -> list[Path]:
-    """One contact sheet per image group: ``<stem>_speed.png`` (reference, sphere tracer,
-    matched sphere tracer, volume renderer) and ``<stem>_completion.png`` (per object: before,
+    """One contact sheet per image group: ``<stem>_speed.png`` (reference, then one image per
+    speed row: sphere tracer, baked, matched sphere tracer, volume renderer) and ``<stem>_completion.png`` (per object: before,
     after, reference)."""
     paths = []
     for name, imgs in images.items():

@@ -1,0 +1,185 @@
+"""A field baked once into dense grids of distance and colour, read by trilinear look-ups.
+
+For rendering many images of the same fields (data-set generation), every network evaluation
+of the sphere tracer (about 15 per pixel) becomes a table look-up: the field's SDF is sampled
+at the nodes of a regular grid over its bounds, and its colour at the nodes within
+``band_cells`` cells of its surface (a hit's trilinear cell has all its corners there). The
+cell is chosen from the pixel footprint of the cameras that will look (:func:`bake_cell`): a
+finer grid shows nothing more.
+
+Outside its bounds a baked field is a lower bound of the distance to anything inside them: the
+larger of the distance to the bounds and the border value less that distance. The source field is the exact fallback: render
+it where a grid's resolution is not enough (the PSNR lost is measured in ``regnf bench
+render``, row ``baked``).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from tqdm import tqdm
+
+from regnf.neural_fields.camera import Camera
+from regnf.neural_fields.field import DEFAULT_CHUNK, Field, FieldInfo, check_points
+
+
+@dataclass(frozen=True)
+class BakeConfig:
+    """How :func:`bake` samples a field."""
+
+    cell_pixels: float = 1.0
+    """Grid cell as a multiple of the cameras' pixel footprint (:func:`bake_cell`)."""
+    max_nodes: int = 2**24
+    """Most grid nodes (distance, float32, and colour, 3 x float32, per node: 256 MB at the
+    default); a coarser cell is taken when the footprint would need more."""
+    band_cells: float = 2.0
+    """Colour is evaluated at nodes whose distance is within this many cells of the surface (a
+    hit's trilinear cell has its 8 corners within sqrt(3) cells); elsewhere it is never read and
+    left 0. The colour is the costly evaluation (it takes the SDF's gradient)."""
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.cell_pixels) and self.cell_pixels > 0):
+            raise ValueError(f"cell_pixels must be finite and > 0, got {self.cell_pixels}")
+        if self.max_nodes < 8:
+            raise ValueError(f"max_nodes must be >= 8, got {self.max_nodes}")
+        if not (math.isfinite(self.band_cells) and self.band_cells >= math.sqrt(3.0)):
+            raise ValueError(f"band_cells must be >= sqrt(3) (a hit's cell corners), got {self.band_cells}")
+
+
+def bake_cell(field: Field, cameras: Sequence[Camera], config: BakeConfig = BakeConfig()) -> float:
+    """The grid cell (field units) for ``field`` seen by ``cameras`` (metres).
+
+    The pixel footprint is the median over the cameras of their distance to the centre of the
+    field's bounds divided by their focal length in pixels, times ``config.cell_pixels``; no
+    finer than a grid of ``config.max_nodes`` nodes over the bounds allows.
+    """
+    if not cameras:
+        raise ValueError("bake_cell needs at least one camera")
+    W = field.to_world.detach().cpu().double().numpy()
+    lo, hi = field.bounds.detach().cpu().double().numpy()
+    centre = W[:3, :3] @ ((lo + hi) / 2) + W[:3, 3]
+    footprints = [np.linalg.norm(np.asarray(c.camera_to_world)[:3, 3] - centre) / float(c.K[0, 0]) for c in cameras]
+    cell = config.cell_pixels * float(np.median(footprints)) / field.world_scale
+    cell = max(cell, (float(np.prod(hi - lo)) / config.max_nodes) ** (1.0 / 3.0), 1e-9)
+    while math.prod(grid_nodes(field.bounds, cell)) > config.max_nodes:  # the end nodes and rounding
+        cell *= 1.01
+    return cell
+
+
+def grid_nodes(bounds: torch.Tensor, cell: float) -> tuple[int, int, int]:
+    """Nodes per axis (x, y, z) of a grid over ``bounds`` (2, 3) with cells of about ``cell``."""
+    extent = (bounds[1] - bounds[0]).detach().cpu().double()
+    return tuple(int(max(2, math.ceil(float(e) / cell) + 1)) for e in extent)  # type: ignore[return-value]
+
+
+class BakedField(Field):
+    """SDF and colour of a field on the nodes of a dense grid over its bounds.
+
+    Parameters
+    ----------
+    sdf_grid : (nz, ny, nx) float
+        Signed distance at the nodes (field units), indexed [z, y, x].
+    rgb_grid : (3, nz, ny, nx) float
+        Colour at the nodes (in [0, 1] within the surface band).
+    bounds : (2, 3) float
+        The grid's corners (its first and last nodes).
+    to_world : (4, 4) float
+    info : FieldInfo
+    """
+
+    def __init__(self, sdf_grid: torch.Tensor, rgb_grid: torch.Tensor, bounds: torch.Tensor,
+                 to_world: torch.Tensor, info: FieldInfo) -> None:
+        super().__init__(bounds, to_world, info)
+        if sdf_grid.ndim != 3 or rgb_grid.shape != (3, *sdf_grid.shape) or min(sdf_grid.shape) < 2:
+            raise ValueError(f"grids must be (nz, ny, nx) and (3, nz, ny, nx) with >= 2 nodes an axis, got "
+                             f"{tuple(sdf_grid.shape)} and {tuple(rgb_grid.shape)}")
+        self.register_buffer("sdf_grid", sdf_grid.float()[None, None].contiguous().to(self.device))
+        self.register_buffer("rgb_grid", rgb_grid.float()[None].contiguous().to(self.device))
+
+    @property
+    def nodes(self) -> tuple[int, int, int]:
+        """Nodes per axis (x, y, z)."""
+        nz, ny, nx = self.sdf_grid.shape[2:]
+        return nx, ny, nz
+
+    def _lookup(self, grid: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+        """(C, n) trilinear values of ``grid`` (1, C, nz, ny, nx) at points ``x`` (n, 3)."""
+        lo, hi = self.bounds[0], self.bounds[1]
+        u = (x - lo) / (hi - lo) * 2.0 - 1.0  # grid_sample's [-1, 1], (x, y, z) order
+        out = F.grid_sample(grid, u.to(grid.dtype).view(1, 1, 1, -1, 3), mode="bilinear",
+                            padding_mode="border", align_corners=True)
+        return out.view(grid.shape[1], -1)
+
+    def sdf(self, x: torch.Tensor) -> torch.Tensor:
+        check_points(x, self)
+        inside = torch.maximum(torch.minimum(x, self.bounds[1]), self.bounds[0])
+        v = self._lookup(self.sdf_grid, x)[0]
+        # Outside, every surface is inside the bounds: at least the way back into them away,
+        # and at least the border value less that way (a lower bound, safe to step).
+        out = torch.linalg.norm(x - inside, dim=-1)
+        return torch.where(out > 0, torch.maximum(out, v - out), v)
+
+    def color(self, x: torch.Tensor, d: torch.Tensor | None = None) -> torch.Tensor:
+        check_points(x, self)
+        return self._lookup(self.rgb_grid, x).T.clamp(0.0, 1.0)
+
+
+@torch.no_grad()
+def bake(field: Field, cell: float, config: BakeConfig = BakeConfig(), chunk: int = DEFAULT_CHUNK,
+         progress: bool = False) -> BakedField:
+    """Sample ``field`` on a grid of cells of about ``cell`` (field units) over its bounds.
+
+    Parameters
+    ----------
+    field : Field
+        A field whose colour depends on the point only (a view-dependent colour is baked as
+        seen along the surface normal).
+    cell : float
+        Cell size in field units, for example :func:`bake_cell`.
+    config : BakeConfig
+    chunk : int
+        Points per evaluation.
+    progress : bool
+        Show a progress bar over the grid's z slabs.
+
+    Returns
+    -------
+    BakedField
+        On the field's device, with the field's ``to_world``, ``info`` and visibility grid.
+    """
+    if not (math.isfinite(cell) and cell > 0):
+        raise ValueError(f"cell must be finite and > 0, got {cell}")
+    bounds = field.bounds.detach()
+    nx, ny, nz = grid_nodes(bounds, cell)
+    if nx * ny * nz > config.max_nodes:
+        raise ValueError(f"a grid of {nx}x{ny}x{nz} nodes exceeds max_nodes={config.max_nodes}; take a larger cell")
+    dev, dt = field.device, bounds.dtype
+    axes = [torch.linspace(float(bounds[0, k]), float(bounds[1, k]), n, device=dev, dtype=dt)
+            for k, n in enumerate((nx, ny, nz))]
+    step = float(((bounds[1] - bounds[0]) / torch.tensor([nx - 1, ny - 1, nz - 1], device=dev)).max())
+    band = config.band_cells * step
+    sdf = torch.empty(nz, ny, nx, device=dev)
+    rgb = torch.zeros(3, nz, ny, nx, device=dev)
+    slabs = max(1, chunk // (nx * ny))  # z slabs per evaluation
+    for z0 in tqdm(range(0, nz, slabs), desc=f"bake {field.name or 'field'}", disable=not progress):
+        zs = axes[2][z0:z0 + slabs]
+        gz, gy, gx = torch.meshgrid(zs, axes[1], axes[0], indexing="ij")
+        x = torch.stack([gx, gy, gz], dim=-1).reshape(-1, 3)  # (slabs * ny * nx, 3), [z, y, x] order
+        s = field.sdf_chunked(x, chunk)
+        sdf[z0:z0 + len(zs)] = s.view(len(zs), ny, nx)
+        near = s.abs() <= band
+        if bool(near.any()):
+            c = torch.zeros(len(x), 3, device=dev)
+            c[near] = field.color_chunked(x[near], None, chunk).float()
+            rgb[:, z0:z0 + len(zs)] = c.T.reshape(3, len(zs), ny, nx)
+    info = FieldInfo(field.info.label, field.info.name, field.info.symmetry,
+                     {**field.info.provenance, "baked": {"cell": step, "nodes": [nx, ny, nz],
+                                                         "band_cells": config.band_cells}})
+    out = BakedField(sdf, rgb, bounds, field.to_world.detach(), info)
+    out.visibility = field.visibility
+    return out

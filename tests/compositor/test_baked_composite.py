@@ -1,0 +1,65 @@
+"""The baked composite against the composite it was baked from (analytic fields)."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from regnf.compositor import CompositeConfig, CompositeField
+from regnf.compositor.baked_composite import baked_composite
+from regnf.compositor.placement import PlacedObject
+from regnf.compositor.regions import OrientedBoxRegion
+from regnf.neural_fields.baked_field import BakeConfig, BakedField
+from regnf.neural_fields.camera import Camera
+from regnf.neural_fields.similarity import similarity_matrix
+from regnf.neural_fields.sphere_tracer import SphereTracerConfig, render
+
+from . import helpers as H
+
+
+def two_instances() -> CompositeField:
+    """The helpers' scene less its removal box, with the library sphere placed twice (one field)."""
+    region = OrientedBoxRegion(H.REGION_CENTER, H.REGION_HALF, H.REGION_ROT, keep_floor=H.FLOOR_Z,
+                               floor_margin=H.FLOOR_MARGIN)
+    ball = H.library_sphere()
+    second = similarity_matrix(np.eye(3), [0.9, -0.5, 0.0]) @ H.LIB_TO_SCENE
+    placed = [PlacedObject(ball, H.LIB_TO_SCENE, H.INSTANCE), PlacedObject(ball, second, 9, (0.5, 1.0, 1.0))]
+    return CompositeField(H.scene_field(), placed, [region], CompositeConfig())
+
+
+def camera() -> Camera:
+    K = np.array([[40.0, 0.0, 32.0], [0.0, 40.0, 24.0], [0.0, 0.0, 1.0]])
+    pose = np.eye(4)  # OpenCV axes looking along +y, from above the floor
+    pose[:3, :3] = np.column_stack([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+    pose[:3, 3] = [0.0, -2.5, 0.5]
+    return Camera(K, 64, 48, pose)
+
+
+def test_removals_go_into_the_scene_grid_and_each_library_field_is_baked_once() -> None:
+    comp = two_instances()
+    out = baked_composite(comp, [camera()], BakeConfig(cell_pixels=0.5))
+    baked = out.field
+    assert len(baked.removals) == 0 and isinstance(baked.scene, BakedField)
+    fields = [p.field for p in baked.placements]
+    assert all(isinstance(f, BakedField) for f in fields) and fields[0] is fields[1]
+    assert baked.instance_ids == comp.instance_ids and baked.tints == comp.tints
+    assert out.nodes == baked.scene.sdf_grid.numel() + fields[0].sdf_grid.numel()
+    # The distances agree near the surfaces, the removal box's cut included.
+    x = torch.as_tensor(H.random_points(20000, seed=3), dtype=torch.float32)
+    exact, approx = comp.evaluate(x), baked.evaluate(x)
+    near = exact.sdf.abs() < 0.05
+    cell = float(baked.scene.info.provenance["baked"]["cell"])
+    err = (approx.sdf - exact.sdf)[near].abs()
+    assert float(err.median()) < 0.05 * cell and float(err.max()) < 1.5 * cell
+    assert float((approx.winner[near] == exact.winner[near]).float().mean()) > 0.98
+
+
+def test_the_baked_composite_renders_the_composite() -> None:
+    comp = two_instances()
+    baked = baked_composite(comp, [camera()], BakeConfig(cell_pixels=0.5)).field
+    cfg = SphereTracerConfig.plain()
+    exact, approx = render(comp, camera(), cfg), render(baked, camera(), cfg)
+    assert float((exact.instance_id != approx.instance_id).float().mean()) < 0.01
+    both = exact.mask & approx.mask
+    assert float((exact.rgb - approx.rgb)[both].abs().amax(dim=-1).median()) < 1e-3
+    assert float((exact.depth - approx.depth)[both].abs().median()) < 1e-3
