@@ -42,7 +42,17 @@ class BakeConfig:
     hit's trilinear cell has its 8 corners within sqrt(3) cells); elsewhere it is never read and
     left 0. The colour is the costly evaluation (it takes the SDF's gradient)."""
 
+    coarse_stride: int = 4
+    """The SDF is first evaluated at every ``coarse_stride``-th node along each axis and
+    interpolated; the field itself is then evaluated only at the nodes that may lie within
+    the colour band (the interpolation's error on a 1-Lipschitz distance is at most half a
+    coarse cell's diagonal). The others keep the interpolation less that bound: a lower bound
+    of their distance, safe for a sphere tracer. 1 evaluates every node."""
+
     def __post_init__(self) -> None:
+        if isinstance(self.coarse_stride, bool) or int(self.coarse_stride) != self.coarse_stride \
+                or self.coarse_stride < 1:
+            raise ValueError(f"coarse_stride must be an integer >= 1, got {self.coarse_stride}")
         if not (math.isfinite(self.cell_pixels) and self.cell_pixels > 0):
             raise ValueError(f"cell_pixels must be finite and > 0, got {self.cell_pixels}")
         if self.max_nodes < 8:
@@ -66,15 +76,17 @@ def bake_cell(field: Field, cameras: Sequence[Camera], config: BakeConfig = Bake
     footprints = [np.linalg.norm(np.asarray(c.camera_to_world)[:3, 3] - centre) / float(c.K[0, 0]) for c in cameras]
     cell = config.cell_pixels * float(np.median(footprints)) / field.world_scale
     cell = max(cell, (float(np.prod(hi - lo)) / config.max_nodes) ** (1.0 / 3.0), 1e-9)
-    while math.prod(grid_nodes(field.bounds, cell)) > config.max_nodes:  # the end nodes and rounding
+    while math.prod(grid_nodes(field.bounds, cell, config.coarse_stride)) > config.max_nodes:  # the end nodes and rounding
         cell *= 1.01
     return cell
 
 
-def grid_nodes(bounds: torch.Tensor, cell: float) -> tuple[int, int, int]:
-    """Nodes per axis (x, y, z) of a grid over ``bounds`` (2, 3) with cells of about ``cell``."""
+def grid_nodes(bounds: torch.Tensor, cell: float, stride: int = 1) -> tuple[int, int, int]:
+    """Nodes per axis (x, y, z) of a grid over ``bounds`` (2, 3) with cells of about ``cell``
+    (at most that), ``stride`` cells times a whole number per axis."""
     extent = (bounds[1] - bounds[0]).detach().cpu().double()
-    return tuple(int(max(2, math.ceil(float(e) / cell) + 1)) for e in extent)  # type: ignore[return-value]
+    return tuple(stride * max(1, math.ceil(math.ceil(float(e) / cell) / stride)) + 1  # type: ignore[return-value]
+                 for e in extent)
 
 
 class BakedField(Field):
@@ -129,6 +141,16 @@ class BakedField(Field):
         return self._lookup(self.rgb_grid, x).T.clamp(0.0, 1.0)
 
 
+def _slabs(axes: Sequence[torch.Tensor], chunk: int):
+    """(first z index, (m, 3) node points) of the grid on ``axes`` (x, y, z), a few z slabs at a
+    time (about ``chunk`` nodes), in [z, y, x] order."""
+    nx, ny = len(axes[0]), len(axes[1])
+    per = max(1, chunk // (nx * ny))
+    for z0 in range(0, len(axes[2]), per):
+        gz, gy, gx = torch.meshgrid(axes[2][z0:z0 + per], axes[1], axes[0], indexing="ij")
+        yield z0, torch.stack([gx, gy, gz], dim=-1).reshape(-1, 3)
+
+
 @torch.no_grad()
 def bake(field: Field, cell: float, config: BakeConfig = BakeConfig(), chunk: int = DEFAULT_CHUNK,
          progress: bool = False) -> BakedField:
@@ -155,31 +177,46 @@ def bake(field: Field, cell: float, config: BakeConfig = BakeConfig(), chunk: in
     if not (math.isfinite(cell) and cell > 0):
         raise ValueError(f"cell must be finite and > 0, got {cell}")
     bounds = field.bounds.detach()
-    nx, ny, nz = grid_nodes(bounds, cell)
+    k = config.coarse_stride
+    nx, ny, nz = grid_nodes(bounds, cell, k)
     if nx * ny * nz > config.max_nodes:
         raise ValueError(f"a grid of {nx}x{ny}x{nz} nodes exceeds max_nodes={config.max_nodes}; take a larger cell")
     dev, dt = field.device, bounds.dtype
-    axes = [torch.linspace(float(bounds[0, k]), float(bounds[1, k]), n, device=dev, dtype=dt)
-            for k, n in enumerate((nx, ny, nz))]
+    axes = [torch.linspace(float(bounds[0, a]), float(bounds[1, a]), n, device=dev, dtype=dt)
+            for a, n in enumerate((nx, ny, nz))]
     step = float(((bounds[1] - bounds[0]) / torch.tensor([nx - 1, ny - 1, nz - 1], device=dev)).max())
     band = config.band_cells * step
-    sdf = torch.empty(nz, ny, nx, device=dev)
+    # 1. Every k-th node, then trilinear in between: exact at those nodes, and within `slack`
+    # of a 1-Lipschitz distance elsewhere (the farthest a point is from its cell's corners).
+    coarse = torch.empty(len(axes[2][::k]), len(axes[1][::k]), len(axes[0][::k]), device=dev)
+    for z0, x in _slabs([a[::k] for a in axes], chunk):
+        coarse[z0:z0 + len(x) // (coarse.shape[1] * coarse.shape[2])] = field.sdf_chunked(
+            x, chunk).view(-1, coarse.shape[1], coarse.shape[2])
+    sdf = F.interpolate(coarse[None, None], size=(nz, ny, nx), mode="trilinear", align_corners=True)[0, 0]
+    slack = 0.5 * math.sqrt(3.0) * k * step if k > 1 else 0.0
+    # 2. The field itself at every node that may lie within the band; the others keep the
+    # interpolation less the slack, a lower bound of their distance (safe to step).
     rgb = torch.zeros(3, nz, ny, nx, device=dev)
-    slabs = max(1, chunk // (nx * ny))  # z slabs per evaluation
-    for z0 in tqdm(range(0, nz, slabs), desc=f"bake {field.name or 'field'}", disable=not progress):
-        zs = axes[2][z0:z0 + slabs]
-        gz, gy, gx = torch.meshgrid(zs, axes[1], axes[0], indexing="ij")
-        x = torch.stack([gx, gy, gz], dim=-1).reshape(-1, 3)  # (slabs * ny * nx, 3), [z, y, x] order
-        s = field.sdf_chunked(x, chunk)
-        sdf[z0:z0 + len(zs)] = s.view(len(zs), ny, nx)
-        near = s.abs() <= band
+    bar = tqdm(total=nz, desc=f"bake {field.name or 'field'}", unit="slab", disable=not progress)
+    for z0, x in _slabs(axes, chunk):
+        n = len(x) // (ny * nx)
+        guess = sdf[z0:z0 + n].reshape(-1)
+        near = guess.abs() <= band + slack
+        exact = guess.abs().sub(slack).clamp_min(0.0).copysign(guess)
         if bool(near.any()):
+            exact[near] = field.sdf_chunked(x[near], chunk).to(exact.dtype)
+            coloured = exact.abs() <= band
             c = torch.zeros(len(x), 3, device=dev)
-            c[near] = field.color_chunked(x[near], None, chunk).float()
-            rgb[:, z0:z0 + len(zs)] = c.T.reshape(3, len(zs), ny, nx)
+            if bool(coloured.any()):
+                c[coloured] = field.color_chunked(x[coloured], None, chunk).float()
+            rgb[:, z0:z0 + n] = c.T.reshape(3, n, ny, nx)
+        sdf[z0:z0 + n] = exact.view(n, ny, nx)
+        bar.update(n)
+    bar.close()
     info = FieldInfo(field.info.label, field.info.name, field.info.symmetry,
                      {**field.info.provenance, "baked": {"cell": step, "nodes": [nx, ny, nz],
-                                                         "band_cells": config.band_cells}})
+                                                         "band_cells": config.band_cells,
+                                                         "coarse_stride": k}})
     out = BakedField(sdf, rgb, bounds, field.to_world.detach(), info)
     out.visibility = field.visibility
     return out

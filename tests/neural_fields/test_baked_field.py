@@ -31,16 +31,34 @@ def baked() -> BakedField:
     return bake(two_spheres(), CELL)
 
 
-def test_distance_inside_the_bounds_is_the_sources_to_a_fraction_of_a_cell(baked: BakedField) -> None:
+def test_distance_inside_the_bounds_is_the_sources_near_the_surface_and_a_lower_bound_away(baked: BakedField) -> None:
     lo, hi = baked.bounds.numpy()
     x = np.random.default_rng(0).uniform(lo, hi, size=(20000, 3))
-    err = np.abs(baked.sdf(torch.as_tensor(x, dtype=torch.float32)).numpy() - truth(x))
-    near = np.abs(truth(x)) < 0.1
+    d = baked.sdf(torch.as_tensor(x, dtype=torch.float32)).numpy()
+    err = np.abs(d - truth(x))
+    near = np.abs(truth(x)) < CELL  # the cells a hit lies in: every corner within the band
     # Trilinear interpolation of a sphere's distance: about h^2 / (8 r) near its surface,
-    # more at the cone of its centre and on the crease between the spheres.
-    assert np.median(err[near]) < 0.02 * CELL and np.percentile(err, 99) < 0.1 * CELL
-    assert err.max() < CELL
-    assert baked.nodes == grid_nodes(baked.bounds, CELL)
+    # more on the crease between the spheres.
+    assert np.median(err[near]) < 0.02 * CELL and np.percentile(err[near], 99) < 0.1 * CELL
+    # Away from it, the coarse interpolation less its bound (half a 4-cell diagonal).
+    slack = 0.5 * np.sqrt(3.0) * 4 * CELL
+    far = np.abs(truth(x)) > 3 * CELL + 2 * slack
+    assert (np.abs(d[far]) <= np.abs(truth(x)[far]) + 1e-4).all() and (np.sign(d[far]) == np.sign(truth(x)[far])).all()
+    assert err[far].max() < 2 * slack
+    assert baked.nodes == grid_nodes(baked.bounds, CELL, 4)
+
+
+def test_the_coarse_pass_changes_nothing_within_the_band(baked: BakedField) -> None:
+    full = bake(two_spheres(), CELL, BakeConfig(coarse_stride=1))
+    assert full.nodes == grid_nodes(full.bounds, CELL)
+    if full.nodes == baked.nodes:  # the same lattice: the nodes within the band agree exactly
+        band = full.sdf_grid.abs() <= 2 * CELL
+        assert torch.equal(full.sdf_grid[band], baked.sdf_grid[band])
+        assert torch.equal(full.rgb_grid[:, :, band[0, 0]], baked.rgb_grid[:, :, band[0, 0]])
+    lo, hi = baked.bounds.numpy()
+    x = torch.as_tensor(np.random.default_rng(4).uniform(lo, hi, size=(5000, 3)), dtype=torch.float32)
+    near = torch.as_tensor(np.abs(truth(x.numpy())) < 1.5 * CELL)
+    np.testing.assert_allclose(full.sdf(x)[near].numpy(), baked.sdf(x)[near].numpy(), atol=0.05 * CELL)
 
 
 def test_outside_the_bounds_it_is_a_lower_bound_of_the_distance(baked: BakedField) -> None:
@@ -73,11 +91,13 @@ def test_bake_cell_follows_the_pixel_footprint_and_the_node_cap() -> None:
     assert bake_cell(field, [cam]) == pytest.approx(2.0 / 100.0)
     assert bake_cell(field, [cam], BakeConfig(cell_pixels=0.5)) == pytest.approx(1.0 / 100.0)
     capped = bake_cell(field, [cam], BakeConfig(max_nodes=1000))
-    assert math.prod(grid_nodes(field.bounds, capped)) <= 1000 < math.prod(grid_nodes(field.bounds, capped / 1.02))
+    assert math.prod(grid_nodes(field.bounds, capped, 4)) <= 1000 < math.prod(grid_nodes(field.bounds, capped / 1.02, 4))
     with pytest.raises(ValueError, match="max_nodes"):
         bake(field, capped / 2, BakeConfig(max_nodes=1000))
     with pytest.raises(ValueError, match="band_cells"):
         BakeConfig(band_cells=1.0)
+    with pytest.raises(ValueError, match="coarse_stride"):
+        BakeConfig(coarse_stride=0)
 
 
 def _camera() -> Camera:
