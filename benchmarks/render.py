@@ -30,7 +30,7 @@ import torch
 from tqdm import tqdm
 
 from regnf.compositor import Camera, look_at, render, render_volume
-from regnf.compositor.baked_composite import baked_composite
+from regnf.compositor.baked_composite import bake_for_views
 from regnf.compositor.stage_config import StageCompositeConfig
 from regnf.compositor.substitution import SubstitutedInstance, build_composite
 from regnf.compositor.volume_renderer import VolumeRendererConfig
@@ -177,7 +177,7 @@ def speed_rows(cache: Cache, library: dict[str, Field], config: RenderBenchConfi
     """Sphere tracer (of the neural fields, and of their baked grids) and volume renderer on the
     composite full-coverage room.
 
-    The ``baked`` row bakes the composite for the views rendered (:func:`baked_composite`,
+    The ``baked`` row bakes the composite for the views rendered (:func:`bake_for_views`,
     its time and grid nodes in ``bake_seconds`` and ``bake_nodes``), then sphere-traces it;
     its ``psnr_vs_neural`` compares each image with the ``sphere`` row's (which must come
     first)."""
@@ -196,7 +196,7 @@ def speed_rows(cache: Cache, library: dict[str, Field], config: RenderBenchConfi
             extra: dict = {}
             field = neural
             if renderer == "baked":
-                baked = baked_composite(neural, cams, config.bake, progress=progress)
+                baked = bake_for_views(neural, cams, config.bake, progress=progress)
                 field = baked.field
                 extra = {"bake_seconds": baked.seconds, "bake_nodes": baked.nodes}
             grid = DistanceGrid.build(field, resolution=config.sphere.grid_resolution,

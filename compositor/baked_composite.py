@@ -23,21 +23,23 @@ from .placement import PlacedObject
 class BakedComposite(NamedTuple):
     """A baked composite and what baking it cost."""
 
-    field: CompositeField
-    """The composite of the baked fields (no removal regions: they are in the scene's grid)."""
+    field: Field
+    """The composite of the baked fields (no removal regions: they are in the scene's grid), or
+    the baked field of a field that is not a composite."""
     seconds: float
     """Wall time of the baking."""
     nodes: int
     """Grid nodes over every baked field."""
 
 
-def baked_composite(composite: CompositeField, cameras: Sequence[Camera], config: BakeConfig | None = None,
-                    progress: bool = False) -> BakedComposite:
+def bake_for_views(composite: Field, cameras: Sequence[Camera], config: BakeConfig | None = None,
+                   progress: bool = False) -> BakedComposite:
     """``composite`` with its masked scene and its library fields baked for ``cameras``.
 
     Parameters
     ----------
-    composite : CompositeField
+    composite : Field
+        A :class:`CompositeField`; any other field is baked whole.
     cameras : sequence of Camera
         The views to be rendered (metres): each field's cell follows their pixel footprint
         (:func:`~regnf.neural_fields.baked_field.bake_cell`).
@@ -48,6 +50,9 @@ def baked_composite(composite: CompositeField, cameras: Sequence[Camera], config
     """
     config = config or BakeConfig()
     t0 = time.perf_counter()
+    if not isinstance(composite, CompositeField):
+        whole = bake(composite, bake_cell(composite, cameras, config), config, progress=progress)
+        return BakedComposite(whole, time.perf_counter() - t0, whole.sdf_grid.numel())
     masked = CompositeField(composite.scene, [], list(composite.removals), composite.config,
                             info=composite.scene.info)
     scene = bake(masked, bake_cell(masked, cameras, config), config, progress=progress)

@@ -47,17 +47,19 @@ from regnf.core.file_lock import folder_lock
 from regnf.core.image_io import rgb_to_uint8, write_depth_png, write_instance_png, write_rgb_png
 from regnf.core.output_dir import remove_leftovers, staging_dir, staging_prefix
 from regnf.core.render_result import Render
+from regnf.neural_fields.baked_field import BakeConfig
 from regnf.neural_fields.camera import Camera
 from regnf.neural_fields.distance_grid import DistanceGrid
 from regnf.neural_fields.field import Field
 from regnf.neural_fields.shading import check_camera_outside
 from regnf.neural_fields.sphere_tracer import SphereTracerConfig, render
 
+from .baked_composite import bake_for_views
 from .contact_sheets import contact_sheet
 from .sequence_io import SEQUENCE_FORMATS, require_mp4, write_sequence
 from .volume_renderer import VolumeRendererConfig, render_volume
 
-RENDERERS = ("sphere", "volume")
+RENDERERS = ("sphere", "volume", "baked")
 """The renderers :func:`render_views` can use."""
 RENDER_JSON = "render.json"
 """The report written last into the output folder."""
@@ -83,14 +85,22 @@ rendered."""
 class RenderConfig:
     """How :func:`render_views` renders and writes."""
 
-    renderer: Literal["sphere", "volume"] = "sphere"
-    """``sphere``: the sphere tracer (fast, exact hits); ``volume``: NeuS-style integration."""
+    renderer: Literal["sphere", "volume", "baked"] = "sphere"
+    """``sphere``: the sphere tracer (fast, exact hits); ``volume``: NeuS-style integration;
+    ``baked``: the sphere tracer on the fields baked into grids once for these views
+    (:func:`regnf.compositor.baked_composite.bake_for_views`; measured on the composite room
+    at 256x192: 3.2x faster a view, 36.9 dB against the neural render, about 36 s to bake on 2
+    cores, so it pays from about 20 views on)."""
     sphere: SphereTracerConfig = field(default_factory=lambda: SphereTracerConfig(footprint_fraction=0.05))
     """Settings of the sphere tracer: hits to 5 % of a pixel's footprint (the tracer's own
     default, 1e-4, is for exact depth; 0.05 costs 18 % fewer evaluations at the same PSNR,
     see docs/benchmarks.md)."""
     volume: VolumeRendererConfig = field(default_factory=VolumeRendererConfig)
     """Settings of the volume renderer."""
+    bake: BakeConfig = field(default_factory=lambda: BakeConfig(cell_pixels=0.5, max_nodes=2**25))
+    """Grids of the ``baked`` renderer: half a pixel's footprint, at most 2^25 nodes a field
+    (measured on the composite room: 36.9 dB against the neural render; a whole footprint and
+    2^24 nodes, 31.9-35.2 dB)."""
     sheet_columns: int = 0
     """Tiles per row of the contact sheet; 0: about square."""
     sheet_tile_width: int = 192
@@ -319,11 +329,15 @@ def _render_into(
     metadata: dict,
 ) -> RenderReport:
     t_start = time.perf_counter()
+    t_bake = 0.0
+    if config.renderer == "baked":
+        baked = bake_for_views(field, cameras, config.bake, progress=config.progress)
+        field, t_bake = baked.field, baked.seconds
     grid = None
-    if config.renderer == "sphere" and config.sphere.grid_resolution > 0:
+    if config.renderer in ("sphere", "baked") and config.sphere.grid_resolution > 0:
         s = config.sphere
         grid = DistanceGrid.build(field, s.grid_resolution, s.grid_lipschitz, s.chunk)
-    t_grid = time.perf_counter() - t_start
+    t_grid = time.perf_counter() - t_start - t_bake
     views, seconds, stats, thumbs = [], [], [], []
     total_evals, total_pixels = 0, 0
     bar = tqdm(cameras, desc=f"render {len(cameras)} views", unit="view", disable=not config.progress)
@@ -356,11 +370,13 @@ def _render_into(
     if config.sequence_name is not None:
         write_sequence(staging / config.sequence_name, thumbs, config.sequence, config.sequence_fps)
     epp = total_evals / total_pixels
-    settings = config.volume if config.renderer == "volume" else config.sphere
+    asdict = dataclasses.asdict
+    settings = {"volume": asdict(config.volume), "sphere": asdict(config.sphere),
+                "baked": {"sphere": asdict(config.sphere), "bake": asdict(config.bake)}}[config.renderer]
     payload = {
         **metadata,
         "renderer": config.renderer,
-        "renderer_config": dataclasses.asdict(settings),
+        "renderer_config": settings,
         "field": {"name": field.name, "label": field.label, "to_world": field.to_world.tolist()},
         "files": {
             "depth_png": "uint16 millimetres of z-depth along the optical axis, 0 = no hit",
@@ -373,6 +389,7 @@ def _render_into(
         "views": stats,
         "evals_per_pixel_mean": epp,
         "timings": {
+            "bake_seconds": t_bake,
             "distance_grid_seconds": t_grid,
             "render_seconds_total": float(sum(seconds)),
             "per_view_seconds_mean": float(np.mean(seconds)),

@@ -158,6 +158,11 @@ class GenerateConfig:
         if self.cameras.n > MAX_VIEWS:
             raise ValueError(f"views per variant must be at most {MAX_VIEWS:,}, got {self.cameras.n}")
         check_image_size(self.cameras.width, self.cameras.height, "cameras: a view")
+        if self.render.renderer == "baked":
+            # Baking is once per render, and every variant is a render of its own composite:
+            # each would bake again (about 36 s for a room), slower than tracing its 8 views.
+            raise ValueError("render.renderer 'baked' is not supported by generate yet: it would bake the "
+                             "fields again for every variant; use 'sphere'")
 
     @property
     def seeds(self) -> range:

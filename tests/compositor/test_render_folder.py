@@ -24,9 +24,9 @@ from . import golden_scenes as G
 QUIET = RenderConfig(progress=False)
 
 
-def cameras(n: int) -> list[Camera]:
+def cameras(n: int, width: int = 24, height: int = 18) -> list[Camera]:
     return orbit_around_bounds(np.array([[-1.6, -1.4, 0.0], [1.6, 1.4, 1.2]]),
-                               OrbitConfig(n=n, width=24, height=18, radius=2.2, elevation_deg=35.0))
+                               OrbitConfig(n=n, width=width, height=height, radius=2.2, elevation_deg=35.0))
 
 
 def test_views_report_and_sheet(tmp_path: Path) -> None:
@@ -100,6 +100,30 @@ def test_volume_renderer_writes_the_same_files(tmp_path: Path) -> None:
     report = render_views(G.composite("own", StageCompositeConfig()), cameras(1), tmp_path, cfg)
     assert report.views == [ViewFiles("rgb_0000.png", "depth_0000.png", "instance_0000.png")]
     assert json.loads((tmp_path / "render.json").read_text())["renderer_config"]["n_samples"] == 64
+
+
+def test_baked_renderer_writes_the_same_files_and_images_close_to_the_sphere_tracers(tmp_path: Path) -> None:
+    # 64 x 48: the grids' cells follow the pixel footprint, so a thumbnail gets coarse ones.
+    field, cams = G.composite("own", StageCompositeConfig()), cameras(2, 64, 48)
+    render_views(field, cams, tmp_path / "sphere", QUIET)
+    report = render_views(field, cams, tmp_path / "baked", RenderConfig(renderer="baked", progress=False))
+    assert [v.rgb for v in report.views] == ["rgb_0000.png", "rgb_0001.png"]
+    data = json.loads((tmp_path / "baked" / "render.json").read_text())
+    assert data["renderer"] == "baked" and data["renderer_config"]["bake"]["cell_pixels"] == 0.5
+    assert data["timings"]["bake_seconds"] > 0
+    for k in range(2):
+        exact, baked = (read_instance_png(tmp_path / d / f"instance_{k:04d}.png") for d in ("sphere", "baked"))
+        assert (exact == baked).mean() > 0.98
+        rgb = [read_rgb_png(tmp_path / d / f"rgb_{k:04d}.png").astype(float) for d in ("sphere", "baked")]
+        same = exact == baked
+        assert np.median(np.abs(rgb[0] - rgb[1]).max(axis=-1)[same]) <= 1.0
+
+
+def test_generate_refuses_the_baked_renderer() -> None:
+    from regnf.generate import GenerateConfig
+
+    with pytest.raises(ValueError, match="baked.*every variant"):
+        GenerateConfig(render=RenderConfig(renderer="baked"))
 
 
 def test_contact_sheet_layout() -> None:
