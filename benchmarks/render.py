@@ -76,11 +76,9 @@ class RenderBenchConfig:
     same PSNR against the reference, 32.6 and 32.5 dB)."""
     volume: VolumeRendererConfig = field(default_factory=VolumeRendererConfig)
     """The volume renderer's settings (the authors' 200 uniform samples per ray)."""
-    bake: BakeConfig = field(default_factory=lambda: BakeConfig(cell_pixels=0.5, max_nodes=2**25))
-    """Grids of the ``baked`` row: half a pixel's footprint, at most 2^25 nodes a field (the
-    room's cap: 1.5 cm cells). Measured on 4 views of the composite room, PSNR against the
-    neural render: 35.3-37.8 dB; with a whole footprint and 2^24 nodes (1.9 cm), 31.9-35.2 dB,
-    lost at silhouettes and the chairs' thin parts."""
+    bake: BakeConfig = field(default_factory=BakeConfig)
+    """Grids of the ``baked`` row (the defaults: half a pixel's footprint, at most 2^25 nodes a
+    field)."""
     completion_removal: StageCompositeConfig = field(
         default_factory=lambda: StageCompositeConfig(mode="substitute", box_pad=0.25))
     """Removal for completion: the proposal and the object's box grown by 25 %. A low-coverage

@@ -89,7 +89,7 @@ class RenderConfig:
     """``sphere``: the sphere tracer (fast, exact hits); ``volume``: NeuS-style integration;
     ``baked``: the sphere tracer on the fields baked into grids once for these views
     (:func:`regnf.compositor.baked_composite.bake_for_views`; measured on the composite room
-    at 256x192: 3.2x faster a view, 36.9 dB against the neural render, about 36 s to bake on 2
+    at 256x192: 3.0x faster a view, 36.1 dB against the neural render, about 38 s to bake on 2
     cores, so it pays from about 20 views on)."""
     sphere: SphereTracerConfig = field(default_factory=lambda: SphereTracerConfig(footprint_fraction=0.05))
     """Settings of the sphere tracer: hits to 5 % of a pixel's footprint (the tracer's own
@@ -97,10 +97,9 @@ class RenderConfig:
     see docs/benchmarks.md)."""
     volume: VolumeRendererConfig = field(default_factory=VolumeRendererConfig)
     """Settings of the volume renderer."""
-    bake: BakeConfig = field(default_factory=lambda: BakeConfig(cell_pixels=0.5, max_nodes=2**25))
-    """Grids of the ``baked`` renderer: half a pixel's footprint, at most 2^25 nodes a field
-    (measured on the composite room: 36.9 dB against the neural render; a whole footprint and
-    2^24 nodes, 31.9-35.2 dB)."""
+    bake: BakeConfig = field(default_factory=BakeConfig)
+    """Grids of the ``baked`` renderer (the defaults: half a pixel's footprint, at most 2^25
+    nodes a field)."""
     sheet_columns: int = 0
     """Tiles per row of the contact sheet; 0: about square."""
     sheet_tile_width: int = 192

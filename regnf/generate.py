@@ -160,7 +160,7 @@ class GenerateConfig:
         check_image_size(self.cameras.width, self.cameras.height, "cameras: a view")
         if self.render.renderer == "baked":
             # Baking is once per render, and every variant is a render of its own composite:
-            # each would bake again (about 36 s for a room), slower than tracing its 8 views.
+            # each would bake again (about 38 s for a room), slower than tracing its 8 views.
             raise ValueError("render.renderer 'baked' is not supported by generate yet: it would bake the "
                              "fields again for every variant; use 'sphere'")
 

@@ -37,7 +37,7 @@ def camera() -> Camera:
 
 def test_removals_go_into_the_scene_grid_and_each_library_field_is_baked_once() -> None:
     comp = two_instances()
-    out = bake_for_views(comp, [camera()], BakeConfig(cell_pixels=0.5))
+    out = bake_for_views(comp, [camera()], BakeConfig())
     baked = out.field
     assert len(baked.removals) == 0 and isinstance(baked.scene, BakedField)
     fields = [p.field for p in baked.placements]
@@ -56,7 +56,7 @@ def test_removals_go_into_the_scene_grid_and_each_library_field_is_baked_once() 
 
 def test_the_baked_composite_renders_the_composite() -> None:
     comp = two_instances()
-    baked = bake_for_views(comp, [camera()], BakeConfig(cell_pixels=0.5)).field
+    baked = bake_for_views(comp, [camera()], BakeConfig()).field
     cfg = SphereTracerConfig.plain()
     exact, approx = render(comp, camera(), cfg), render(baked, camera(), cfg)
     assert float((exact.instance_id != approx.instance_id).float().mean()) < 0.01

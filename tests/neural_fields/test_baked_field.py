@@ -88,8 +88,8 @@ def test_bake_cell_follows_the_pixel_footprint_and_the_node_cap() -> None:
     pose = np.eye(4)
     pose[:3, 3] = field.bounds.numpy().mean(axis=0) + [0.0, 0.0, -2.0]  # 2 units from the centre
     cam = Camera(K, 64, 48, pose)
-    assert bake_cell(field, [cam]) == pytest.approx(2.0 / 100.0)
-    assert bake_cell(field, [cam], BakeConfig(cell_pixels=0.5)) == pytest.approx(1.0 / 100.0)
+    assert bake_cell(field, [cam], BakeConfig(cell_pixels=1.0)) == pytest.approx(2.0 / 100.0)
+    assert bake_cell(field, [cam]) == pytest.approx(1.0 / 100.0)  # half a footprint by default
     capped = bake_cell(field, [cam], BakeConfig(max_nodes=1000))
     assert math.prod(grid_nodes(field.bounds, capped, 4)) <= 1000 < math.prod(grid_nodes(field.bounds, capped / 1.02, 4))
     with pytest.raises(ValueError, match="max_nodes"):
