@@ -1,16 +1,16 @@
 """A field baked once into dense grids of distance and colour, read by trilinear look-ups.
 
-For rendering many images of the same fields (data-set generation), every network evaluation
-of the sphere tracer (about 15 per pixel) becomes a table look-up: the field's SDF is sampled
-at the nodes of a regular grid over its bounds, and its colour at the nodes within
-``band_cells`` cells of its surface (a hit's trilinear cell has all its corners there). The
-cell is chosen from the pixel footprint of the cameras that will look (:func:`bake_cell`): a
+For rendering many images of the same fields (``regnf render --render.renderer baked``), every
+network evaluation of the sphere tracer (about 15 per pixel) becomes a table look-up: the field's
+SDF is sampled at the nodes of a regular grid over its bounds, and its colour at the nodes
+within ``band_cells`` cells of its surface (a hit's trilinear cell has all its corners there).
+The cell is chosen from the pixel footprint of the cameras that will look (:func:`bake_cell`): a
 finer grid shows nothing more.
 
 Outside its bounds a baked field is a lower bound of the distance to anything inside them: the
-larger of the distance to the bounds and the border value less that distance. The source field is the exact fallback: render
-it where a grid's resolution is not enough (the PSNR lost is measured in ``regnf bench
-render``, row ``baked``).
+larger of the distance to the bounds and the border value less that distance. The source field
+is the exact fallback: render it where a grid's resolution is not enough (the PSNR lost is
+measured in ``regnf bench render``, row ``baked``).
 """
 
 from __future__ import annotations
