@@ -8,11 +8,12 @@ that shows it; the placements keep their similarities and tints. See
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Sequence
 from typing import NamedTuple
 
-from regnf.neural_fields.baked_field import BakeConfig, BakedField, bake, bake_cell
+from regnf.neural_fields.baked_field import BakeConfig, BakedField, bake, bake_cell, grid_nodes
 from regnf.neural_fields.camera import Camera
 from regnf.neural_fields.field import Field
 
@@ -51,10 +52,13 @@ def bake_for_views(composite: Field, cameras: Sequence[Camera], config: BakeConf
     config = config or BakeConfig()
     t0 = time.perf_counter()
     if not isinstance(composite, CompositeField):
+        _check_total([composite], cameras, config)
         whole = bake(composite, bake_cell(composite, cameras, config), config, progress=progress)
         return BakedComposite(whole, time.perf_counter() - t0, whole.sdf_grid.numel())
     masked = CompositeField(composite.scene, [], list(composite.removals), composite.config,
                             info=composite.scene.info)
+    library = list({id(p.field): p.field for p in composite.placements}.values())
+    _check_total([masked, *library], cameras, config)  # before any baking
     scene = bake(masked, bake_cell(masked, cameras, config), config, progress=progress)
     baked: dict[int, BakedField] = {}  # by the library field's identity: one grid per object
 
@@ -68,3 +72,13 @@ def bake_for_views(composite: Field, cameras: Sequence[Camera], config: BakeConf
     field = CompositeField(scene, objects, [], composite.config, info=composite.info)
     nodes = sum(b.sdf_grid.numel() for b in (scene, *baked.values()))
     return BakedComposite(field, time.perf_counter() - t0, nodes)
+
+
+def _check_total(fields: Sequence[Field], cameras: Sequence[Camera], config: BakeConfig) -> None:
+    """Raise ``ValueError`` if baking ``fields`` for ``cameras`` needs more than
+    ``config.max_total_nodes`` grid nodes."""
+    total = sum(math.prod(grid_nodes(f.bounds, bake_cell(f, cameras, config), config.coarse_stride)) for f in fields)
+    if total > config.max_total_nodes:
+        raise ValueError(f"baking these {len(fields)} fields for these views needs {total:,} grid nodes "
+                         f"({16 * total / 2**30:.1f} GB), more than max_total_nodes={config.max_total_nodes:,}: "
+                         "render with the sphere tracer, or take coarser cells (cell_pixels)")

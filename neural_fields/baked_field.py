@@ -41,6 +41,10 @@ class BakeConfig:
     max_nodes: int = 2**25
     """Most grid nodes of one field (distance and colour, 4 x float32 a node: 512 MB at the
     default); a coarser cell is taken when the footprint would need more."""
+    max_total_nodes: int = 2**27
+    """Most grid nodes of everything one bake makes (2 GB at the default): a composite of many
+    library objects seen up close is refused before any baking rather than taking the
+    machine's memory (the composite room of the benchmark: 48 M)."""
     band_cells: float = 2.0
     """Colour is evaluated at nodes whose distance is within this many cells of the surface (a
     hit's trilinear cell has its 8 corners within sqrt(3) cells); elsewhere it is never read and
@@ -59,8 +63,9 @@ class BakeConfig:
             raise ValueError(f"coarse_stride must be an integer >= 1, got {self.coarse_stride}")
         if not (math.isfinite(self.cell_pixels) and self.cell_pixels > 0):
             raise ValueError(f"cell_pixels must be finite and > 0, got {self.cell_pixels}")
-        if self.max_nodes < 8:
-            raise ValueError(f"max_nodes must be >= 8, got {self.max_nodes}")
+        for name in ("max_nodes", "max_total_nodes"):
+            if getattr(self, name) < 8:
+                raise ValueError(f"{name} must be >= 8, got {getattr(self, name)}")
         if not (math.isfinite(self.band_cells) and self.band_cells >= math.sqrt(3.0)):
             raise ValueError(f"band_cells must be >= sqrt(3) (a hit's cell corners), got {self.band_cells}")
 

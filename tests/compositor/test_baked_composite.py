@@ -63,3 +63,16 @@ def test_the_baked_composite_renders_the_composite() -> None:
     both = exact.mask & approx.mask
     assert float((exact.rgb - approx.rgb)[both].abs().amax(dim=-1).median()) < 1e-3
     assert float((exact.depth - approx.depth)[both].abs().median()) < 1e-3
+
+
+def test_a_bake_larger_than_the_total_cap_is_refused_before_any_baking(monkeypatch) -> None:
+    import regnf.compositor.baked_composite as B
+
+    baked: list[str] = []
+    monkeypatch.setattr(B, "bake", lambda f, *a, **k: baked.append(f.name))
+    import pytest
+
+    # The scene takes about 620 000 nodes and the ball 729 at the default cell.
+    with pytest.raises(ValueError, match="grid nodes.*max_total_nodes"):
+        bake_for_views(two_instances(), [camera()], BakeConfig(max_total_nodes=600_000))
+    assert baked == []
