@@ -176,7 +176,9 @@ class GenerateConfig:
             "cameras": dataclasses.asdict(self.cameras),
             "jitter_cameras": self.jitter_cameras,
             "composite": dataclasses.asdict(dataclasses.replace(self.composite, mode="substitute")),
-            "render": dataclasses.asdict(render),
+            # Generate refuses the baked renderer, so its grids' settings change no file; left
+            # out, they keep the settings (and the resumption) of data sets made before them.
+            "render": {k: v for k, v in dataclasses.asdict(render).items() if k != "bake"},
             "threads_per_task": self.executor.threads_per_task,
             "device": self.device,
         }

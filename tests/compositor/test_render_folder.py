@@ -124,6 +124,9 @@ def test_generate_refuses_the_baked_renderer() -> None:
 
     with pytest.raises(ValueError, match="baked.*every variant"):
         GenerateConfig(render=RenderConfig(renderer="baked"))
+    # The grids' settings change no file of a data set, so they stay out of its settings key
+    # (a data set made before them still resumes).
+    assert "bake" not in GenerateConfig().output_settings()["render"]
 
 
 def test_contact_sheet_layout() -> None:
