@@ -13,7 +13,7 @@ import time
 from collections.abc import Sequence
 from typing import NamedTuple
 
-from regnf.neural_fields.baked_field import BakeConfig, BakedField, bake, bake_cell, grid_nodes
+from regnf.neural_fields.baked_field import BakeConfig, bake, bake_cell, grid_nodes
 from regnf.neural_fields.camera import Camera
 from regnf.neural_fields.field import Field
 
@@ -51,34 +51,24 @@ def bake_for_views(composite: Field, cameras: Sequence[Camera], config: BakeConf
     """
     config = config or BakeConfig()
     t0 = time.perf_counter()
-    if not isinstance(composite, CompositeField):
-        _check_total([composite], cameras, config)
-        whole = bake(composite, bake_cell(composite, cameras, config), config, progress=progress)
-        return BakedComposite(whole, time.perf_counter() - t0, whole.sdf_grid.numel())
-    masked = CompositeField(composite.scene, [], list(composite.removals), composite.config,
-                            info=composite.scene.info)
-    library = list({id(p.field): p.field for p in composite.placements}.values())
-    _check_total([masked, *library], cameras, config)  # before any baking
-    scene = bake(masked, bake_cell(masked, cameras, config), config, progress=progress)
-    baked: dict[int, BakedField] = {}  # by the library field's identity: one grid per object
-
-    def baked_library(f: Field) -> BakedField:
-        if id(f) not in baked:
-            baked[id(f)] = bake(f, bake_cell(f, cameras, config), config, progress=progress)
-        return baked[id(f)]
-
-    objects = [PlacedObject(baked_library(p.field), p.mapped.matrix.cpu().numpy(), iid, tint)
-               for p, iid, tint in zip(composite.placements, composite.instance_ids, composite.tints, strict=True)]
-    field = CompositeField(scene, objects, [], composite.config, info=composite.info)
-    nodes = sum(b.sdf_grid.numel() for b in (scene, *baked.values()))
-    return BakedComposite(field, time.perf_counter() - t0, nodes)
-
-
-def _check_total(fields: Sequence[Field], cameras: Sequence[Camera], config: BakeConfig) -> None:
-    """Raise ``ValueError`` if baking ``fields`` for ``cameras`` needs more than
-    ``config.max_total_nodes`` grid nodes."""
-    total = sum(math.prod(grid_nodes(f.bounds, bake_cell(f, cameras, config), config.coarse_stride)) for f in fields)
-    if total > config.max_total_nodes:
+    if isinstance(composite, CompositeField):
+        masked = CompositeField(composite.scene, [], list(composite.removals), composite.config,
+                                info=composite.scene.info)
+        # One grid per library object, shared by its instances.
+        fields = [masked, *{id(p.field): p.field for p in composite.placements}.values()]
+    else:
+        fields = [composite]
+    cells = [bake_cell(f, cameras, config) for f in fields]
+    total = sum(math.prod(grid_nodes(f.bounds, c, config.coarse_stride)) for f, c in zip(fields, cells))
+    if total > config.max_total_nodes:  # before any baking
         raise ValueError(f"baking these {len(fields)} fields for these views needs {total:,} grid nodes "
                          f"({16 * total / 2**30:.1f} GB), more than max_total_nodes={config.max_total_nodes:,}: "
                          "render with the sphere tracer, or take coarser cells (cell_pixels)")
+    baked = [bake(f, c, config, progress=progress) for f, c in zip(fields, cells)]
+    if not isinstance(composite, CompositeField):
+        return BakedComposite(baked[0], time.perf_counter() - t0, total)
+    grid_of = {id(f): b for f, b in zip(fields[1:], baked[1:])}
+    objects = [PlacedObject(grid_of[id(p.field)], p.mapped.matrix.cpu().numpy(), iid, tint)
+               for p, iid, tint in zip(composite.placements, composite.instance_ids, composite.tints, strict=True)]
+    field = CompositeField(baked[0], objects, [], composite.config, info=composite.info)
+    return BakedComposite(field, time.perf_counter() - t0, total)

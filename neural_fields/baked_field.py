@@ -151,13 +151,14 @@ class BakedField(Field):
 
 
 def _slabs(axes: Sequence[torch.Tensor], chunk: int):
-    """(first z index, (m, 3) node points) of the grid on ``axes`` (x, y, z), a few z slabs at a
-    time (about ``chunk`` nodes), in [z, y, x] order."""
+    """(first z index, number of z slabs, (m, 3) node points) of the grid on ``axes`` (x, y, z),
+    a few z slabs at a time (about ``chunk`` nodes), in [z, y, x] order."""
     nx, ny = len(axes[0]), len(axes[1])
     per = max(1, chunk // (nx * ny))
     for z0 in range(0, len(axes[2]), per):
-        gz, gy, gx = torch.meshgrid(axes[2][z0:z0 + per], axes[1], axes[0], indexing="ij")
-        yield z0, torch.stack([gx, gy, gz], dim=-1).reshape(-1, 3)
+        zs = axes[2][z0:z0 + per]
+        gz, gy, gx = torch.meshgrid(zs, axes[1], axes[0], indexing="ij")
+        yield z0, len(zs), torch.stack([gx, gy, gz], dim=-1).reshape(-1, 3)
 
 
 @torch.no_grad()
@@ -197,18 +198,17 @@ def bake(field: Field, cell: float, config: BakeConfig = BakeConfig(), chunk: in
     band = config.band_cells * step
     # 1. Every k-th node, then trilinear in between: exact at those nodes, and within `slack`
     # of a 1-Lipschitz distance elsewhere (the farthest a point is from its cell's corners).
-    coarse = torch.empty(len(axes[2][::k]), len(axes[1][::k]), len(axes[0][::k]), device=dev)
-    for z0, x in _slabs([a[::k] for a in axes], chunk):
-        coarse[z0:z0 + len(x) // (coarse.shape[1] * coarse.shape[2])] = field.sdf_chunked(
-            x, chunk).view(-1, coarse.shape[1], coarse.shape[2])
+    coarse_axes = [a[::k] for a in axes]
+    coarse = torch.empty(len(coarse_axes[2]), len(coarse_axes[1]), len(coarse_axes[0]), device=dev)
+    for z0, n, x in _slabs(coarse_axes, chunk):
+        coarse[z0:z0 + n] = field.sdf_chunked(x, chunk).view(n, *coarse.shape[1:])
     sdf = F.interpolate(coarse[None, None], size=(nz, ny, nx), mode="trilinear", align_corners=True)[0, 0]
     slack = 0.5 * math.sqrt(3.0) * k * step if k > 1 else 0.0
     # 2. The field itself at every node that may lie within the band; the others keep the
     # interpolation less the slack, a lower bound of their distance (safe to step).
     rgb = torch.zeros(3, nz, ny, nx, device=dev)
     bar = tqdm(total=nz, desc=f"bake {field.name or 'field'}", unit="slab", disable=not progress)
-    for z0, x in _slabs(axes, chunk):
-        n = len(x) // (ny * nx)
+    for z0, n, x in _slabs(axes, chunk):
         guess = sdf[z0:z0 + n].reshape(-1)
         near = guess.abs() <= band + slack
         exact = guess.abs().sub(slack).clamp_min(0.0).copysign(guess)

@@ -38,6 +38,7 @@ import torch
 from tqdm import tqdm
 
 from regnf.core.threads import one_thread
+from regnf.neural_fields.evaluation import world_to_field
 from regnf.neural_fields.field import Field
 from regnf.neural_fields.oriented_box import OrientedBox
 from regnf.registration.candidates import (
@@ -361,12 +362,11 @@ def explained_fraction(scene_field: Field, library_field: Field, result: Registr
                        points: np.ndarray, distance: float) -> float:
     """The fraction of ``points`` (n, 3, scene metres) within ``distance`` metres of the
     registered library object's surface (its SDF at the points mapped into its frame)."""
-    W = scene_field.to_world.detach().cpu().double().numpy()
-    local = (np.asarray(points, dtype=np.float64) - W[:3, 3]) @ np.linalg.inv(W[:3, :3]).T
+    local = world_to_field(scene_field, np.asarray(points, dtype=np.float64)).double().cpu().numpy()
     x = torch.as_tensor(result.transform.apply(local), dtype=torch.float32, device=library_field.device)
     with torch.no_grad():
         d = library_field.sdf(x).abs().double().cpu().numpy().reshape(-1)
-    metres = d / result.transform.s * float(np.cbrt(abs(np.linalg.det(W[:3, :3]))))
+    metres = d / result.transform.s * scene_field.world_scale
     return float(np.mean(metres <= distance)) if len(metres) else 0.0
 
 
