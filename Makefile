@@ -5,7 +5,7 @@ PY := $(VENV)/bin/python
 SUDO := $(shell [ "$$(id -u)" -eq 0 ] || echo sudo)
 export PYOPENGL_PLATFORM := egl
 
-.PHONY: demo test setup system-deps lint bench-fields bench-encodings
+.PHONY: demo test setup system-deps lint bench-fields bench-encodings gpu-check
 
 $(VENV)/.installed: pyproject.toml
 	test -x $(PY) || python3 -m venv $(VENV)
@@ -37,3 +37,13 @@ bench-fields: setup
 
 bench-encodings: setup
 	$(VENV)/bin/regnf bench encodings --json out/bench_encodings.json
+
+# On a machine with a GPU: the tests marked `cuda` on the GPU, then the quick modes of the field,
+# registration and render benchmarks there; one JSON and one table (layout: docs/benchmarks.md).
+# Fails if a test or a benchmark does, after writing what it measured. GPU_DEVICE=cuda:1 picks a GPU.
+GPU_DEVICE ?= cuda
+gpu-check: setup
+	mkdir -p out
+	status=0; $(VENV)/bin/pytest -q -m cuda --device $(GPU_DEVICE) --junitxml out/gpu_check_tests.xml || status=$$?; \
+	$(VENV)/bin/regnf bench gpu-check --device $(GPU_DEVICE) --tests out/gpu_check_tests.xml \
+	  --json out/gpu_check.json --markdown out/gpu_check.md && exit $$status

@@ -263,6 +263,9 @@ class BenchRender:
 
     json: Path = Path("out/bench_render.json")
     """Where to write the rows and the completion record (JSON); PNGs go beside it."""
+    quick: bool = False
+    """The speed rows alone (sphere tracer, baked grids, volume renderer) on 2 views; no completion
+    or replacement (no low-coverage field to train)."""
     markdown: Path | None = None
     """Also write the tables as Markdown here."""
     device: str = "cpu"
@@ -275,8 +278,8 @@ class BenchRender:
         from regnf.benchmarks.render import run_render_benchmark
         from regnf.benchmarks.render_report import markdown_tables, write_images
 
-        command = f"regnf bench render --json {self.json}"
-        result, images = run_render_benchmark(Cache(self.cache_dir), device=self.device)
+        command = "regnf bench render" + (" --quick" if self.quick else "") + f" --json {self.json}"
+        result, images = run_render_benchmark(Cache(self.cache_dir), device=self.device, quick=self.quick)
         pngs = write_images(images, self.json.parent, self.json.stem)
         write_json(self.json, {"meta": run_meta(command, self.device), **result})
         text = f"Command: `{command}`\n\n{markdown_tables(result)}"
@@ -326,3 +329,52 @@ class BenchViewer:
                           f"rotation {row['rot_geodesic_rad']:.4f} rad, translation {100 * row['trans_rel_diag']:.2f} %, "
                           f"scale {100 * row['scale_rel']:.2f} %, within the bars: {row['within_bars']}")
         console.print(f"results: {self.json}; screenshots: {self.images}")
+
+
+@dataclass
+class BenchGpuCheck:
+    """The field, registration and render benchmarks' quick modes on one device (a GPU), in one JSON and table."""
+
+    device: str = "cuda"
+    """Torch device of every part."""
+    json: Path = Path("out/gpu_check.json")
+    """Where to write the results (JSON, layout in docs/benchmarks.md)."""
+    markdown: Path | None = None
+    """Also write the tables as Markdown here."""
+    tests: Path | None = None
+    """The CUDA-marked tests' report (``pytest -m cuda --device cuda --junitxml FILE``), summarised
+    in the results; ``make gpu-check`` runs them first."""
+    size: Literal["quick", "tiny"] = "quick"
+    """``quick``: the benchmarks' quick modes with the measured captures and training presets.
+    ``tiny``: the same code on small captures and briefly trained fields (seconds; its accuracy
+    means nothing), what the tests run on the CPU."""
+    cache_dir: Path = dataclasses.field(default_factory=default_cache_dir)
+    """Cache directory (fields already there are reused, not retrained)."""
+
+    def run(self) -> None:
+        check_outputs(self)
+        from regnf.benchmarks.gpu_check import (
+            device_name,
+            markdown_table,
+            run_gpu_check,
+            test_summary,
+        )
+        from regnf.core.preflight import check_device
+
+        check_device(self.device)
+        if self.tests is not None:
+            test_summary(self.tests)  # a bad report fails now, not after the benchmarks
+        command = (f"regnf bench gpu-check --device {self.device} --size {self.size} --json {self.json}"
+                   + (f" --tests {self.tests}" if self.tests else ""))
+        cache = Cache(self.cache_dir, size="tiny" if self.size == "tiny" else "full")
+        result = run_gpu_check(cache, self.device, self.tests)
+        result = {"meta": {**run_meta(command, self.device), "size": self.size,
+                           "device_name": device_name(self.device)}, **result}
+        write_json(self.json, result)
+        text = f"Command: `{command}`\n\n{markdown_table(result)}"
+        if self.markdown:
+            from regnf.core.atomic_io import write_text
+
+            write_text(self.markdown, text)
+        console.print(text)
+        console.print(f"results: {self.json}")

@@ -188,6 +188,8 @@ class PairTask(NamedTuple):
     """Library field: trained from RGB-D (``rgbd``) or distilled from the mesh (``mesh``)."""
     box_object: str | None = None
     """The object whose box is the proposal (None: ``obj`` itself; another one: a wrong pair)."""
+    cache_size: str = "full"
+    """The cache's ``size`` (``Cache.size``: ``tiny`` in the tests)."""
 
 
 def wrong_pairs(scene: str) -> list[tuple[str, str]]:
@@ -231,7 +233,7 @@ def benchmark_tasks(cache: Cache, quick: bool = False, single_view: bool = True,
                 scenes = sorted({scene for scene, _ in pairs})
                 tasks += [PairTask(root, scene, obj, ("regnf",), False, 1.0, device, coverage, source, box)
                           for scene in scenes for obj, box in wrong_pairs(scene)]
-    return tasks
+    return [t._replace(cache_size=cache.size) for t in tasks]
 
 
 def prepare_fields(cache: Cache, tasks: list[PairTask]) -> None:
@@ -244,13 +246,13 @@ def prepare_fields(cache: Cache, tasks: list[PairTask]) -> None:
 
 
 # Per worker process: scene fields and captures already loaded (a worker runs many pairs).
-_LOADED: dict[tuple[str, str, str], tuple[Field, object]] = {}
+_LOADED: dict[tuple[str, str, str, str, str], tuple[Field, object]] = {}
 
 
 def run_pair_task(task: PairTask) -> list[dict]:
     """The rows of one pair (runs in a worker; fields must already be in the cache)."""
-    cache = Cache(Path(task.cache_root), progress=False)
-    key = (task.scene, task.coverage, task.device)
+    cache = Cache(Path(task.cache_root), progress=False, size=task.cache_size)
+    key = (task.cache_root, task.cache_size, task.scene, task.coverage, task.device)
     if key not in _LOADED:
         capture = cache.room_capture(task.scene, RoomCaptureConfig(coverage=task.coverage))
         scene = load_field(cache.scene_field(task.scene, task.coverage, task.device), device=task.device)

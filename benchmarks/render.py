@@ -278,13 +278,27 @@ def completion(cache: Cache, library: dict[str, Field], config: RenderBenchConfi
             **summary, "objects": per_object, "registrations": records}, images
 
 
+QUICK_VIEWS = 2
+"""Views of the speed rows in the quick mode."""
+QUICK_RENDERERS = ("sphere", "baked", "volume")
+"""Speed rows of the quick mode (the matched sphere tracer is left out)."""
+
+
 def run_render_benchmark(cache: Cache, config: RenderBenchConfig = RenderBenchConfig(),
-                         device: str = "cpu") -> tuple[dict, dict[str, list[np.ndarray]]]:
-    """Speed rows and the completion object (JSON-ready), and the images to show."""
+                         device: str = "cpu", quick: bool = False) -> tuple[dict, dict[str, list[np.ndarray]]]:
+    """Speed rows, the completion and the replacement records (JSON-ready), and the images to show.
+
+    ``quick``: the speed rows alone (:data:`QUICK_RENDERERS` on :data:`QUICK_VIEWS` views), with no
+    completion or replacement, so that no low-coverage field is trained.
+    """
     capture = cache.room_capture(ROOM, RoomCaptureConfig(coverage="full"))
     names = sorted({inst.library for inst in capture.instances})
     library = {n: load_field(cache.object_field(n, "rgbd", device), device=device) for n in names}
     progress = cache.progress
+    if quick:
+        config = dataclasses.replace(config, speed_views=QUICK_VIEWS)
+        rows, speed_images, records = speed_rows(cache, library, config, device, progress, QUICK_RENDERERS)
+        return {"rows": rows, "registrations": records}, {"speed": speed_images}
     rows, speed_images, records = speed_rows(cache, library, config, device, progress)
     comp, comp_images = completion(cache, library, config, device, progress)
     repl, repl_images = replacement(cache, library, config, device, progress)

@@ -123,3 +123,28 @@ def check_input_file(path: str | os.PathLike, option: str, what: str = "file") -
     if not os.access(path, os.R_OK):
         raise PreflightError(f"{option} {path}: is not readable")
     return path
+
+
+def check_device(device: str, option: str = "--device") -> str:
+    """Refuse a torch device this machine does not have (``cuda`` without a GPU or a CUDA build).
+
+    Returns
+    -------
+    str
+        ``device`` as given.
+    """
+    import torch
+
+    try:
+        parsed = torch.device(device)
+    except (RuntimeError, ValueError) as exc:
+        raise PreflightError(f"{option} {device}: not a torch device (cpu, cuda or cuda:N)") from exc
+    if parsed.type == "cuda":
+        if not torch.cuda.is_available():
+            raise PreflightError(f"{option} {device}: CUDA is not available here (torch {torch.__version__}"
+                                 f"{', a CPU build' if torch.version.cuda is None else ', no GPU found'})")
+        if parsed.index is not None and parsed.index >= torch.cuda.device_count():
+            raise PreflightError(f"{option} {device}: this machine has {torch.cuda.device_count()} CUDA device(s)")
+    elif parsed.type != "cpu":
+        raise PreflightError(f"{option} {device}: only cpu and cuda are supported")
+    return device

@@ -32,6 +32,7 @@ import logging
 import os
 import re
 from pathlib import Path
+from typing import Literal, TypeVar
 
 import trimesh
 
@@ -62,6 +63,12 @@ CACHE_VERSION = 3
 3: checkpoint format 2 (content digest) and path-independent capture fingerprints."""
 
 log = logging.getLogger(__name__)
+
+TINY_STEPS = 100
+"""Training steps of every field at ``Cache.size == "tiny"``."""
+
+CaptureConfig = TypeVar("CaptureConfig", ObjectCaptureConfig, RoomCaptureConfig)
+TrainConfig = TypeVar("TrainConfig", RGBDTrainConfig, DistillConfig)
 
 
 def default_cache_dir() -> Path:
@@ -174,10 +181,31 @@ class Cache:
     """Cache directory."""
     progress: bool = True
     """Show progress bars while making things."""
+    size: Literal["full", "tiny"] = "full"
+    """``full``: the measured captures and training presets. ``tiny``: a smoke-test size (every
+    capture with a fifth of the frames at a quarter of the image size, every field a coarse grid
+    trained for a few steps) that runs the same code in seconds, for the tests of the benchmarks
+    and ``regnf bench gpu-check --size tiny``; its fields are not accurate. Its entries have keys
+    of their own (the configs differ), so both sizes share a cache directory."""
+
+    def _capture_config(self, config: CaptureConfig) -> CaptureConfig:
+        if self.size == "full":
+            return config
+        views = config.n_views or (120 if getattr(config, "coverage", "full") == "full" else 30)
+        return dataclasses.replace(config, width=config.width // 4, height=config.height // 4,
+                                   n_views=max(10, views // 5), heldout_every=5)
+
+    def _train_config(self, config: TrainConfig) -> TrainConfig:
+        if self.size == "full":
+            return config
+        tiny = dataclasses.replace(config.architecture, levels=2,
+                                   finest_resolution=2 * config.architecture.base_resolution)
+        extra = {"pool_surface": 20_000} if isinstance(config, DistillConfig) else {}
+        return dataclasses.replace(config, steps=TINY_STEPS, architecture=tiny, **extra)
 
     def object_capture(self, name: str, config: ObjectCaptureConfig | None = None) -> Capture:
         """The capture of library object ``name`` (made if missing)."""
-        cfg = config or ObjectCaptureConfig()
+        cfg = self._capture_config(config or ObjectCaptureConfig())
         folder = self.root / "captures" / f"object-{name}-{config_key('object', name, _without_progress(cfg))}"
         if (folder / "meta_data.json").is_file():
             return load_capture(folder)
@@ -185,7 +213,7 @@ class Cache:
 
     def room_capture(self, name: str, config: RoomCaptureConfig | None = None) -> Capture:
         """The capture of room ``name`` (made if missing)."""
-        cfg = config or RoomCaptureConfig()
+        cfg = self._capture_config(config or RoomCaptureConfig())
         key = config_key("room", name, _without_progress(cfg))
         folder = self.root / "captures" / f"room-{name}-{cfg.coverage}-{key}"
         if (folder / "meta_data.json").is_file():
@@ -228,9 +256,9 @@ class Cache:
     def object_field(self, name: str, source: str = "rgbd", device: str = "cpu") -> Path:
         """Checkpoint of library object ``name`` trained from RGB-D or distilled from its mesh."""
         if source == "rgbd":
-            return self.rgbd_field(self.object_capture(name), object_rgbd_preset(device))
+            return self.rgbd_field(self.object_capture(name), self._train_config(object_rgbd_preset(device)))
         if source == "mesh":
-            return self.mesh_field(name, object_mesh_preset(device))
+            return self.mesh_field(name, self._train_config(object_mesh_preset(device)))
         raise ValueError(f"unknown source {source!r} (expected 'rgbd' or 'mesh')")
 
     def mesh_field(self, name: str, config: DistillConfig) -> Path:
@@ -256,4 +284,4 @@ class Cache:
     def scene_field(self, name: str, coverage: str = "full", device: str = "cpu") -> Path:
         """Checkpoint of room ``name`` trained from its ``coverage`` capture."""
         capture = self.room_capture(name, RoomCaptureConfig(coverage=coverage))
-        return self.rgbd_field(capture, scene_rgbd_preset(device))
+        return self.rgbd_field(capture, self._train_config(scene_rgbd_preset(device)))

@@ -46,6 +46,7 @@ def _commands() -> dict[str, type]:
         BenchDistill,
         BenchEncodings,
         BenchFields,
+        BenchGpuCheck,
         BenchRegistration,
         BenchRender,
         BenchViewer,
@@ -82,6 +83,7 @@ def _commands() -> dict[str, type]:
         "bench distill": BenchDistill,
         "bench discover": BenchDiscover,
         "bench viewer": BenchViewer,
+        "bench gpu-check": BenchGpuCheck,
     }
 
 

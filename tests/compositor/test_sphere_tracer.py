@@ -298,3 +298,20 @@ def test_relaxed_step_over_a_thin_plate_is_not_taken_for_free_space() -> None:
     assert int((fast.mask != plain.mask).sum()) == 0
     assert int((fast.instance_id != plain.instance_id).sum()) == 0
     assert float((fast.depth - plain.depth).abs().max()) < 1e-3
+
+
+@pytest.mark.cuda
+def test_sphere_on_the_device_matches_the_closed_form(device: str) -> None:
+    """The tracer on ``--device``: the closed-form mask and depth, and the images on that device."""
+    cam = sphere_camera()
+    out = render(world_sphere().to(device), cam)
+    assert out.depth.device.type == torch.device(device).type
+    o, d = H.pixel_rays(cam.K, cam.camera_to_world, W, HGT)
+    hit, t, miss = H.ray_sphere(o, d, WORLD_CENTER, WORLD_RADIUS)
+    edge = boundary(miss, float(np.linalg.norm(cam.center - WORLD_CENTER)), cam)
+    mask = out.mask.cpu().numpy().ravel()
+    assert hit.sum() > 300 and np.array_equal(mask[~edge], hit[~edge])
+    p = o + np.where(hit & mask, t, 0.0)[:, None] * d
+    frontal = hit & mask & (-np.einsum("ij,ij->i", (p - WORLD_CENTER) / WORLD_RADIUS, d) > 0.2)
+    depth = out.depth.cpu().numpy().ravel()
+    np.testing.assert_allclose(depth[frontal], (t * (d @ cam.camera_to_world[:3, 2]))[frontal], atol=1e-4, rtol=0)

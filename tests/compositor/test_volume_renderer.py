@@ -99,3 +99,19 @@ def test_errors_and_empty_views() -> None:
         VolumeRendererConfig(n_samples=1)
     with pytest.raises(ValueError, match=r"\(n, 3\)"):
         integrate(Empty(), torch.zeros(2, 3), torch.zeros(3, 3))
+
+
+@pytest.mark.cuda
+def test_volume_render_on_the_device_matches_the_closed_form(device: str) -> None:
+    cam = sphere_camera()
+    out = render_volume(world_sphere().to(device), cam, VolumeRendererConfig())
+    assert out.depth.device.type == torch.device(device).type
+    o, d = H.pixel_rays(cam.K, cam.camera_to_world, W, HGT)
+    hit, t, miss = H.ray_sphere(o, d, WORLD_CENTER, WORLD_RADIUS)
+    edge = boundary(miss, float(np.linalg.norm(cam.center - WORLD_CENTER)), cam)
+    mask = out.mask.cpu().numpy().ravel()
+    assert np.array_equal(mask[~edge], hit[~edge])
+    p = o + np.where(hit, t, 0.0)[:, None] * d
+    frontal = hit & mask & (-np.einsum("ij,ij->i", (p - WORLD_CENTER) / WORLD_RADIUS, d) > 0.2)
+    err = np.abs(out.depth.cpu().numpy().ravel() - t * (d @ cam.camera_to_world[:3, 2]))[frontal]
+    assert float(np.median(err)) < 1e-3 and float(err.max()) < 2e-2

@@ -123,3 +123,17 @@ def test_sphere_traced_baked_field_renders_the_source_and_a_shifted_grid_does_no
     # Measured: 0.04 cells (0.33 at most, on grazing rays at the silhouette).
     assert depth_err[0] < 0.1 * CELL
     assert depth_err[1] > 2 * CELL  # the check sees a grid read a few cells off
+
+
+@pytest.mark.cuda
+def test_a_bake_on_the_device_is_the_cpu_bake(baked: BakedField, device: str) -> None:
+    """Baking and tracing on ``--device`` give the CPU's grid and image (to float rounding)."""
+    on = bake(two_spheres().to(device), CELL)
+    assert on.sdf_grid.device.type == torch.device(device).type
+    torch.testing.assert_close(on.sdf_grid.cpu(), baked.sdf_grid, atol=1e-5, rtol=0)
+    torch.testing.assert_close(on.rgb_grid.cpu(), baked.rgb_grid, atol=1e-5, rtol=0)
+    cfg = SphereTracerConfig.plain()
+    a, b = render(baked, _camera(), cfg), render(on, _camera(), cfg)
+    assert float((a.mask != b.mask.cpu()).float().mean()) < 0.002
+    both = a.mask & b.mask.cpu()
+    assert float((a.depth - b.depth.cpu())[both].abs().max()) < 1e-3 * CELL

@@ -177,3 +177,18 @@ def test_normalising_transform_and_face_colours_closed_form() -> None:
     np.testing.assert_allclose(
         face_colors(coloured), PALETTE[side_of(coloured.face_normals)] / 255.0, atol=1e-7
     )
+
+
+@pytest.mark.cuda
+def test_distillation_on_the_device_matches_the_box(device: str) -> None:
+    """200 steps on ``--device`` (the geometry's, see the fixture) reach the near-surface bar of
+    :func:`test_distilled_sdf_matches_the_box_near_the_surface`, the field on that device."""
+    config = DistillConfig(steps=200, batch=2048, pool_surface=20000, architecture=TINY, device=device)
+    field, _ = distill_mesh(coloured_box(), config, info=FieldInfo(label="crate", name="c1"), progress=False)
+    assert field.device.type == torch.device(device).type
+    rng = np.random.default_rng(0)
+    pts, _ = trimesh.sample.sample_surface(coloured_box(unmerged=False), 4000, seed=1)
+    near = pts + rng.normal(0.0, 0.03, pts.shape)
+    pred = field.sdf_chunked(world_to_field(field, near)).double().cpu().numpy()
+    err = np.abs(pred * field.world_scale - box_sdf_metres(near))
+    assert err.mean() < 0.005 * DIAG, f"mean error {err.mean() * 1000:.2f} mm"

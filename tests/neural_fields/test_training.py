@@ -249,3 +249,15 @@ def test_the_edge_loss_off_draws_no_edge_samples(capture: Capture) -> None:
                       progress=False)
     for pa, pb in zip(a.state_dict().values(), b.state_dict().values()):
         assert torch.equal(pa, pb)
+
+
+@pytest.mark.cuda
+def test_training_on_the_device_recovers_the_surface(capture: Capture, device: str) -> None:
+    """200 steps on ``--device`` (geometry converges within about 200, see STEPS) reach the surface
+    bar of :func:`test_trained_field_recovers_the_surface`, with the field left on that device."""
+    cfg = dataclasses.replace(tiny_config(steps=200), device=device)
+    field, _ = train_rgbd(capture, cfg, info=FieldInfo(label="toy", name="box_and_ball"), progress=False)
+    assert field.device.type == torch.device(device).type
+    pts, _ = surface_samples(5000, seed=1)
+    err = np.abs(field.sdf_chunked(as_tensor(pts).to(device)).double().cpu().numpy()) / DIAG
+    assert err.mean() < 0.005, f"mean |SDF| is {err.mean():.4%} of the diagonal"

@@ -155,3 +155,12 @@ def test_library_samples_taken_earlier_give_the_same_registration() -> None:
     assert np.array_equal(again.samples[1], reused.samples[1])
     r, t, s = errors(reused.transform, truth)
     assert r < 0.02 and t < 0.01 and s < 0.01
+
+
+@pytest.mark.cuda
+def test_register_on_the_device_recovers_a_known_similarity(device: str) -> None:
+    scene, proposal, truth = scene_and_truth(2.3, 1.0)
+    result = register(scene.to(device), library_at_scale(1.0).to(device), proposal)
+    r, t, s = errors(result.transform, truth)
+    assert r < 0.02 and t < 0.01 and s < 0.01, (r, t, s)
+    assert result.accepted and result.confidence > 0.9

@@ -447,3 +447,16 @@ def test_motion_about_a_continuous_symmetry_axis_is_no_motion() -> None:
     assert tilt[2] == pytest.approx(0.05, abs=1e-6)
     lift = moved_by(np.eye(3), np.array([0.0, 0.0, 0.02]))
     assert lift[3] == pytest.approx(0.02 / batch.L, rel=1e-6)
+
+
+@pytest.mark.cuda
+@pytest.mark.parametrize("optimizer, tolerance", [("adam", 1e-3), ("lm", 1e-5)])
+def test_refinement_on_the_device_recovers_the_truth(problem: dict, optimizer: str, tolerance: float,
+                                                     device: str) -> None:
+    size = problem["size"]
+    T0 = perturbed(problem["T_gt"], 0.15, [0.05 * size, -0.02 * size, 0.01 * size], 1.07)
+    res = refine(problem["scene"].to(device), problem["lib"].to(device), problem["A"].to(device),
+                 problem["B"].to(device), T0, replace(TEST_CFG, optimizer=optimizer))
+    rot, dt, ds = errors(res.transform, problem["T_gt"])
+    assert rot < tolerance and dt / size < tolerance and ds < tolerance, (rot, dt / size, ds)
+    assert res.inlier_fraction > 0.99

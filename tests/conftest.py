@@ -1,0 +1,28 @@
+"""Test options shared by every test module.
+
+``--device``: the torch device of the tests marked ``cuda`` (default ``cpu``). ``make gpu-check``
+runs ``pytest -m cuda --device cuda``; CI runs the same tests on the CPU, so the code a GPU takes
+cannot rot.
+"""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+
+def pytest_addoption(parser: pytest.Parser) -> None:
+    parser.addoption("--device", default="cpu",
+                     help="torch device of the tests marked cuda (make gpu-check: cuda)")
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    device = config.getoption("--device")
+    if torch.device(device).type == "cuda" and not torch.cuda.is_available():
+        raise pytest.UsageError(f"--device {device}: CUDA is not available here (torch {torch.__version__})")
+
+
+@pytest.fixture
+def device(request: pytest.FixtureRequest) -> str:
+    """The torch device of a ``cuda``-marked test (``--device``; default ``cpu``)."""
+    return request.config.getoption("--device")
