@@ -338,7 +338,7 @@ class BenchGpuCheck:
     device: str = "cuda"
     """Torch device of every part."""
     json: Path = Path("out/gpu_check.json")
-    """Where to write the results (JSON, layout in docs/benchmarks.md)."""
+    """Where to write the results (JSON, layout in docs/benchmarks.md); rewritten after each part."""
     markdown: Path | None = None
     """Also write the tables as Markdown here."""
     tests: Path | None = None
@@ -367,10 +367,11 @@ class BenchGpuCheck:
         command = (f"regnf bench gpu-check --device {self.device} --size {self.size} --json {self.json}"
                    + (f" --tests {self.tests}" if self.tests else ""))
         cache = Cache(self.cache_dir, size="tiny" if self.size == "tiny" else "full")
-        result = run_gpu_check(cache, self.device, self.tests)
-        result = {"meta": {**run_meta(command, self.device), "size": self.size,
-                           "device_name": device_name(self.device)}, **result}
-        write_json(self.json, result)
+        meta = {**run_meta(command, self.device), "size": self.size, "device_name": device_name(self.device)}
+        # Rewritten after each part: a run stopped half-way keeps the parts it finished.
+        result = run_gpu_check(cache, self.device, self.tests,
+                               on_part=lambda done: write_json(self.json, {"meta": meta, **done}))
+        result = {"meta": meta, **result}
         text = f"Command: `{command}`\n\n{markdown_table(result)}"
         if self.markdown:
             from regnf.core.atomic_io import write_text

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import time
 import xml.etree.ElementTree as ET
+from collections.abc import Callable
 from pathlib import Path
 
 import torch
@@ -79,7 +80,8 @@ def _keep(rows: list[dict], keys: tuple[str, ...]) -> list[dict]:
     return [{k: r.get(k) for k in keys} for r in rows]
 
 
-def run_gpu_check(cache: Cache, device: str, tests: Path | None = None) -> dict:
+def run_gpu_check(cache: Cache, device: str, tests: Path | None = None,
+                  on_part: Callable[[dict], None] | None = None) -> dict:
     """Every part of the check on ``device`` at ``cache.size`` (``full``: the quick modes as
     measured; ``tiny``: the same code on small captures and briefly trained fields).
 
@@ -91,6 +93,9 @@ def run_gpu_check(cache: Cache, device: str, tests: Path | None = None) -> dict:
         Torch device of every part (``cuda``, ``cuda:1``, ``cpu``).
     tests : Path, optional
         The CUDA-marked tests' ``--junitxml`` report, summarised under ``tests``.
+    on_part : callable, optional
+        Called with the results so far after each part (the command rewrites its JSON, so a
+        run stopped half-way keeps the parts it finished).
 
     Returns
     -------
@@ -103,16 +108,19 @@ def run_gpu_check(cache: Cache, device: str, tests: Path | None = None) -> dict:
 
     summary = test_summary(tests) if tests is not None else None
     out: dict = {"tests": summary}
-    t = time.perf_counter()
-    rows, _ = run_fields_benchmark(cache, quick=True, device=device)
-    out["fields"] = {"seconds": time.perf_counter() - t, "rows": _keep(rows, FIELD_KEYS)}
-    t = time.perf_counter()
-    rows = run_registration_benchmark(cache, quick=True, single_view=False, device=device,
-                                      coverages=("full",), library_sources=("rgbd",))
-    out["registration"] = {"seconds": time.perf_counter() - t, "rows": _keep(rows, REGISTRATION_KEYS)}
-    t = time.perf_counter()
-    result, _ = run_render_benchmark(cache, device=device, quick=True)
-    out["render"] = {"seconds": time.perf_counter() - t, "rows": _keep(result["rows"], RENDER_KEYS)}
+    parts = (
+        ("fields", FIELD_KEYS, lambda: run_fields_benchmark(cache, quick=True, device=device)[0]),
+        ("registration", REGISTRATION_KEYS,
+         lambda: run_registration_benchmark(cache, quick=True, single_view=False, device=device,
+                                            coverages=("full",), library_sources=("rgbd",))),
+        ("render", RENDER_KEYS, lambda: run_render_benchmark(cache, device=device, quick=True)[0]["rows"]),
+    )
+    for name, keys, run in parts:
+        t = time.perf_counter()
+        rows = run()
+        out[name] = {"seconds": time.perf_counter() - t, "rows": _keep(rows, keys)}
+        if on_part is not None:
+            on_part(out)
     return out
 
 
@@ -136,26 +144,38 @@ def markdown_table(result: dict) -> str:
                 f"{t['errors']} errors, {t['skipped']} skipped.")]
         out += [f"- failed: `{name}`" for name in t["failures"]]
         out += [""]
-    f = result["fields"]
-    out += [f"Fields (`regnf bench fields --quick`, {f['seconds']:.0f} s in all):", "",
+    out += _fields(result["fields"]) if "fields" in result else ["Fields: not run.", ""]
+    out += _registration(result["registration"]) if "registration" in result else ["Registration: not run.", ""]
+    out += _render(result["render"]) if "render" in result else ["Render: not run."]
+    return "\n".join(out) + "\n"
+
+
+def _fields(f: dict) -> list[str]:
+    out = [f"Fields (`regnf bench fields --quick`, {f['seconds']:.0f} s in all):", "",
             "| field | source | train s | surface mean % | PSNR held-out dB | Mpts/s no-grad | Mpts/s grad |",
             "|---|---|---|---|---|---|---|"]
     out += [f"| {r['name']} | {r['source']} | {r['train_seconds']:.1f} | {100 * r['surface_error_mean_rel']:.3f} | "
             f"{r['psnr_heldout']:.1f} | {r['eval_points_per_second']['nograd'] / 1e6:.2f} | "
             f"{r['eval_points_per_second']['grad'] / 1e6:.2f} |" for r in f["rows"]]
-    g = result["registration"]
-    out += ["", (f"Registration (`regnf bench registration --quick`, full coverage, RGB-D library, "
+    return out + [""]
+
+
+def _registration(g: dict) -> list[str]:
+    out = [(f"Registration (`regnf bench registration --quick`, full coverage, RGB-D library, "
             f"{g['seconds']:.0f} s in all):"), "",
             "| pair | method | s | sampling s | init s | refinement s | rotation rad | translation % | scale % |",
             "|---|---|---|---|---|---|---|---|---|"]
     out += [f"| {r['scene']}/{r['object']} | {r['method']} | {r['seconds']:.2f} | {_num(r['seconds_sampling'], '.2f')} | "
             f"{_num(r['seconds_initialisation'], '.2f')} | {_num(r['seconds_refinement'], '.2f')} | "
             f"{_num(r['rot_geodesic_rad'], '.4f')} | {_pct(r['trans_rel_diag'])} | {_pct(r['scale_rel'])} |" for r in g["rows"]]
-    r_ = result["render"]
-    out += ["", f"Render (`regnf bench render --quick`, composite ac-room, {r_['seconds']:.0f} s in all):", "",
+    return out + [""]
+
+
+def _render(r_: dict) -> list[str]:
+    out = [f"Render (`regnf bench render --quick`, composite ac-room, {r_['seconds']:.0f} s in all):", "",
             "| renderer | size | s / frame | evals / pixel | PSNR vs reference dB | PSNR vs neural dB |",
             "|---|---|---|---|---|---|"]
     out += [f"| {r['renderer']} | {r['width']}x{r['height']} | {r['seconds_per_frame']:.3f} | "
             f"{r['evals_per_pixel']:.1f} | {r['psnr_vs_reference']:.2f} | {_num(r['psnr_vs_neural'], '.2f')} |"
             for r in r_["rows"]]
-    return "\n".join(out) + "\n"
+    return out

@@ -400,12 +400,14 @@ class _Nearest:
     CHUNK = 4096
 
     def __init__(self, points: torch.Tensor) -> None:
-        self.points = points
+        # Double precision on both paths (the KD-tree's), whatever the points' dtype: the
+        # queries come in float64 and the nearest point must not depend on the device.
+        self.points = points.detach().double()
         self.tree = None
         if points.device.type == "cpu":
             from scipy.spatial import cKDTree
 
-            self.tree = cKDTree(points.detach().double().numpy())
+            self.tree = cKDTree(self.points.numpy())
 
     def query(self, x: torch.Tensor) -> torch.Tensor:
         """(n,) long index of the nearest point to each query (n, 3); no gradient."""
@@ -413,6 +415,7 @@ class _Nearest:
         if self.tree is not None:
             _, idx = self.tree.query(x.double().numpy(), k=1)
             return torch.as_tensor(idx, dtype=torch.long)
+        x = x.double()
         parts = [torch.cdist(x[i:i + self.CHUNK], self.points).argmin(dim=1)
                  for i in range(0, x.shape[0], self.CHUNK)]
         return torch.cat(parts)
