@@ -366,8 +366,9 @@ def test_build_and_lookup_on_the_device_agree_with_cpu(capture: Capture, grid: V
     g = build_visibility(capture, BOUNDS.to(device), resolution=RES, margin=2.0, full_count=1, device=device)
     assert g.counts.device.type == torch.device(device).type and torch.equal(g.counts.cpu(), grid.counts)
     x = BOUNDS[0] + torch.rand(10_000, 3) * 2.0
-    # The same counts, interpolated in float32 on either device: equal to rounding.
-    torch.testing.assert_close(g.observed(x.to(device)).cpu(), grid.observed(x), atol=1e-6, rtol=0)
+    # The same counts, interpolated in float32 on either device: equal to rounding (measured on
+    # an H200: 1.9e-6 at most).
+    torch.testing.assert_close(g.observed(x.to(device)).cpu(), grid.observed(x), atol=1e-5, rtol=0)
     assert grid.to(device).observed(x.to(device)).device.type == torch.device(device).type
 
 
