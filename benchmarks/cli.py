@@ -357,13 +357,13 @@ class BenchGpuCheck:
             device_name,
             markdown_table,
             run_gpu_check,
-            test_summary,
+            summarise_tests,
         )
         from regnf.core.preflight import check_device
 
         check_device(self.device)
         if self.tests is not None:
-            test_summary(self.tests)  # a bad report fails now, not after the benchmarks
+            summarise_tests(self.tests)  # a bad report fails now, not after the benchmarks
         command = (f"regnf bench gpu-check --device {self.device} --size {self.size} --json {self.json}"
                    + (f" --tests {self.tests}" if self.tests else ""))
         cache = Cache(self.cache_dir, size="tiny" if self.size == "tiny" else "full")

@@ -44,7 +44,7 @@ def device_name(device: str) -> str:
     return torch.cuda.get_device_name(d) if d.type == "cuda" else "cpu"
 
 
-def test_summary(junit: Path) -> dict:
+def summarise_tests(junit: Path) -> dict:
     """Counts and failed test names of a pytest ``--junitxml`` report.
 
     Raises
@@ -106,7 +106,7 @@ def run_gpu_check(cache: Cache, device: str, tests: Path | None = None,
     from regnf.benchmarks.registration import run_registration_benchmark
     from regnf.benchmarks.render import run_render_benchmark
 
-    summary = test_summary(tests) if tests is not None else None
+    summary = summarise_tests(tests) if tests is not None else None
     out: dict = {"tests": summary}
     parts = (
         ("fields", FIELD_KEYS, lambda: run_fields_benchmark(cache, quick=True, device=device)[0]),

@@ -183,15 +183,15 @@ class Cache:
     """Show progress bars while making things."""
     size: Literal["full", "tiny"] = "full"
     """``full``: the measured captures and training presets. ``tiny``: a smoke-test size (every
-    capture with a fifth of the frames at a quarter of the image size, every field a coarse grid
-    trained for a few steps) that runs the same code in seconds, for the tests of the benchmarks
-    and ``regnf bench gpu-check --size tiny``; its fields are not accurate. Its entries have keys
+    capture with a fifth of the frames at a quarter of the image size, every field a 2-level
+    grid trained for :data:`TINY_STEPS` steps) that runs the same code in minutes, for the tests
+    of the benchmarks and ``regnf bench gpu-check --size tiny``; its fields are not accurate. Its entries have keys
     of their own (the configs differ), so both sizes share a cache directory."""
 
     def _capture_config(self, config: CaptureConfig) -> CaptureConfig:
         if self.size == "full":
             return config
-        views = config.n_views or (120 if getattr(config, "coverage", "full") == "full" else 30)
+        views = config.frame_count() if isinstance(config, RoomCaptureConfig) else config.n_views
         return dataclasses.replace(config, width=config.width // 4, height=config.height // 4,
                                    n_views=max(10, views // 5), heldout_every=5)
 

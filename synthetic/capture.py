@@ -87,6 +87,10 @@ class RoomCaptureConfig:
     progress: bool = True
     """Show a tqdm progress bar."""
 
+    def frame_count(self) -> int:
+        """Frames of the capture: ``n_views``, or 120 for full coverage and 30 for low."""
+        return self.n_views or (120 if self.coverage == "full" else 30)
+
 
 def _intrinsics(
     width: int, height: int, focal: float | None, focal_over_width: float
@@ -190,11 +194,11 @@ def capture_room(
             K,
             config.width,
             config.height,
-            n=config.n_views or 120,
+            n=config.frame_count(),
             seed=config.seed,
         )
     else:
-        poses = room_low_coverage_poses(half, centres, n=config.n_views or 30)
+        poses = room_low_coverage_poses(half, centres, n=config.frame_count())
     with RGBDRenderer(
         [shaded_copy(room.mesh), *[shaded_copy(m) for m in meshes]],
         config.width,
