@@ -144,38 +144,34 @@ def markdown_table(result: dict) -> str:
                 f"{t['errors']} errors, {t['skipped']} skipped.")]
         out += [f"- failed: `{name}`" for name in t["failures"]]
         out += [""]
-    out += _fields(result["fields"]) if "fields" in result else ["Fields: not run.", ""]
-    out += _registration(result["registration"]) if "registration" in result else ["Registration: not run.", ""]
-    out += _render(result["render"]) if "render" in result else ["Render: not run."]
+    sections = []
+    for name, title, columns, row in _SECTIONS:
+        part = result.get(name)
+        if part is None:
+            sections.append([f"{name.capitalize()}: not run."])
+        else:
+            sections.append([title.format(seconds=part["seconds"]), "", "| " + " | ".join(columns) + " |",
+                             "|" + "---|" * len(columns), *(row(r) for r in part["rows"])])
+    out += [line for i, sec in enumerate(sections) for line in ([""] if i else []) + sec]
     return "\n".join(out) + "\n"
 
 
-def _fields(f: dict) -> list[str]:
-    out = [f"Fields (`regnf bench fields --quick`, {f['seconds']:.0f} s in all):", "",
-            "| field | source | train s | surface mean % | PSNR held-out dB | Mpts/s no-grad | Mpts/s grad |",
-            "|---|---|---|---|---|---|---|"]
-    out += [f"| {r['name']} | {r['source']} | {r['train_seconds']:.1f} | {100 * r['surface_error_mean_rel']:.3f} | "
-            f"{r['psnr_heldout']:.1f} | {r['eval_points_per_second']['nograd'] / 1e6:.2f} | "
-            f"{r['eval_points_per_second']['grad'] / 1e6:.2f} |" for r in f["rows"]]
-    return out + [""]
-
-
-def _registration(g: dict) -> list[str]:
-    out = [(f"Registration (`regnf bench registration --quick`, full coverage, RGB-D library, "
-            f"{g['seconds']:.0f} s in all):"), "",
-            "| pair | method | s | sampling s | init s | refinement s | rotation rad | translation % | scale % |",
-            "|---|---|---|---|---|---|---|---|---|"]
-    out += [f"| {r['scene']}/{r['object']} | {r['method']} | {r['seconds']:.2f} | {_num(r['seconds_sampling'], '.2f')} | "
-            f"{_num(r['seconds_initialisation'], '.2f')} | {_num(r['seconds_refinement'], '.2f')} | "
-            f"{_num(r['rot_geodesic_rad'], '.4f')} | {_pct(r['trans_rel_diag'])} | {_pct(r['scale_rel'])} |" for r in g["rows"]]
-    return out + [""]
-
-
-def _render(r_: dict) -> list[str]:
-    out = [f"Render (`regnf bench render --quick`, composite ac-room, {r_['seconds']:.0f} s in all):", "",
-            "| renderer | size | s / frame | evals / pixel | PSNR vs reference dB | PSNR vs neural dB |",
-            "|---|---|---|---|---|---|"]
-    out += [f"| {r['renderer']} | {r['width']}x{r['height']} | {r['seconds_per_frame']:.3f} | "
-            f"{r['evals_per_pixel']:.1f} | {r['psnr_vs_reference']:.2f} | {_num(r['psnr_vs_neural'], '.2f')} |"
-            for r in r_["rows"]]
-    return out
+_SECTIONS = (
+    ("fields", "Fields (`regnf bench fields --quick`, {seconds:.0f} s in all):",
+     ("field", "source", "train s", "surface mean %", "PSNR held-out dB", "Mpts/s no-grad", "Mpts/s grad"),
+     lambda r: (f"| {r['name']} | {r['source']} | {r['train_seconds']:.1f} | {100 * r['surface_error_mean_rel']:.3f} | "
+                f"{r['psnr_heldout']:.1f} | {r['eval_points_per_second']['nograd'] / 1e6:.2f} | "
+                f"{r['eval_points_per_second']['grad'] / 1e6:.2f} |")),
+    ("registration", ("Registration (`regnf bench registration --quick`, full coverage, RGB-D library, "
+                      "{seconds:.0f} s in all):"),
+     ("pair", "method", "s", "sampling s", "init s", "refinement s", "rotation rad", "translation %", "scale %"),
+     lambda r: (f"| {r['scene']}/{r['object']} | {r['method']} | {r['seconds']:.2f} | "
+                f"{_num(r['seconds_sampling'], '.2f')} | {_num(r['seconds_initialisation'], '.2f')} | "
+                f"{_num(r['seconds_refinement'], '.2f')} | {_num(r['rot_geodesic_rad'], '.4f')} | "
+                f"{_pct(r['trans_rel_diag'])} | {_pct(r['scale_rel'])} |")),
+    ("render", "Render (`regnf bench render --quick`, composite ac-room, {seconds:.0f} s in all):",
+     ("renderer", "size", "s / frame", "evals / pixel", "PSNR vs reference dB", "PSNR vs neural dB"),
+     lambda r: (f"| {r['renderer']} | {r['width']}x{r['height']} | {r['seconds_per_frame']:.3f} | "
+                f"{r['evals_per_pixel']:.1f} | {r['psnr_vs_reference']:.2f} | {_num(r['psnr_vs_neural'], '.2f')} |")),
+)
+"""Per part: its key, the title above its table, the columns, and one row's Markdown."""

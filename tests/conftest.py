@@ -8,7 +8,8 @@ cannot rot.
 from __future__ import annotations
 
 import pytest
-import torch
+
+from regnf.core.preflight import PreflightError, check_device
 
 
 def pytest_addoption(parser: pytest.Parser) -> None:
@@ -17,9 +18,10 @@ def pytest_addoption(parser: pytest.Parser) -> None:
 
 
 def pytest_configure(config: pytest.Config) -> None:
-    device = config.getoption("--device")
-    if torch.device(device).type == "cuda" and not torch.cuda.is_available():
-        raise pytest.UsageError(f"--device {device}: CUDA is not available here (torch {torch.__version__})")
+    try:
+        check_device(config.getoption("--device"))
+    except PreflightError as exc:
+        raise pytest.UsageError(str(exc)) from exc
 
 
 @pytest.fixture
