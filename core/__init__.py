@@ -2,6 +2,7 @@
 (:mod:`~regnf.core.atomic_io`), folder locks (:mod:`~regnf.core.file_lock`), output folders that
 lose nothing (:mod:`~regnf.core.output_dir`), process-pool and Ray executors
 (:mod:`~regnf.core.executors`), the checks a command makes before it starts
-(:mod:`~regnf.core.preflight`) and lazily loaded package exports
+(:mod:`~regnf.core.preflight`), the allocator setting a command trains with
+(:mod:`~regnf.core.allocator`) and lazily loaded package exports
 (:mod:`~regnf.core.lazy_exports`). Nothing here imports another part of regnf.
 """

@@ -49,6 +49,7 @@ from regnf.neural_fields.field import FieldInfo, Symmetry
 from regnf.neural_fields.presets import object_mesh_preset, object_rgbd_preset, scene_rgbd_preset
 from regnf.neural_fields.training import RGBDTrainConfig, capture_fingerprint, train_rgbd
 from regnf.synthetic.capture import (
+    GENERATOR,
     ObjectCaptureConfig,
     RoomCaptureConfig,
     capture_object,
@@ -206,7 +207,7 @@ class Cache:
     def object_capture(self, name: str, config: ObjectCaptureConfig | None = None) -> Capture:
         """The capture of library object ``name`` (made if missing)."""
         cfg = self._capture_config(config or ObjectCaptureConfig())
-        folder = self.root / "captures" / f"object-{name}-{config_key('object', name, _without_progress(cfg))}"
+        folder = self.root / "captures" / f"object-{name}-{config_key('object', name, _without_progress(cfg), GENERATOR)}"
         if (folder / "meta_data.json").is_file():
             return load_capture(folder)
         return capture_object(name, folder, dataclasses.replace(cfg, progress=self.progress))
@@ -214,7 +215,7 @@ class Cache:
     def room_capture(self, name: str, config: RoomCaptureConfig | None = None) -> Capture:
         """The capture of room ``name`` (made if missing)."""
         cfg = self._capture_config(config or RoomCaptureConfig())
-        key = config_key("room", name, _without_progress(cfg))
+        key = config_key("room", name, _without_progress(cfg), GENERATOR)
         folder = self.root / "captures" / f"room-{name}-{cfg.coverage}-{key}"
         if (folder / "meta_data.json").is_file():
             return load_capture(folder)

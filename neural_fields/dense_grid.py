@@ -8,6 +8,8 @@ are the default encoding.
 from __future__ import annotations
 
 import math
+import os
+from concurrent.futures import ThreadPoolExecutor
 
 import torch
 import torch.nn.functional as F
@@ -70,6 +72,9 @@ class DenseGridEncoding(torch.nn.Module):
     def forward(self, u: torch.Tensor) -> torch.Tensor:
         """Features (n, levels * features) at ``u`` (n, 3) in [-1, 1]^3 (box coordinates)."""
         g = u.view(1, 1, 1, -1, 3).to(self.grids[0].dtype)
+        threads = torch.get_num_threads()
+        if g.device.type == "cpu" and threads > 1 and not g.requires_grad and len(self.grids) > 1:
+            return _LevelsInParallel.apply(g, threads, *self.grids)
         feats = [
             F.grid_sample(grid, g, mode="bilinear", padding_mode="border", align_corners=True)
             .view(self.features, -1)
@@ -77,3 +82,60 @@ class DenseGridEncoding(torch.nn.Module):
             for grid in self.grids
         ]
         return torch.cat(feats, dim=-1)
+
+
+_POOLS: dict[int, ThreadPoolExecutor] = {}
+# A forked child inherits the pools but not their threads: it starts its own.
+os.register_at_fork(after_in_child=_POOLS.clear)
+
+
+def _pool(threads: int) -> ThreadPoolExecutor:
+    if threads not in _POOLS:
+        _POOLS[threads] = ThreadPoolExecutor(max_workers=threads, thread_name_prefix="grid-level")
+    return _POOLS[threads]
+
+
+class _LevelsInParallel(torch.autograd.Function):
+    """The levels' trilinear look-ups, and their gradients, one level per CPU thread.
+
+    Torch's CPU kernels of the 3-D ``grid_sample`` and of its backward run on one thread
+    whatever ``torch.get_num_threads()`` says (they split the work over the batch, and ours is
+    one volume), and they were half of a training step. The levels are independent, so they
+    run side by side on a pool of that many threads (the kernels release the GIL). The result
+    is the same tensor as the sequential path's, bit for bit: each level is the same kernel on
+    the same inputs. Only for sample positions that need no gradient (training's samples);
+    the positions' gradient and the double backward stay on the sequential path.
+    """
+
+    @staticmethod
+    def forward(ctx, g: torch.Tensor, threads: int, *grids: torch.Tensor) -> torch.Tensor:  # type: ignore[override]
+        # g: (1, 1, 1, n, 3) sample positions; grids: (1, C, D, H, W) per level.
+        def one(grid: torch.Tensor) -> torch.Tensor:
+            out = F.grid_sample(grid, g, mode="bilinear", padding_mode="border", align_corners=True)
+            return out.view(grid.shape[1], -1).t()
+
+        feats = list(_pool(threads).map(one, grids))
+        ctx.save_for_backward(g, *grids)
+        ctx.threads = threads
+        return torch.cat(feats, dim=-1)
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor):  # type: ignore[override]
+        # grad: (n, levels * C).
+        g, *grids = ctx.saved_tensors
+        parts = grad.split([grid.shape[1] for grid in grids], dim=-1)
+
+        def one(i: int) -> torch.Tensor | None:
+            if not ctx.needs_input_grad[2 + i]:
+                return None
+            go = parts[i].t().reshape(1, -1, 1, 1, g.shape[3])
+            # interpolation 0 = bilinear, padding 1 = border, as in forward.
+            grad_grid, _ = torch.ops.aten.grid_sampler_3d_backward(
+                go, grids[i], g, 0, 1, True, [True, False]
+            )
+            return grad_grid
+
+        # Finest (largest) levels first, so that the pool's threads finish together.
+        order = sorted(range(len(grids)), key=lambda i: -grids[i].numel())
+        done = dict(zip(order, _pool(ctx.threads).map(one, order)))
+        return (None, None, *(done[i] for i in range(len(grids))))

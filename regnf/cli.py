@@ -183,6 +183,12 @@ def main(argv: list[str] | None = None) -> int:
         debug, rest = True, [a for a in rest if a != "--debug"]
     cls = commands[name]
     command = tyro.cli(cls, args=rest, prog=f"regnf {name}", description=cls.__doc__)
+    if argv is None:
+        # A command's process: training's large per-step buffers are reused, not faulted in
+        # anew each step (core.allocator; called in-process, main leaves the caller's be).
+        from regnf.core.allocator import keep_freed_memory
+
+        keep_freed_memory()
     return _run(name, command.run, debug)
 
 

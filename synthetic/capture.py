@@ -28,8 +28,9 @@ from regnf.synthetic.trajectories import (
     room_low_coverage_poses,
 )
 
-GENERATOR = "regnf.synthetic/1"
-"""Recorded in each capture's ``regnf.generator``; bump when the generated data changes."""
+GENERATOR = "regnf.synthetic/2"
+"""Recorded in each capture's ``regnf.generator``, and part of its cache key; bump when the
+generated data changes (2: depth and instance ids ray-cast at the pixel centres)."""
 
 GT_MESH_NAME = "gt_mesh.ply"
 """Ground-truth mesh file in a capture folder."""

@@ -1,11 +1,15 @@
-"""Headless RGB-D (+ instance id) rendering of coloured meshes with pyrender.
+"""Headless RGB-D (+ instance id) rendering of coloured meshes.
 
-Two passes per frame:
-- colour: ``RenderFlags.FLAT`` (the shading is baked into face colours, see
+Per frame:
+
+- colour: pyrender with ``RenderFlags.FLAT`` (the shading is baked into face colours, see
   :mod:`regnf.synthetic.shading`), antialiased by pyrender's 4x MSAA at silhouettes;
-- segmentation: ``RenderFlags.SEG`` renders with multisampling disabled, so its depth and ids
-  are exact at pixel centres. Depth is read from THIS pass: the MSAA depth resolve of the colour
-  pass returns one sub-sample, not the pixel centre.
+- depth and instance ids: ray cast through the pixel centres (Open3D's ``RaycastingScene``),
+  so they are exact there on every machine. They came from an OpenGL pass without
+  multisampling before, which is exact at the pixel centres with Mesa but not with every driver:
+  a capture rendered through another machine's driver had depth 1.7-2.6 mm (mean) from the
+  true surface where Mesa's was within 0.003 mm, and its fields were 4x further off
+  (docs/benchmarks.md, "GPU check").
 
 Pixel convention: pixel (row v, column u) has its centre at image coordinates (u + 0.5, v + 0.5)
 for the intrinsics K (as in nerfstudio / sdfstudio); pyrender's IntrinsicsCamera agrees.
@@ -20,6 +24,7 @@ os.environ.setdefault("PYOPENGL_PLATFORM", "egl")  # headless; must precede the 
 from collections.abc import Sequence
 
 import numpy as np
+import open3d as o3d
 import pyrender
 import torch
 import trimesh
@@ -29,21 +34,6 @@ from regnf.core.render_result import Render
 
 VOID_GREY = (0.5, 0.5, 0.5)
 """Background colour of library captures ("in a void")."""
-
-_BACKGROUND_CODE = 0
-_UNLABELLED_CODE = 1  # geometry without an instance id (floor, walls, clutter)
-
-
-def _code_to_color(code: int) -> np.ndarray:
-    """Segmentation colour (3,) encoding a 24-bit integer in 8-bit RGB (pyrender divides by 255)."""
-    return np.array([code & 255, (code >> 8) & 255, (code >> 16) & 255], dtype=np.float64)
-
-
-def _color_to_code(seg: np.ndarray) -> np.ndarray:
-    """(H, W, 3) uint8 segmentation image -> (H, W) int64 codes."""
-    seg = seg.astype(np.int64)
-    return seg[..., 0] + (seg[..., 1] << 8) + (seg[..., 2] << 16)
-
 
 def _pyrender_mesh(mesh: trimesh.Trimesh) -> pyrender.Mesh:
     """A flat-shaded pyrender mesh; vertices are unmerged per face so colours do not bleed."""
@@ -75,7 +65,8 @@ class RGBDRenderer:
     bg_color : (3,) float
         Background colour in [0, 1].
     znear, zfar : float
-        Clip planes (mesh units); a larger ``znear`` gives a more precise depth buffer.
+        Clip planes (mesh units): of the colour pass, and the range a ray-cast hit must lie in
+        to give a depth.
     """
 
     def __init__(
@@ -95,11 +86,16 @@ class RGBDRenderer:
         self.width, self.height = int(width), int(height)
         self.znear, self.zfar = float(znear), float(zfar)
         self.scene = pyrender.Scene(bg_color=[*bg_color, 1.0], ambient_light=[1.0, 1.0, 1.0])
-        self.seg_map: dict = {}
-        for mesh, iid in zip(meshes, instance_ids):
-            node = self.scene.add(_pyrender_mesh(mesh))
-            code = _UNLABELLED_CODE if iid < 0 else int(iid) + 2
-            self.seg_map[node] = _code_to_color(code)
+        self.rays = o3d.t.geometry.RaycastingScene()
+        for mesh in meshes:
+            self.scene.add(_pyrender_mesh(mesh))
+            self.rays.add_triangles(
+                o3d.core.Tensor(np.asarray(mesh.vertices, dtype=np.float32)),
+                o3d.core.Tensor(np.asarray(mesh.faces, dtype=np.uint32)),
+            )
+        # Ray-cast geometry ids are the meshes' indices, in the order added; the last entry
+        # is for a miss (mapped there below).
+        self.instance_of = np.array([*(max(-1, int(i)) for i in instance_ids), -1], dtype=np.int64)
         self.camera = pyrender.IntrinsicsCamera(
             fx=1.0, fy=1.0, cx=0.5 * width, cy=0.5 * height, znear=self.znear, zfar=self.zfar
         )
@@ -135,12 +131,8 @@ class RGBDRenderer:
         self.camera.cx, self.camera.cy = float(K[0, 2]), float(K[1, 2])
         self.scene.set_pose(self.camera_node, opencv_to_opengl(camtoworld))
         rgb, _ = self.renderer.render(self.scene, flags=pyrender.RenderFlags.FLAT)
-        seg, depth = self.renderer.render(
-            self.scene, flags=pyrender.RenderFlags.SEG, seg_node_map=self.seg_map
-        )
-        ids = _color_to_code(seg) - 2
-        ids[ids < 0] = -1
-        depth_t = torch.from_numpy(depth.astype(np.float32))
+        depth, ids = self._raycast(camtoworld, K)
+        depth_t = torch.from_numpy(depth)
         return Render(
             rgb=torch.from_numpy(np.ascontiguousarray(rgb[..., :3])).float() / 255.0,
             depth=depth_t,
@@ -150,6 +142,21 @@ class RGBDRenderer:
             evals_per_pixel=None,
             lookups_per_pixel=None,
         )
+
+    def _raycast(self, camtoworld: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """z-depth (H, W) float32 (0: no hit within the clip planes) and instance ids (H, W)."""
+        u, v = np.meshgrid(np.arange(self.width) + 0.5, np.arange(self.height) + 0.5)
+        cam = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1)
+        # Directions with a camera z of 1: the ray parameter of the hit is its z-depth.
+        dirs = cam.reshape(-1, 3) @ camtoworld[:3, :3].T
+        origins = np.broadcast_to(camtoworld[:3, 3], dirs.shape)
+        hit = self.rays.cast_rays(o3d.core.Tensor(np.concatenate([origins, dirs], 1).astype(np.float32)))
+        t = hit["t_hit"].numpy().reshape(self.height, self.width)
+        # As the GL camera clips: nothing nearer than znear or beyond zfar.
+        valid = np.isfinite(t) & (t >= self.znear) & (t <= self.zfar)
+        gid = hit["geometry_ids"].numpy().astype(np.int64).reshape(self.height, self.width)
+        gid = np.where(valid, gid, len(self.instance_of) - 1)
+        return np.where(valid, t, 0.0).astype(np.float32), self.instance_of[gid]
 
     def delete(self) -> None:
         """Release the GL context (safe to call twice)."""

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+import trimesh
 
 from regnf.core.cameras import look_at
 from regnf.core.image_io import rgb_to_uint8
@@ -127,3 +128,25 @@ def test_renderer_validates_inputs() -> None:
         RGBDRenderer([mesh], W, H, instance_ids=[0, 1])
     with RGBDRenderer([mesh], W, H) as renderer, pytest.raises(ValueError, match="4x4 pose"):
         renderer.render(np.eye(3), K)
+
+
+def test_depth_and_ids_are_exact_at_pixel_centres_on_a_tilted_plane() -> None:
+    # Two coloured quads in the plane z = 0.3 x + 2 (camera frame = world frame, looking +z):
+    # the left one (x < 0) instance 4, the right one unlabelled. The truth is analytic.
+    def quad(x0: float, x1: float) -> trimesh.Trimesh:
+        v = np.array([[x0, -3.0], [x1, -3.0], [x1, 3.0], [x0, 3.0]])
+        verts = np.column_stack([v, 0.3 * v[:, 0] + 2.0])
+        mesh = trimesh.Trimesh(verts, [[0, 1, 2], [0, 2, 3]], process=False)
+        mesh.visual.face_colors = [200, 100, 50, 255]
+        return mesh
+
+    with RGBDRenderer([quad(-3.0, 0.0), quad(0.0, 3.0)], W, H, instance_ids=[4, -1]) as renderer:
+        out = renderer.render(np.eye(4), K)
+    u, _v = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
+    dx = (u - K[0, 2]) / K[0, 0]  # ray (dx, dy, 1) t meets z = 0.3 x + 2 at t = 2 / (1 - 0.3 dx)
+    z = 2.0 / (1.0 - 0.3 * dx)
+    np.testing.assert_allclose(out.depth.numpy(), z, rtol=1e-5)
+    x = dx * z
+    away = np.abs(x) > 1e-3  # the seam between the quads
+    assert np.array_equal(out.instance_id.numpy()[away], np.where(x < 0, 4, -1)[away])
+    assert bool(out.mask.all())
