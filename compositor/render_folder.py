@@ -47,6 +47,7 @@ from regnf.core.file_lock import folder_lock
 from regnf.core.image_io import rgb_to_uint8, write_depth_png, write_instance_png, write_rgb_png
 from regnf.core.output_dir import remove_leftovers, staging_dir, staging_prefix
 from regnf.core.render_result import Render
+from regnf.core.threads import map_one_thread_each, worker_count
 from regnf.neural_fields.baked_field import BakeConfig
 from regnf.neural_fields.camera import Camera
 from regnf.neural_fields.distance_grid import DistanceGrid
@@ -112,8 +113,16 @@ class RenderConfig:
     """Render into a folder that already holds a render (its old view files are replaced)."""
     progress: bool = True
     """Show a progress bar."""
+    workers: int | None = None
+    """Views rendered side by side, each on one CPU thread (None: one per usable core, at most
+    ``torch.get_num_threads()``; :func:`regnf.core.threads.map_one_thread_each`). The images are
+    the same on any count (a lone view, too, renders on one thread); a view's ``seconds`` in
+    ``render.json`` is its own wall time, so with two workers it is that of a view sharing the
+    machine."""
 
     def __post_init__(self) -> None:
+        if self.workers is not None and self.workers < 1:
+            raise ValueError(f"workers must be >= 1, got {self.workers}")
         if self.renderer not in RENDERERS:
             raise ValueError(f"renderer must be one of {RENDERERS}, got {self.renderer!r}")
         if self.sequence not in SEQUENCE_FORMATS:
@@ -339,10 +348,21 @@ def _render_into(
     t_grid = time.perf_counter() - t_start - t_bake
     views, seconds, stats, thumbs = [], [], [], []
     total_evals, total_pixels = 0, 0
-    bar = tqdm(cameras, desc=f"render {len(cameras)} views", unit="view", disable=not config.progress)
-    for k, cam in enumerate(bar):  # a loop over views; each view is vectorised over its pixels
+    bar = tqdm(total=len(cameras), desc=f"render {len(cameras)} views", unit="view", disable=not config.progress)
+
+    def timed(cam: Camera) -> tuple[Render, float]:
         t0 = time.perf_counter()
-        r = render_one(field, cam, config, grid)
+        return render_one(field, cam, config, grid), time.perf_counter() - t0
+
+    # Views side by side, one CPU thread each (each view is vectorised over its pixels; the
+    # 3-D grid look-ups run on one thread whatever torch's setting, so one view on two threads
+    # leaves a core idle much of the time); as many at a time as there are workers, each
+    # written before the next ones start, so that memory holds that many views, not all.
+    chunk = worker_count(config.workers)
+    rendered = (view for start in range(0, len(cameras), chunk)
+                for view in map_one_thread_each(timed, cameras[start:start + chunk], chunk, bar.update))
+    for k, (cam, (r, took)) in enumerate(zip(cameras, rendered)):
+        t0 = time.perf_counter() - took
         names = view_files(k)
         rgb8 = rgb_to_uint8(r.rgb)
         write_rgb_png(staging / names.rgb, rgb8)
@@ -364,6 +384,7 @@ def _render_into(
             "instance_pixels": {str(int(i)): int(c) for i, c in zip(*torch.unique(ids, return_counts=True))},
         })
         views.append(names)
+    bar.close()
     sheet = contact_sheet(thumbs, config.sheet_columns, config.sheet_tile_width)
     write_rgb_png(staging / CONTACT_SHEET, sheet)
     if config.sequence_name is not None:

@@ -218,7 +218,7 @@ def test_what_a_killed_run_left_is_removed_and_the_user_s_hidden_files_stay(stag
 
 
 KILLED_RENDER = textwrap.dedent('''
-    """Render into a folder and hang after the first view, so that a SIGKILL finds the staging folder."""
+    """Render into a folder and hang after the first views, so that a SIGKILL finds the staging folder."""
     import sys
     import time
     from pathlib import Path
@@ -236,7 +236,7 @@ KILLED_RENDER = textwrap.dedent('''
 
         def hanging(*args, **kwargs):
             calls.append(1)
-            if len(calls) == 2:
+            if len(calls) == 3:  # views 0 and 1 are written (one or two render at a time)
                 ready.touch()
                 time.sleep(600)
             return real(*args, **kwargs)
@@ -248,7 +248,7 @@ KILLED_RENDER = textwrap.dedent('''
 ''')
 RENDER_BOUNDS = [[-1.6, -1.4, 0.0], [1.6, 1.4, 1.2]]
 """Bounds of the golden scene the render tests orbit."""
-RENDER_ORBIT = {"n": 2, "width": 24, "height": 18, "radius": 2.2, "elevation_deg": 35.0}
+RENDER_ORBIT = {"n": 3, "width": 24, "height": 18, "radius": 2.2, "elevation_deg": 35.0}
 """Two small views from outside it."""
 
 

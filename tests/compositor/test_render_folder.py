@@ -179,3 +179,16 @@ def test_a_view_larger_than_the_limit_is_refused_before_rendering(tmp_path: Path
     with pytest.raises(ValueError, match=r"camera 1: a view of 4097 x 4096 pixels is more than the 16,777,216"):
         render_views(field, [*cameras(1), huge], tmp_path / "out", QUIET)
     assert not (tmp_path / "out").exists()
+
+
+def test_views_side_by_side_are_the_images_of_one_after_another(tmp_path: Path) -> None:
+    field = G.composite("own", StageCompositeConfig())
+    cams = cameras(3)
+    for workers in (1, 2):
+        render_views(field, cams, tmp_path / str(workers), RenderConfig(progress=False, workers=workers))
+    for k in range(3):
+        for kind in ("rgb", "depth", "instance"):
+            one = (tmp_path / "1" / f"{kind}_{k:04d}.png").read_bytes()
+            assert one == (tmp_path / "2" / f"{kind}_{k:04d}.png").read_bytes(), (kind, k)
+    with pytest.raises(ValueError, match="workers"):
+        RenderConfig(workers=0)

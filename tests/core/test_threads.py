@@ -1,0 +1,65 @@
+"""Calls side by side on threads that each run torch on one CPU thread."""
+
+from __future__ import annotations
+
+import threading
+
+import pytest
+import torch
+
+from regnf.core.threads import map_one_thread_each, one_thread
+
+
+def test_results_come_in_item_order_and_every_call_runs_on_one_thread() -> None:
+    seen: list[int] = []
+
+    def fn(x: int) -> tuple[int, int]:
+        return x * x, torch.get_num_threads()
+
+    before = torch.get_num_threads()
+    out = map_one_thread_each(fn, list(range(7)), workers=2, on_done=lambda: seen.append(1))
+    assert [r for r, _ in out] == [x * x for x in range(7)]
+    assert {n for _, n in out} == {1}
+    assert len(seen) == 7
+    assert torch.get_num_threads() == before
+
+
+def test_calls_run_side_by_side() -> None:
+    # Each call waits for the other at a barrier: run one after the other, the first would
+    # time out waiting.
+    barrier = threading.Barrier(2, timeout=30)
+
+    def fn(x: int) -> int:
+        barrier.wait()
+        return x
+
+    assert map_one_thread_each(fn, [1, 2], workers=2) == [1, 2]
+
+
+def test_a_failed_call_raises_after_the_others_finish() -> None:
+    finished: list[int] = []
+
+    def fn(x: int) -> int:
+        if x == 1:
+            raise ValueError("item 1")
+        finished.append(x)
+        return x
+
+    with pytest.raises(ValueError, match="item 1"):
+        map_one_thread_each(fn, [0, 1, 2, 3], workers=2)
+    assert sorted(finished) == [0, 2, 3]
+
+
+def test_one_worker_maps_here_on_one_thread() -> None:
+    main = threading.get_ident()
+    out = map_one_thread_each(lambda x: (threading.get_ident(), torch.get_num_threads()), [0, 1], workers=1)
+    assert out == [(main, 1), (main, 1)]
+
+
+def test_same_bits_as_one_thread() -> None:
+    # Reductions split over threads sum in another order; each call on one thread does not.
+    g = torch.Generator().manual_seed(0)
+    xs = [torch.randn(300_000, generator=g) for _ in range(4)]
+    with one_thread():
+        ref = [x.sum() for x in xs]
+    assert all(torch.equal(a, b) for a, b in zip(map_one_thread_each(torch.sum, xs, workers=2), ref))
