@@ -362,14 +362,14 @@ def _render_into(
     rendered = (view for start in range(0, len(cameras), chunk)
                 for view in map_one_thread_each(timed, cameras[start:start + chunk], chunk, bar.update))
     for k, (cam, (r, took)) in enumerate(zip(cameras, rendered)):
-        t0 = time.perf_counter() - took
+        t_write = time.perf_counter()
         names = view_files(k)
         rgb8 = rgb_to_uint8(r.rgb)
         write_rgb_png(staging / names.rgb, rgb8)
         write_depth_png(staging / names.depth, r.depth, r.mask)
         write_instance_png(staging / names.instance, r.instance_id)
         thumbs.append(rgb8)
-        seconds.append(time.perf_counter() - t0)
+        seconds.append(took + time.perf_counter() - t_write)  # rendering and writing
         evals = int(r.evals_per_pixel.sum())
         total_evals += evals
         total_pixels += cam.width * cam.height

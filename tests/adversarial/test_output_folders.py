@@ -249,7 +249,7 @@ KILLED_RENDER = textwrap.dedent('''
 RENDER_BOUNDS = [[-1.6, -1.4, 0.0], [1.6, 1.4, 1.2]]
 """Bounds of the golden scene the render tests orbit."""
 RENDER_ORBIT = {"n": 3, "width": 24, "height": 18, "radius": 2.2, "elevation_deg": 35.0}
-"""Two small views from outside it."""
+"""Three small views from outside it."""
 
 
 def render_cameras():
