@@ -63,9 +63,10 @@ def map_one_thread_each(fn: Callable[[T], R], items: Sequence[T], workers: int |
     interpreter lock, so two such calls overlap on two cores, where one call on two threads
     leaves a core idle much of the time: the 3-D ``grid_sample`` runs on one thread whatever the
     setting, and the small batches of a sphere tracer's last steps do not split. Open3D's
-    calls hold the interpreter lock and share one random generator: not for them (measured on
-    discovery's candidates, two at a time: a ranking score of 0.07582 where one at a time gives
-    0.07615, cause not found, so discovery examines its candidates one after another).
+    calls hold the interpreter lock, share one random generator, and its RANSAC on a thread
+    other than the main one gave hypotheses that varied from run to run: not for them (so
+    discovery examines its candidates one after another; docs/benchmarks.md, "The demo end to
+    end").
 
     Parameters
     ----------
