@@ -2,18 +2,27 @@
 
 The scene less its removal regions is baked once as one field (the regions' cuts are then grid
 values too), and each placed library field once in its own frame, shared by every instance
-that shows it; the placements keep their similarities and tints. See
-:mod:`regnf.neural_fields.baked_field` for the grids and how their cell is chosen.
+that shows it; the placements keep their similarities and tints. A library field's cell
+follows the pixel footprint where it stands in the scene (its placement), the finest over
+the places it stands in. See :mod:`regnf.neural_fields.baked_field` for the grids.
+
+Two entry points: :func:`bake_for_views` bakes a composite for the views about to be rendered
+(``regnf render --render.renderer baked``); :func:`bake_grids` bakes a masked scene and a set of
+library objects once, and :func:`with_grids` puts those grids in place of a composite's fields,
+for the many composites of one stage that ``regnf generate`` renders.
 """
 
 from __future__ import annotations
 
 import math
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import NamedTuple
 
-from regnf.neural_fields.baked_field import BakeConfig, bake, bake_cell, grid_nodes
+import numpy as np
+
+from regnf.core.threads import map_one_thread_each
+from regnf.neural_fields.baked_field import BakeConfig, BakedField, bake, bake_cell, grid_nodes
 from regnf.neural_fields.camera import Camera
 from regnf.neural_fields.field import Field
 
@@ -33,6 +42,103 @@ class BakedComposite(NamedTuple):
     """Grid nodes over every baked field."""
 
 
+class BakedGrids(NamedTuple):
+    """A masked scene and library objects, each baked once (:func:`bake_grids`)."""
+
+    scene: BakedField
+    """The scene less its removal regions, in the scene field frame."""
+    objects: dict[str, BakedField]
+    """Library object name -> its grid, in its own field frame."""
+    seconds: float
+    """Wall time of the baking (NaN for grids read back from files)."""
+    nodes: int
+    """Grid nodes over every baked field."""
+
+
+def masked_scene(composite: CompositeField) -> CompositeField:
+    """The scene of ``composite`` less its removal regions, with no placed objects."""
+    return CompositeField(composite.scene, [], list(composite.removals), composite.config,
+                          info=composite.scene.info)
+
+
+def placed_to_world(composite: CompositeField) -> list[np.ndarray]:
+    """(4, 4) float64 per placement: its library field frame -> world metres."""
+    S = composite.scene.to_world.detach().cpu().double().numpy()
+    return [S @ p.mapped.matrix.detach().cpu().double().numpy() for p in composite.placements]
+
+
+def bake_grids(scene: Field, objects: Mapping[str, tuple[Field, Sequence[np.ndarray]]],
+               cameras: Sequence[Camera], config: BakeConfig | None = None, progress: bool = False,
+               workers: int | None = None) -> BakedGrids:
+    """Bake a masked scene and library objects for ``cameras``.
+
+    Parameters
+    ----------
+    scene : Field
+        The scene less its removal regions (:func:`masked_scene`), in the scene field frame.
+    objects : mapping of name -> (Field, sequence of (4, 4) float)
+        Each library field with the field frame -> world maps of the places it may stand in
+        (:func:`placed_to_world`): its cell is the finest over them.
+    cameras : sequence of Camera
+        The views that will look (metres).
+    config : BakeConfig, optional
+        Defaults to ``BakeConfig()``.
+    progress : bool
+        Show a progress bar per baked field.
+    workers : int, optional
+        Fields baked at once, each on one CPU thread (:func:`regnf.core.threads.map_one_thread_each`);
+        None: one per usable core. One thread per field makes the grids the same on any machine.
+
+    Raises
+    ------
+    ValueError
+        The grids would exceed ``config.max_total_nodes`` (before any baking), or an object has
+        no place.
+    """
+    config = config or BakeConfig()
+    t0 = time.perf_counter()
+    names = list(objects)
+    fields = [scene, *(objects[n][0] for n in names)]
+    cells = [bake_cell(scene, cameras, config)]
+    for n in names:
+        field, places = objects[n]
+        if not places:
+            raise ValueError(f"library object {n!r} has no place to be baked for")
+        cells.append(min(bake_cell(field, cameras, config, to_world=W) for W in places))
+    total = sum(math.prod(grid_nodes(f.bounds, c, config.coarse_stride)) for f, c in zip(fields, cells))
+    if total > config.max_total_nodes:  # before any baking
+        raise ValueError(f"baking these {len(fields)} fields for these views needs {total:,} grid nodes "
+                         f"({16 * total / 2**30:.1f} GB), more than max_total_nodes={config.max_total_nodes:,}: "
+                         "render with the sphere tracer, or take coarser cells (cell_pixels)")
+    # The largest first, so that the others fill the remaining workers around it.
+    order = sorted(range(len(fields)), key=lambda i: -math.prod(grid_nodes(fields[i].bounds, cells[i])))
+    baked_in_order = map_one_thread_each(lambda i: bake(fields[i], cells[i], config, progress=progress),
+                                         order, workers)
+    baked = dict(zip(order, baked_in_order))
+    return BakedGrids(baked[0], {n: baked[k] for k, n in enumerate(names, start=1)},
+                      time.perf_counter() - t0, total)
+
+
+def with_grids(composite: CompositeField, scene: BakedField, objects: Sequence[BakedField]) -> CompositeField:
+    """``composite`` with ``scene`` (its masked scene, baked) and ``objects`` (one grid per
+    placement, in order) in place of its fields; similarities, instance ids and tints kept."""
+    if len(objects) != len(composite.placements):
+        raise ValueError(f"{len(objects)} grids for {len(composite.placements)} placed objects")
+    placed = [PlacedObject(g, p.mapped.matrix.cpu().numpy(), iid, tint)
+              for g, p, iid, tint in zip(objects, composite.placements, composite.instance_ids,
+                                         composite.tints, strict=True)]
+    return CompositeField(scene, placed, [], composite.config, info=composite.info)
+
+
+def is_baked(field: Field) -> bool:
+    """Whether every field ``field`` reads is a grid (a baked field, or a composite of them with
+    no removal regions): baking it again would change nothing."""
+    if isinstance(field, BakedField):
+        return True
+    return (isinstance(field, CompositeField) and isinstance(field.scene, BakedField) and not len(field.removals)
+            and all(isinstance(p.field, BakedField) for p in field.placements))
+
+
 def bake_for_views(composite: Field, cameras: Sequence[Camera], config: BakeConfig | None = None,
                    progress: bool = False) -> BakedComposite:
     """``composite`` with its masked scene and its library fields baked for ``cameras``.
@@ -40,7 +146,8 @@ def bake_for_views(composite: Field, cameras: Sequence[Camera], config: BakeConf
     Parameters
     ----------
     composite : Field
-        A :class:`CompositeField`; any other field is baked whole.
+        A :class:`CompositeField`; any other field is baked whole. A field that is baked
+        already (:func:`is_baked`) is returned as it is.
     cameras : sequence of Camera
         The views to be rendered (metres): each field's cell follows their pixel footprint
         (:func:`~regnf.neural_fields.baked_field.bake_cell`).
@@ -51,24 +158,24 @@ def bake_for_views(composite: Field, cameras: Sequence[Camera], config: BakeConf
     """
     config = config or BakeConfig()
     t0 = time.perf_counter()
-    if isinstance(composite, CompositeField):
-        masked = CompositeField(composite.scene, [], list(composite.removals), composite.config,
-                                info=composite.scene.info)
-        # One grid per library object, shared by its instances.
-        fields = [masked, *{id(p.field): p.field for p in composite.placements}.values()]
-    else:
-        fields = [composite]
-    cells = [bake_cell(f, cameras, config) for f in fields]
-    total = sum(math.prod(grid_nodes(f.bounds, c, config.coarse_stride)) for f, c in zip(fields, cells))
-    if total > config.max_total_nodes:  # before any baking
-        raise ValueError(f"baking these {len(fields)} fields for these views needs {total:,} grid nodes "
-                         f"({16 * total / 2**30:.1f} GB), more than max_total_nodes={config.max_total_nodes:,}: "
-                         "render with the sphere tracer, or take coarser cells (cell_pixels)")
-    baked = [bake(f, c, config, progress=progress) for f, c in zip(fields, cells)]
+    if is_baked(composite):
+        return BakedComposite(composite, 0.0, _nodes(composite))
     if not isinstance(composite, CompositeField):
-        return BakedComposite(baked[0], time.perf_counter() - t0, total)
-    grid_of = {id(f): b for f, b in zip(fields[1:], baked[1:])}
-    objects = [PlacedObject(grid_of[id(p.field)], p.mapped.matrix.cpu().numpy(), iid, tint)
-               for p, iid, tint in zip(composite.placements, composite.instance_ids, composite.tints, strict=True)]
-    field = CompositeField(baked[0], objects, [], composite.config, info=composite.info)
-    return BakedComposite(field, time.perf_counter() - t0, total)
+        cell = bake_cell(composite, cameras, config)
+        nodes = math.prod(grid_nodes(composite.bounds, cell, config.coarse_stride))
+        if nodes > config.max_total_nodes:
+            raise ValueError(f"baking this field for these views needs {nodes:,} grid nodes, more than "
+                             f"max_total_nodes={config.max_total_nodes:,}: take coarser cells (cell_pixels)")
+        return BakedComposite(bake(composite, cell, config, progress=progress), time.perf_counter() - t0, nodes)
+    # One grid per library object, shared by its instances.
+    places: dict[int, tuple[Field, list[np.ndarray]]] = {}
+    for p, W in zip(composite.placements, placed_to_world(composite)):
+        places.setdefault(id(p.field), (p.field, []))[1].append(W)
+    grids = bake_grids(masked_scene(composite), {str(k): v for k, v in places.items()}, cameras, config, progress)
+    field = with_grids(composite, grids.scene, [grids.objects[str(id(p.field))] for p in composite.placements])
+    return BakedComposite(field, time.perf_counter() - t0, grids.nodes)
+
+
+def _nodes(field: Field) -> int:
+    fields = [field] if isinstance(field, BakedField) else [field.scene, *(p.field for p in field.placements)]
+    return sum(math.prod(f.nodes) for f in {id(f): f for f in fields}.values())

@@ -70,20 +70,35 @@ class BakeConfig:
             raise ValueError(f"band_cells must be >= sqrt(3) (a hit's cell corners), got {self.band_cells}")
 
 
-def bake_cell(field: Field, cameras: Sequence[Camera], config: BakeConfig = BakeConfig()) -> float:
+def bake_cell(field: Field, cameras: Sequence[Camera], config: BakeConfig = BakeConfig(),
+              to_world: np.ndarray | None = None) -> float:
     """The grid cell (field units) for ``field`` seen by ``cameras`` (metres).
 
     The pixel footprint is the median over the cameras of their distance to the centre of the
     field's bounds divided by their focal length in pixels, times ``config.cell_pixels``; no
     finer than a grid of ``config.max_nodes`` nodes over the bounds allows.
+
+    Parameters
+    ----------
+    field : Field
+    cameras : sequence of Camera
+    config : BakeConfig
+    to_world : (4, 4) float, optional
+        Where the field stands: a similarity from its frame to the cameras' world (a library
+        field placed in a scene); default ``field.to_world``.
     """
     if not cameras:
         raise ValueError("bake_cell needs at least one camera")
-    W = field.to_world.detach().cpu().double().numpy()
+    W = field.to_world.detach().cpu().double().numpy() if to_world is None else np.asarray(to_world, np.float64)
+    if W.shape != (4, 4) or not np.isfinite(W).all():
+        raise ValueError(f"to_world must be a finite (4, 4) similarity, got shape {W.shape}")
     lo, hi = field.bounds.detach().cpu().double().numpy()
     centre = W[:3, :3] @ ((lo + hi) / 2) + W[:3, 3]
+    metres_per_unit = float(abs(np.linalg.det(W[:3, :3])) ** (1.0 / 3.0))
+    if not metres_per_unit > 0:
+        raise ValueError("to_world is degenerate (its scale is 0)")
     footprints = [np.linalg.norm(np.asarray(c.camera_to_world)[:3, 3] - centre) / float(c.K[0, 0]) for c in cameras]
-    cell = config.cell_pixels * float(np.median(footprints)) / field.world_scale
+    cell = config.cell_pixels * float(np.median(footprints)) / metres_per_unit
     cell = max(cell, (float(np.prod(hi - lo)) / config.max_nodes) ** (1.0 / 3.0), 1e-9)
     while math.prod(grid_nodes(field.bounds, cell, config.coarse_stride)) > config.max_nodes:  # the end nodes and rounding
         cell *= 1.01

@@ -67,6 +67,12 @@ class RegistrationConfig:
     starts only, for objects in any orientation."""
     acceptance_threshold: float = 0.6
     """A result whose confidence is below this is reported as a failed registration."""
+    confident_score: float = 0.85
+    """The best screened hypothesis is refined first, alone; when its confidence reaches this,
+    the others are not refined (:func:`refine_hypotheses`). Above 1: every hypothesis is
+    refined. (Not in the paper, which refines one. On the full-coverage benchmark rooms the first
+    hypothesis won in 11 of 11 pairs, and refining the other 3 took 0.65 s of a 1.8 s median
+    registration; a first hypothesis at 0.85 or more stops 9 of them.)"""
     device: str | None = None
     """Torch device of the fields; None: the scene field's device."""
 
@@ -234,6 +240,10 @@ def refine_hypotheses(
 ) -> RegistrationResult:
     """Stage 3 of :func:`register`: refine ``hypotheses`` and keep the best-scored one.
 
+    The first hypothesis (the screening's best) is refined alone first: when its confidence
+    reaches ``config.confident_score``, the others are left unrefined (and unreported);
+    otherwise they are refined together and every one competes.
+
     For callers that sampled and initialised themselves (discovery samples a candidate's box
     once for every library object it tries). ``timings`` holds the earlier stages' seconds;
     ``refinement`` is added and ``total`` is their sum.
@@ -241,14 +251,21 @@ def refine_hypotheses(
     timings = dict(timings or {})
     A, B = sample_tensors(scene_samples, lib_samples, library_field.device)
     t2 = time.perf_counter()
-    refined = refine_many(scene_field, library_field, A, B, [h.transform for h in hypotheses], config.refine,
-                          symmetry=library_symmetry(library_field))
-    timings["refinement"] = time.perf_counter() - t2
-    timings["total"] = sum(v for k, v in timings.items() if k != "total")
+    symmetry = library_symmetry(library_field)
+    inits = [h.transform for h in hypotheses]
     # The adaptive NLL is not comparable across hypotheses (each learns its own alpha and c),
     # so rank by what is: the SDF evidence (the fraction of inlier residuals) times the fraction
     # of the library object that lies in the proposal, then the mean residual.
-    score, inside = zip(*(scored(r, lib_samples.points, proposal, config) for r in refined))
+    refined = refine_many(scene_field, library_field, A, B, inits[:1], config.refine, symmetry=symmetry)
+    ranked = [scored(refined[0], lib_samples.points, proposal, config)]
+    if len(inits) > 1 and ranked[0][0] < config.confident_score:
+        more = refine_many(scene_field, library_field, A, B, inits[1:], config.refine, symmetry=symmetry)
+        refined += more
+        ranked += [scored(r, lib_samples.points, proposal, config) for r in more]
+    hypotheses = hypotheses[:len(refined)]
+    timings["refinement"] = time.perf_counter() - t2
+    timings["total"] = sum(v for k, v in timings.items() if k != "total")
+    score, inside = zip(*ranked)
     reports = [
         HypothesisReport(h.transform, r.transform, float(h.fitness), float(r.loss), float(sc))
         for h, r, sc in zip(hypotheses, refined, score)

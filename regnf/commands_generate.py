@@ -57,6 +57,7 @@ class Generate(GenerateConfig):
         console.print(f"[green]generated[/] {len(report.made)} variants, kept {len(report.skipped)} finished, "
                       f"{len(report.failed)} failed, in {report.seconds:.1f} s"
                       + (f" ({rate:.2f} variants per minute)" if report.made else "")
+                      + (f", of which {report.bake_seconds:.1f} s baking the grids" if report.bake_seconds else "")
                       + f" -> {report.manifest}")
         try:
             console.print(f"contact sheet: {tile_sheet(self.out)}")

@@ -14,6 +14,8 @@ a row of ``manifest.jsonl`` records it (:mod:`regnf.manifest`). Layout of ``out`
     stage/variant_000007.usda        seed 7's replacement layer (over <name>.usda)
     variants/000007/                 seed 7's views, contact_sheet.png, render.json, transforms.json
     errors/000007.txt                the traceback of a variant that failed
+    baked/                           with the baked renderer: the grids every variant reads
+                                     (index.json, scene.safetensors, object_*.safetensors)
 
 The output folder is the run's own (:func:`regnf.core.output_dir.claim_output_dir`): a new
 or empty folder, or one an earlier ``generate`` made. A folder that holds anything else
@@ -28,6 +30,14 @@ this machine or another one sharing the folder) fails at once with
 disks and on NFS with locking (NFSv4, or NFSv3 with ``lockd``); where the file system has no
 locks, the run fails with :class:`regnf.core.file_lock.LockUnavailable` instead of going on
 unprotected.
+
+With ``render.renderer`` ``baked``, the fields are baked once per data set, before the first
+variant (:func:`bake_for_data_set`): the scene less its removal regions (the same in every
+variant) and every library object a variant may show, each at the finest cell its places in
+the scene need for the orbit's pixel footprint, each on one CPU thread (the same grids on any
+machine). The grids go to ``baked/`` and every worker reads them there; a rerun keeps them when
+their record and digests check out. Every sphere-tracing step of a variant then reads grids
+(trilinear look-ups), not networks; ``regnf bench render`` measures what that costs in PSNR.
 
 Variants run as independent tasks on an executor (:mod:`regnf.core.executors`): a local process
 pool or a Ray cluster, each task with the same pinned thread count, so both give the same
@@ -85,11 +95,15 @@ VARIANTS_DIR = "variants"
 """Folder of the per-variant folders."""
 ERRORS_DIR = "errors"
 """Tracebacks of failed variants."""
+BAKED_DIR = "baked"
+"""Grids of the baked renderer (:func:`bake_for_data_set`)."""
+BAKED_INDEX = "index.json"
+"""Record of the grids in ``baked/``: the data set's config_key, each file and its digest."""
 UNHASHED = frozenset({RENDER_JSON})
 """Files of a variant left out of its row's digests: render.json holds timings."""
 CONTACT_SHEET = "contact_sheet.png"
 """The first view of the first finished variants, tiled (:func:`tile_sheet`)."""
-LAYOUT = (GENERATION_JSON, MANIFEST_NAME, STAGE_DIR, VARIANTS_DIR, ERRORS_DIR, CONTACT_SHEET)
+LAYOUT = (GENERATION_JSON, MANIFEST_NAME, STAGE_DIR, VARIANTS_DIR, ERRORS_DIR, CONTACT_SHEET, BAKED_DIR)
 """The top-level entries a run writes in its output folder (besides the marker and the lock)."""
 KIND = "generate"
 """Kind of command recorded in the output folder's marker."""
@@ -136,7 +150,8 @@ class GenerateConfig:
     composite: StageCompositeConfig = field(default_factory=StageCompositeConfig)
     """Removal settings of the substituted instances (the mode is always substitute)."""
     render: RenderConfig = field(default_factory=lambda: RenderConfig(progress=False))
-    """Renderer settings (the progress bar per variant is off: the run shows one over variants)."""
+    """Renderer settings (the progress bar per variant is off: the run shows one over variants).
+    ``baked`` bakes the fields once for the whole data set (see the module)."""
     executor: ExecutorConfig = field(default_factory=ExecutorConfig)
     """Where the variants run."""
     retry_failed: bool = True
@@ -158,11 +173,6 @@ class GenerateConfig:
         if self.cameras.n > MAX_VIEWS:
             raise ValueError(f"views per variant must be at most {MAX_VIEWS:,}, got {self.cameras.n}")
         check_image_size(self.cameras.width, self.cameras.height, "cameras: a view")
-        if self.render.renderer == "baked":
-            # Baking is once per render, and every variant is a render of its own composite:
-            # each would bake again (about 38 s for a room), slower than tracing its 8 views.
-            raise ValueError("render.renderer 'baked' is not supported by generate yet: it would bake the "
-                             "fields again for every variant; use 'sphere'")
 
     @property
     def seeds(self) -> range:
@@ -176,9 +186,10 @@ class GenerateConfig:
             "cameras": dataclasses.asdict(self.cameras),
             "jitter_cameras": self.jitter_cameras,
             "composite": dataclasses.asdict(dataclasses.replace(self.composite, mode="substitute")),
-            # Generate refuses the baked renderer, so its grids' settings change no file; left
-            # out, they keep the settings (and the resumption) of data sets made before them.
-            "render": {k: v for k, v in dataclasses.asdict(render).items() if k != "bake"},
+            # The grids' settings change the files of the baked renderer only; left out of the
+            # others, they keep the settings (and the resumption) of data sets made before them.
+            "render": {k: v for k, v in dataclasses.asdict(render).items()
+                       if k != "bake" or render.renderer == "baked"},
             "threads_per_task": self.executor.threads_per_task,
             "device": self.device,
         }
@@ -205,6 +216,8 @@ class VariantTask(NamedTuple):
     """Folder in which the worker makes its private folder: the run's scratch folder in the
     output folder (removed by the driver, or by the next run if this one is killed); None:
     the system's temporary folder."""
+    baked: str | None = None
+    """Absolute path of the data set's ``baked/index.json`` (the baked renderer), or None."""
 
 
 class VariantOutput(NamedTuple):
@@ -239,6 +252,8 @@ class GenerationReport(NamedTuple):
     """Rows of the earlier manifest that were rejected (and made again)."""
     seconds: float
     """Wall time of this run."""
+    bake_seconds: float = 0.0
+    """Of which baking the grids of the baked renderer (0 when kept from an earlier run)."""
 
 
 def variant_name(seed: int) -> str:
@@ -290,11 +305,14 @@ def render_variant(task: VariantTask) -> VariantOutput:
     shown = {iid: inst.library_name for iid, inst in comp.scene.instances.items()}
     if shown != selections:
         raise RuntimeError(f"the composite shows {shown}, expected {selections}")
+    field = comp.field
+    if task.baked is not None:
+        field = _with_data_set_grids(comp, selections, Path(task.baked), task.device)
     rel_layer = f"../../{STAGE_DIR}/{task.layer_name}"
     metadata = {"stage": rel_layer, "mode": "substitute", "seed": task.seed, "selections": selections,
                 "instance_ids": comp.instance_ids}
     with tempfile.TemporaryDirectory(prefix=f"{variant_name(task.seed)}-", dir=task.scratch) as tmp:
-        report = render_views(comp.field, task.cameras, tmp, task.render, metadata)
+        report = render_views(field, task.cameras, tmp, task.render, metadata)
         extra = {"seed": task.seed, "stage": rel_layer, "selections": selections,
                  "instance_ids": comp.instance_ids,
                  "mask": "instance PNG, uint16 id + 1 (0 background)", "depth_unit_scale_factor": 1e-3}
@@ -304,6 +322,17 @@ def render_variant(task: VariantTask) -> VariantOutput:
         files = {p.name: p.read_bytes() for p in sorted(Path(tmp).iterdir())
                  if p.is_file() and not p.name.startswith(".")}
     return VariantOutput(task.seed, selections, comp.instance_ids, files, time.perf_counter() - t0)
+
+
+def _with_data_set_grids(comp: Any, selections: dict[str, str], index: Path, device: str) -> Any:
+    """The variant's composite on the data set's grids, loaded once per worker process."""
+    from .data_set_grids import load_data_set_grids, with_data_set_grids
+
+    stamp = (str(index), index.stat().st_mtime_ns, device)
+    if _WORKER_CACHE.get("grids_stamp") != stamp:
+        _WORKER_CACHE.pop("grids", None)  # the old grids go before the new ones come
+        _WORKER_CACHE.update(grids=load_data_set_grids(index, device), grids_stamp=stamp)
+    return with_data_set_grids(comp, selections, _WORKER_CACHE["grids"])
 
 
 def _settings_key(settings: dict[str, Any]) -> str:
@@ -424,7 +453,7 @@ def _remove_leftovers(out: Path) -> None:
     The caller holds the output folder's lock (its top level is cleaned when it is taken);
     ``stage/`` is cleaned under the stage folder's lock too, the one stage writers take.
     """
-    for sub in (VARIANTS_DIR, ERRORS_DIR):
+    for sub in (VARIANTS_DIR, ERRORS_DIR, BAKED_DIR):
         remove_leftovers(out / sub)
     stage_dir = out / STAGE_DIR
     if stage_dir.is_dir():
@@ -527,17 +556,19 @@ def generate(
         write_manifest(out, rows.values())  # drops the rejected rows at once
         made: list[int] = []
         failed: dict[int, str] = {}
+        timings: dict[str, float] = {}
         if todo:
-            _make_variants(out, base, key, config, todo, rows, made, failed, progress, on_variant)
+            _make_variants(out, base, key, config, todo, rows, made, failed, progress, on_variant, timings)
             write_manifest(out, rows.values())  # sorted by seed again
     return GenerationReport(out, out / MANIFEST_NAME, sorted(made), done, failed, state.problems,
-                            time.perf_counter() - t0)
+                            time.perf_counter() - t0, timings.get("bake", 0.0))
 
 
 def _make_variants(out: Path, base: Path, key: str, config: GenerateConfig, todo: list[int],
                    rows: dict[int, dict[str, Any]], made: list[int], failed: dict[int, str], progress: bool,
-                   on_variant: Callable[[dict[str, Any]], None] | None) -> None:
-    """Run the variants of ``todo`` and commit each as it finishes (``rows``, ``made``, ``failed`` are updated)."""
+                   on_variant: Callable[[dict[str, Any]], None] | None, timings: dict[str, float]) -> None:
+    """Run the variants of ``todo`` and commit each as it finishes (``rows``, ``made``, ``failed``
+    and ``timings`` are updated)."""
     from tqdm import tqdm
 
     from regnf.compositor.cameras_io import field_bounds_metres
@@ -547,13 +578,23 @@ def _make_variants(out: Path, base: Path, key: str, config: GenerateConfig, todo
     bounds = field_bounds_metres(scene_only.field.scene)
     del scene_only
     render = dataclasses.replace(config.render, progress=False, overwrite=False)
+    baked = None
+    if render.renderer == "baked":
+        from .data_set_grids import bake_for_data_set
+
+        # The orbit unturned: the turns move the cameras around, not nearer or farther.
+        orbit = orbit_around_bounds(bounds, config.cameras)
+        index, timings["bake"] = bake_for_data_set(base, out / BAKED_DIR, key, orbit, render.bake,
+                                                   config.composite, config.device, progress)
+        baked = str(index)
     bar = tqdm(total=len(todo), desc=f"generate ({config.executor.kind})", unit="variant", disable=not progress)
     # Workers render under out (every node of a cluster sees it); the folder goes at the end,
     # or, if this run is killed, when the next one takes the lock.
     with staging_dir(out, WORK_LABEL) as scratch:
         for first in range(0, len(todo), TASKS_PER_BATCH):
             tasks = [VariantTask(str(base), s, variant_cameras(bounds, config, s), layer_name(s), config.composite,
-                                 render, config.device, str(scratch)) for s in todo[first:first + TASKS_PER_BATCH]]
+                                 render, config.device, str(scratch), baked)
+                     for s in todo[first:first + TASKS_PER_BATCH]]
             for outcome in run_tasks(render_variant, tasks, config.executor):
                 seed = tasks[outcome.index].seed
                 if outcome.error is None:

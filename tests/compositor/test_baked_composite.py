@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import torch
 
 from regnf.compositor import CompositeConfig, CompositeField
@@ -70,9 +71,35 @@ def test_a_bake_larger_than_the_total_cap_is_refused_before_any_baking(monkeypat
 
     baked: list[str] = []
     monkeypatch.setattr(B, "bake", lambda f, *a, **k: baked.append(f.name))
-    import pytest
 
     # The scene takes about 620 000 nodes and the ball 729 at the default cell.
     with pytest.raises(ValueError, match="grid nodes.*max_total_nodes"):
         bake_for_views(two_instances(), [camera()], BakeConfig(max_total_nodes=600_000))
     assert baked == []
+
+
+def test_a_baked_composite_is_not_baked_again() -> None:
+    once = bake_for_views(two_instances(), [camera()], BakeConfig())
+    again = bake_for_views(once.field, [camera()], BakeConfig())
+    assert again.field is once.field and again.seconds == 0.0 and again.nodes == once.nodes
+
+
+def test_a_library_field_is_baked_for_where_it_stands_in_the_scene() -> None:
+    """Its cell is the pixel footprint at its place, in its own units: twice as far, twice the
+    cell; placed twice as large, half the cell (in library units)."""
+    from regnf.neural_fields.baked_field import bake_cell
+
+    ball = H.library_sphere()
+    cam = camera()
+    eye = np.asarray(cam.camera_to_world)[:3, 3]
+    centre = ball.bounds.mean(dim=0).double().numpy()
+
+    def at(distance: float, scale: float) -> np.ndarray:
+        W = similarity_matrix(np.eye(3), [0.0, 0.0, 0.0], scale)
+        W[:3, 3] = eye + [0.0, distance, 0.0] - scale * centre
+        return W
+
+    cfg = BakeConfig(max_nodes=2**30)
+    near, far, large = (bake_cell(ball, [cam], cfg, to_world=at(d, s)) for d, s in ((2.0, 1.0), (4.0, 1.0), (2.0, 2.0)))
+    assert near == pytest.approx(cfg.cell_pixels * 2.0 / 40.0, rel=1e-6)
+    assert far == pytest.approx(2 * near, rel=1e-6) and large == pytest.approx(near / 2, rel=1e-6)

@@ -119,14 +119,14 @@ def test_baked_renderer_writes_the_same_files_and_images_close_to_the_sphere_tra
         assert np.median(np.abs(rgb[0] - rgb[1]).max(axis=-1)[same]) <= 1.0
 
 
-def test_generate_refuses_the_baked_renderer() -> None:
+def test_the_grids_settings_are_a_data_set_setting_of_the_baked_renderer_only() -> None:
     from regnf.generate import GenerateConfig
 
-    with pytest.raises(ValueError, match="baked.*every variant"):
-        GenerateConfig(render=RenderConfig(renderer="baked"))
-    # The grids' settings change no file of a data set, so they stay out of its settings key
+    # They change no file of a sphere-traced data set, so they stay out of its settings key
     # (a data set made before them still resumes).
     assert "bake" not in GenerateConfig().output_settings()["render"]
+    baked = GenerateConfig(render=RenderConfig(renderer="baked")).output_settings()["render"]
+    assert baked["bake"]["cell_pixels"] == 0.5
 
 
 def test_contact_sheet_layout() -> None:

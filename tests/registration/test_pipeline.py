@@ -137,6 +137,23 @@ def test_single_hypothesis_config_refines_one() -> None:
     assert dataclasses.replace(cfg).init.top_k == 1
 
 
+def test_a_confident_first_hypothesis_spares_refining_the_others() -> None:
+    """The first hypothesis refined alone and confident enough: the others are not refined and
+    the result is the one refining every hypothesis picks; below the bar, every one competes."""
+    scene, proposal, truth = scene_and_truth(2.3, 1.0)
+    library = library_at_scale(1.0)
+    every = register(scene, library, proposal, RegistrationConfig(confident_score=2.0))
+    first = register(scene, library, proposal, RegistrationConfig(confident_score=0.85))
+    assert len(every.hypotheses) > 1 and len(first.hypotheses) == 1
+    assert every.confidence >= 0.85 and first.confidence == every.confidence
+    assert np.allclose(first.transform.matrix(), every.transform.matrix(), atol=1e-6)
+    r, t, s = errors(first.transform, truth)
+    assert r < 0.02 and t < 0.01 and s < 0.01
+    # A bar above the first's confidence refines them all again.
+    again = register(scene, library, proposal, RegistrationConfig(confident_score=first.confidence + 1e-6))
+    assert len(again.hypotheses) == len(every.hypotheses)
+
+
 def test_library_samples_taken_earlier_give_the_same_registration() -> None:
     """Reusing the library's samples (discovery's refit) is the same registration, bit for bit,
     as sampling them again."""

@@ -9,6 +9,7 @@ the same seed from the same cameras, and a run that was never interrupted.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import shutil
@@ -25,6 +26,7 @@ from pxr import Gf, Sdf
 from regnf.cli import main
 from regnf.compositor.cameras_io import OrbitConfig, field_bounds_metres
 from regnf.compositor.from_stage import composite_from_stage
+from regnf.compositor.render_folder import RenderConfig
 from regnf.compositor.replace import ReplaceConfig, pick_replacements, replace_and_render
 from regnf.compositor.stage_config import StageCompositeConfig
 from regnf.core.atomic_io import TEMP_PREFIX
@@ -230,6 +232,90 @@ def test_a_package_is_unpacked_once_and_gives_the_same_variants(stage: Path, ref
     for r in load_rows(out):
         assert r["selections"] == ref[r["seed"]]["selections"]
         assert_same_images(out / r["variant"], reference / r["variant"], 3)
+
+
+def baked_config(n: int = N) -> GenerateConfig:
+    return dataclasses.replace(config(n), render=RenderConfig(renderer="baked", progress=False))
+
+
+@pytest.fixture(scope="module")
+def baked_reference(stage: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """An uninterrupted local run of N variants with the baked renderer."""
+    out = tmp_path_factory.mktemp("baked") / "data"
+    report = generate(stage, out, baked_config(), progress=False)
+    assert report.made == list(range(N)) and not report.failed and report.bake_seconds > 0
+    return out
+
+
+def test_the_baked_renderer_draws_each_variant_of_the_neural_fields(stage: Path, reference: Path,
+                                                                    baked_reference: Path) -> None:
+    """Against the neural render of the same seeds from the same cameras (the reference)."""
+    index = json.loads((baked_reference / "baked" / "index.json").read_text())
+    # Every object a variant may show (each chair's others; the table is the only table).
+    assert sorted(index["objects"]) == ["c", "dc", "fc", "fc-nop", "t"]
+    for r, b in zip(load_rows(reference), load_rows(baked_reference), strict=True):
+        assert b["selections"] == r["selections"] and b["instance_ids"] == r["instance_ids"]
+        for k in range(3):
+            ids = [read_instance_png(d / f"instance_{k:04d}.png") for d in (reference / r["variant"],
+                                                                         baked_reference / b["variant"])]
+            same = ids[0] == ids[1]
+            assert same.mean() >= 0.97, (r["seed"], k)
+            rgb = [read_rgb_png(d / f"rgb_{k:04d}.png").astype(float) for d in (reference / r["variant"],
+                                                                                baked_reference / b["variant"])]
+            assert np.abs(rgb[0] - rgb[1])[same].mean() < 6.0, (r["seed"], k)
+        assert json.loads((baked_reference / b["variant"] / "render.json").read_text())["renderer"] == "baked"
+
+
+def test_each_variant_reads_the_grid_of_the_object_it_shows(stage: Path, baked_reference: Path) -> None:
+    """The grids a worker puts in place: each baked from the object the instance shows (named by
+    its checkpoint), and the composite's distances near the objects within a few cells of the
+    neural composite's."""
+    import torch
+
+    from regnf.compositor.from_stage import composite_from_scene
+    from regnf.compositor.replace import swapped
+    from regnf.data_set_grids import load_data_set_grids, with_data_set_grids
+    from regnf.scene_graph import original_selections
+
+    grids = load_data_set_grids(baked_reference / "baked" / "index.json")
+    scene = read_stage(stage)
+    originals = original_selections(stage, scene)
+    for r in load_rows(baked_reference)[:3]:
+        comp = composite_from_scene(swapped(scene, r["selections"]), originals, stage,
+                                    StageCompositeConfig(mode="substitute"))
+        baked = with_data_set_grids(comp, r["selections"], grids)
+        for iid, k in comp.instance_ids.items():
+            placed = baked.placements[baked.instance_ids.index(k)]
+            assert placed.field.info.name == r["selections"][iid]
+            box = comp.field.placements[comp.field.instance_ids.index(k)].aabb().float()
+            x = box[0] + torch.rand(4000, 3, generator=torch.Generator().manual_seed(k)) * (box[1] - box[0])
+            exact, approx = comp.field.sdf(x), baked.sdf(x)
+            near = exact.abs() < 0.05
+            cell = max(float(g.info.provenance["baked"]["cell"]) * g_scale
+                       for g, g_scale in ((placed.field, placed.scale), (grids.scene, 1.0)))
+            assert near.sum() > 50 and float((exact - approx)[near].abs().max()) < 2 * cell
+
+
+def test_the_grids_are_baked_once_and_a_resumed_run_equals_an_uninterrupted_one(
+        stage: Path, baked_reference: Path, tmp_path: Path) -> None:
+    out = tmp_path / "data"
+    first = generate(stage, out, baked_config(2), progress=False)
+    assert first.made == [0, 1] and first.bake_seconds > 0
+    grids = {p.name: (p.stat().st_ino, p.stat().st_mtime_ns) for p in (out / "baked").iterdir()}
+    rest = generate(stage, out, baked_config(), progress=False)
+    assert rest.skipped == [0, 1] and rest.made == list(range(2, N)) and rest.bake_seconds == 0.0
+    assert {p.name: (p.stat().st_ino, p.stat().st_mtime_ns) for p in (out / "baked").iterdir()} == grids
+    # The same bits as the uninterrupted run: the grids (one CPU thread per field) and every variant.
+    assert tree(out) == tree(baked_reference)
+
+    # A damaged grid is found by its digest and baked again, to the same bits.
+    damaged = out / "baked" / "object_1.safetensors"
+    data = bytearray(damaged.read_bytes())
+    data[-5] ^= 0xFF
+    damaged.write_bytes(bytes(data))
+    more = generate(stage, out, baked_config(N + 1), progress=False)
+    assert more.made == [N] and more.bake_seconds > 0
+    assert damaged.read_bytes() == (baked_reference / "baked" / "object_1.safetensors").read_bytes()
 
 
 def test_help_lists_every_generation_setting_with_its_documentation(
