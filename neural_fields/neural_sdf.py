@@ -43,6 +43,10 @@ class NeuralSDFConfig:
     """Width of the colour MLP."""
     view_dependent: bool = False
     """Feed the viewing direction to the colour head (off: our captures are Lambertian)."""
+    color_grid_features: bool = False
+    """Feed the grid features to the colour head too, beside the SDF MLP's geometry features:
+    colour then reaches the grids directly instead of only through the SDF MLP, whose gradient
+    the geometry terms dominate until the geometry has converged (NeuS and the paper: off)."""
     init_radius: float = 0.5
     """Radius of the sphere the SDF starts as (geometric initialisation), field units."""
     inside_out: bool = False
@@ -140,10 +144,17 @@ def parameter_count(config: NeuralSDFConfig, extent: torch.Tensor) -> int:
     dims = [3 + cfg.levels * cfg.features_per_level] + [cfg.hidden_dim] * cfg.hidden_layers
     dims.append(1 + cfg.geo_feature_dim)
     total += sum(a * b + b for a, b in itertools.pairwise(dims))
-    color_in = cfg.geo_feature_dim + 3 + (3 if cfg.view_dependent else 0)
+    color_in = color_input_dim(cfg, cfg.levels * cfg.features_per_level)
     ch = cfg.color_hidden_dim
     total += (color_in * ch + ch) + (ch * ch + ch) + (ch * 3 + 3)
     return total
+
+
+def color_input_dim(config: NeuralSDFConfig, encoding_dim: int) -> int:
+    """Inputs of the colour head: geometry features, the normal, the view direction if used,
+    and the grid features if :attr:`NeuralSDFConfig.color_grid_features`."""
+    return (config.geo_feature_dim + 3 + (3 if config.view_dependent else 0)
+            + (encoding_dim if config.color_grid_features else 0))
 
 
 class NeuralSDF(Field):
@@ -184,7 +195,7 @@ class NeuralSDF(Field):
         self.sdf_layers = torch.nn.ModuleList(
             torch.nn.Linear(a, b) for a, b in itertools.pairwise(dims)
         )
-        color_in = cfg.geo_feature_dim + 3 + (3 if cfg.view_dependent else 0)
+        color_in = color_input_dim(cfg, enc_dim)
         self.color_net = torch.nn.Sequential(
             torch.nn.Linear(color_in, cfg.color_hidden_dim),
             torch.nn.ReLU(),
@@ -222,18 +233,27 @@ class NeuralSDF(Field):
         lo, hi = self.bounds[0], self.bounds[1]
         return (x - lo) / (hi - lo) * 2.0 - 1.0
 
-    def sdf_and_features(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """SDF (n,) and geometry features (n, geo_feature_dim) at field-frame points (n, 3)."""
-        h = torch.cat([x, self.encoding(self.box_coordinates(x))], dim=-1)
+    def _forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The SDF MLP's outputs (n, 1 + geo_feature_dim) and the grid features (n, k) at ``x``."""
+        enc = self.encoding(self.box_coordinates(x))
+        h = torch.cat([x, enc], dim=-1)
         last = len(self.sdf_layers) - 1
         for i, layer in enumerate(self.sdf_layers):
             h = layer(h)
             if i < last:
                 h = F.softplus(h, beta=100.0)
+        return h, enc
+
+    def sdf_and_features(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """SDF (n,) and the colour head's features (n, k) at field-frame points (n, 3): the
+        geometry features, then the grid features if ``config.color_grid_features``."""
+        h, enc = self._forward(x)
+        if self.config.color_grid_features:
+            return h[:, 0], torch.cat([h[:, 1:], enc], dim=-1)
         return h[:, 0], h[:, 1:]
 
     def sdf(self, x: torch.Tensor) -> torch.Tensor:
-        return self.sdf_and_features(x)[0]
+        return self._forward(x)[0][:, 0]
 
     def color_from(self, features: torch.Tensor, normals: torch.Tensor, d: torch.Tensor | None) -> torch.Tensor:
         """Colour head on precomputed geometry features (n, k), unit normals (n, 3), dirs (n, 3)."""

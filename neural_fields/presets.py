@@ -4,8 +4,13 @@ They are measured defaults (docs/benchmarks.md, "Fields" and "Training steps aga
 accuracy"). The step counts are where the surface error has converged: a fifth of the steps an
 earlier preset took for an RGB-D object (1000), half for a mesh (400), about a quarter for a
 room (1500), at the same or a lower surface error. On 2 CPU cores an RGB-D object then trains
-in 23-36 s, a mesh in 13-35 s (the bar is 10) and a full-coverage room in 71-79 s. The held-out PSNR is what
-a short schedule gives up (the colour converges more slowly than the geometry).
+in 13-36 s, a mesh at 64 cells in 7-10 s (the bar is 10) and a full-coverage room in 53-79 s,
+depending on the hour (this machine's speed drifts). The held-out PSNR is what
+a short schedule gives up (the colour converges more slowly than the geometry); every preset
+therefore feeds the grid features to the colour head as well
+(:attr:`~regnf.neural_fields.neural_sdf.NeuralSDFConfig.color_grid_features`, measured
+2026-12-05 on 4 held-out views with the same steps and time: the full-coverage ac-room 23.3 ->
+26.8 dB, the armchair ``fc`` from RGB-D 28.7 -> 30.0 dB).
 """
 
 from __future__ import annotations
@@ -16,8 +21,10 @@ from regnf.neural_fields.training import RGBDTrainConfig
 
 
 def object_rgbd_preset(device: str = "cpu", seed: int = 0) -> RGBDTrainConfig:
-    """A library object captured alone: 6-level dense grid up to 128 cells, 200 steps."""
-    return RGBDTrainConfig(steps=200, device=device, seed=seed, architecture=NeuralSDFConfig())
+    """A library object captured alone: 6-level dense grid up to 128 cells, 200 steps, grid
+    features to the colour head."""
+    return RGBDTrainConfig(steps=200, device=device, seed=seed,
+                           architecture=NeuralSDFConfig(color_grid_features=True))
 
 
 def object_mesh_preset(device: str = "cpu", seed: int = 0) -> DistillConfig:
@@ -28,7 +35,7 @@ def object_mesh_preset(device: str = "cpu", seed: int = 0) -> DistillConfig:
     PSNR, and the low-coverage registration benchmark with this library the same (10 of 11
     accepted, 9 within the bars, with either grid)."""
     return DistillConfig(steps=200, device=device, seed=seed,
-                         architecture=NeuralSDFConfig(finest_resolution=64))
+                         architecture=NeuralSDFConfig(finest_resolution=64, color_grid_features=True))
 
 
 def scene_rgbd_preset(device: str = "cpu", seed: int = 0) -> RGBDTrainConfig:
@@ -40,6 +47,6 @@ def scene_rgbd_preset(device: str = "cpu", seed: int = 0) -> RGBDTrainConfig:
         seed=seed,
         w_edge=1.0,
         architecture=NeuralSDFConfig(
-            levels=7, finest_resolution=256, inside_out=True, init_radius=0.9
+            levels=7, finest_resolution=256, inside_out=True, init_radius=0.9, color_grid_features=True
         ),
     )

@@ -355,8 +355,8 @@ def test_forged_huge_grid_is_refused_before_allocating(tmp_path: Path) -> None:
 @pytest.mark.parametrize(
     "change",
     [{}, {"encoding": "hash", "hash_table_size_log2": 9}, {"view_dependent": True, "hidden_layers": 0},
-     {"levels": 1, "finest_resolution": 8}],
-    ids=["dense", "hash", "view-dependent-no-hidden", "one-level"],
+     {"levels": 1, "finest_resolution": 8}, {"color_grid_features": True}],
+    ids=["dense", "hash", "view-dependent-no-hidden", "one-level", "colour-from-grids"],
 )
 def test_parameter_count_is_exact_without_building(change: dict) -> None:
     # The architecture limit is checked on this count, before any model exists.

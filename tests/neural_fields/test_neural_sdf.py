@@ -178,6 +178,31 @@ def test_forward_backward_and_output_dims(encoding: str) -> None:
     assert grads["color_net.4.weight"].abs().sum() > 0
 
 
+def test_grid_features_reach_the_colour_head_directly() -> None:
+    """With ``color_grid_features`` the colour head reads the grid features themselves: a
+    colour loss moves the grids even with the SDF MLP's feature outputs cut off; without it,
+    it does not."""
+    x = torch.rand(257, 3) * 2 - 1
+    normals = torch.nn.functional.normalize(x, dim=-1)
+    for flag in (True, False):
+        cfg = NeuralSDFConfig(**{**SMALL.to_json(), "color_grid_features": flag})
+        torch.manual_seed(0)
+        field = randomised(NeuralSDF(cfg))
+        enc_dim = cfg.levels * cfg.features_per_level
+        assert field.color_net[0].in_features == cfg.geo_feature_dim + 3 + (enc_dim if flag else 0)
+        with torch.no_grad():  # the SDF MLP's feature outputs: constant 0
+            field.sdf_layers[-1].weight[1:].zero_()
+            field.sdf_layers[-1].bias[1:].zero_()
+        _, feat = field.sdf_and_features(x)
+        assert feat.shape == (257, cfg.geo_feature_dim + (enc_dim if flag else 0))
+        if flag:
+            assert torch.equal(feat[:, cfg.geo_feature_dim:], field.encoding(field.box_coordinates(x)))
+        field.color_from(feat, normals, None).square().mean().backward()
+        moved = sum(float(p.grad.abs().sum()) for n, p in field.named_parameters()
+                    if n.startswith("encoding.") and p.grad is not None)
+        assert (moved > 0) == flag
+
+
 def test_hash_encoding_hashes_fine_levels_only() -> None:
     enc = HashGridEncoding(
         torch.tensor([2.0, 2.0, 2.0]),
