@@ -97,8 +97,6 @@ ERRORS_DIR = "errors"
 """Tracebacks of failed variants."""
 BAKED_DIR = "baked"
 """Grids of the baked renderer (:func:`bake_for_data_set`)."""
-BAKED_INDEX = "index.json"
-"""Record of the grids in ``baked/``: the data set's config_key, each file and its digest."""
 UNHASHED = frozenset({RENDER_JSON})
 """Files of a variant left out of its row's digests: render.json holds timings."""
 CONTACT_SHEET = "contact_sheet.png"
