@@ -110,7 +110,9 @@ def bake_for_data_set(base: Path, folder: Path, key: str, cameras: Sequence[Came
         objects[name] = (field, places)
     grids = bake_grids(masked_scene(comp.field), objects, cameras, bake, progress)
     folder.mkdir(parents=True, exist_ok=True)
-    index.unlink(missing_ok=True)  # the grids below are not the recorded ones any more
+    # An old index stays until the new one replaces it: if this run is killed in between, the
+    # files it rewrote no longer match its digests (and the next run bakes again), unless they
+    # are the very bytes it records.
     files = {"scene": _saved(grids.scene, folder / SCENE_FILE)}
     names = {}
     for k, name in enumerate(sorted(grids.objects)):
