@@ -76,22 +76,28 @@ class ReplacementResult(NamedTuple):
     """``out/transforms.json``."""
 
 
-def pick_replacements(scene: ComposedScene, seed: int) -> dict[str, str]:
-    """Instance id -> a random library object of the same class (``numpy`` Generator(seed)).
-
-    Instances are visited in sorted id order and the candidates are sorted by name, so the
-    choice depends on the seed and the stage only. An instance picks among the OTHER objects
-    of its class; if there is none it keeps its own.
-    """
-    rng = np.random.default_rng(seed)
+def replacement_candidates(scene: ComposedScene) -> dict[str, list[str]]:
+    """Instance id -> the library objects :func:`pick_replacements` chooses among, sorted by
+    name: the OTHER objects of its class, or its own object if there is none."""
     classes = scene.classes()
     out = {}
     for iid in sorted(scene.instances):  # a handful of instances
         current = scene.instances[iid].library_name
         label = scene.library[current].label
-        others = [n for n in classes[label] if n != current] or [current]
-        out[iid] = others[int(rng.integers(len(others)))]
+        out[iid] = [n for n in classes[label] if n != current] or [current]
     return out
+
+
+def pick_replacements(scene: ComposedScene, seed: int) -> dict[str, str]:
+    """Instance id -> a random library object of the same class (``numpy`` Generator(seed)).
+
+    Instances are visited in sorted id order and the candidates are sorted by name, so the
+    choice depends on the seed and the stage only. An instance picks among the OTHER objects
+    of its class; if there is none it keeps its own (:func:`replacement_candidates`).
+    """
+    rng = np.random.default_rng(seed)
+    return {iid: others[int(rng.integers(len(others)))]
+            for iid, others in replacement_candidates(scene).items()}
 
 
 def base_in(stage: Path, out: Path, allow_outside: bool = False) -> Path:

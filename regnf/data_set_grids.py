@@ -40,20 +40,6 @@ SCENE_FILE = "scene.safetensors"
 """The scene less its removal regions."""
 
 
-def candidates(classes: Mapping[str, Sequence[str]], shown: Mapping[str, str],
-               labels: Mapping[str, str]) -> dict[str, list[str]]:
-    """Instance id -> the library objects a variant may show there.
-
-    The choice of :func:`regnf.compositor.replace.pick_replacements`: the other objects of the
-    instance's class, or its own object when the class has no other.
-    """
-    out = {}
-    for iid, current in shown.items():
-        others = [n for n in classes[labels[current]] if n != current]
-        out[iid] = others or [current]
-    return out
-
-
 def bake_for_data_set(base: Path, folder: Path, key: str, cameras: Sequence[Camera], bake: BakeConfig,
                       composite: StageCompositeConfig, device: str = "cpu",
                       progress: bool = False) -> tuple[Path, float]:
@@ -82,7 +68,7 @@ def bake_for_data_set(base: Path, folder: Path, key: str, cameras: Sequence[Came
         Show a progress bar per baked field.
     """
     from regnf.compositor.from_stage import composite_from_scene
-    from regnf.compositor.replace import swapped
+    from regnf.compositor.replace import replacement_candidates, swapped
     from regnf.scene_graph import original_selections, read_stage
 
     index = folder / INDEX
@@ -93,9 +79,7 @@ def bake_for_data_set(base: Path, folder: Path, key: str, cameras: Sequence[Came
     config = dataclasses.replace(composite, mode="substitute")
     loaded: dict = {}
     comp = composite_from_scene(scene, originals, base, config, device, loaded=loaded)
-    labels = {n: r.label for n, r in scene.library.items()}
-    shown = {iid: inst.library_name for iid, inst in scene.instances.items()}
-    where = candidates(scene.classes(), shown, labels)
+    where = replacement_candidates(scene)
     objects: dict[str, tuple[Any, list[np.ndarray]]] = {}
     for name in sorted({n for names in where.values() for n in names}):
         # Every instance that may show it, showing it: its placements there give its places.
