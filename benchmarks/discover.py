@@ -20,7 +20,7 @@ from tqdm import tqdm
 from regnf.neural_fields.cache import Cache
 from regnf.neural_fields.checkpoint import load_field
 from regnf.neural_fields.oriented_box import OrientedBox
-from regnf.registration.discovery import DiscoveryResult, discover
+from regnf.registration.discovery import DiscoveryResult, FieldFiles, discover
 from regnf.registration.discovery_view import draw_top_view
 from regnf.registration.ground_truth import match_boxes, score_discovery
 from regnf.synthetic.capture import RoomCaptureConfig
@@ -99,10 +99,11 @@ def run_discover_benchmark(cache: Cache, coverages: tuple[str, ...] = ("full", "
     jobs += [(s, c, obj) for s, obj in leave_out if s in rooms for c in coverages]
     for scene_name, coverage, lacking in tqdm(jobs, desc="bench discover", disable=not cache.progress):
         capture = cache.room_capture(scene_name, RoomCaptureConfig(coverage=coverage))
-        scene = load_field(cache.scene_field(scene_name, coverage, device), device=device)
+        scene_path = cache.scene_field(scene_name, coverage, device)
+        scene = load_field(scene_path, device=device)
         t0 = time.perf_counter()
         used = {name: f for name, f in library.items() if name != lacking}
-        result = discover(scene, used)
+        result = discover(scene, used, files=FieldFiles(scene_path, {n: paths[n] for n in used}))
         row = score_room(scene_name, coverage, library_source, result, scene, used, capture.instances)
         row["wall_seconds"] = time.perf_counter() - t0
         rows.append(row)

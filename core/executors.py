@@ -17,6 +17,7 @@ and have this project installed.
 from __future__ import annotations
 
 import concurrent.futures as cf
+import contextlib
 import multiprocessing
 import os
 import traceback
@@ -115,12 +116,25 @@ def run_tasks(
         yield from _run_local(fn, tasks, config)
 
 
-def _run_local(fn: Callable[[Any], Any], tasks: Sequence[Any], config: ExecutorConfig) -> Iterator[TaskOutcome]:
+@contextlib.contextmanager
+def local_pool(workers: int, threads_per_task: int = 1) -> Iterator[cf.ProcessPoolExecutor]:
+    """A ``spawn`` process pool of ``workers`` processes with pinned torch threads, for callers
+    that submit tasks as earlier ones finish (submit :func:`call_pinned`). Its workers are
+    shut down when the block ends; on an exception, tasks not yet started are cancelled."""
     # spawn, not fork: a forked child inherits the parent's torch thread pools and locks.
     ctx = multiprocessing.get_context("spawn")
+    pool = cf.ProcessPoolExecutor(workers, mp_context=ctx, initializer=pin_threads, initargs=(threads_per_task,))
+    try:
+        yield pool
+    except BaseException:
+        pool.shutdown(wait=True, cancel_futures=True)
+        raise
+    pool.shutdown(wait=True)
+
+
+def _run_local(fn: Callable[[Any], Any], tasks: Sequence[Any], config: ExecutorConfig) -> Iterator[TaskOutcome]:
     workers = min(config.width, len(tasks))
-    with cf.ProcessPoolExecutor(workers, mp_context=ctx, initializer=pin_threads,
-                                initargs=(config.threads_per_task,)) as pool:
+    with local_pool(workers, config.threads_per_task) as pool:
         futures = {pool.submit(call_pinned, fn, config.threads_per_task, t): i for i, t in enumerate(tasks)}
         try:
             for fut in cf.as_completed(futures):

@@ -22,23 +22,29 @@ union is matched and its object explains both halves' surface, the halves are no
 their own; otherwise they are, and the union replaces them only when neither is matched.
 
 The same library object may be chosen for several candidates.
+
+Candidates are examined side by side in worker processes when the fields' checkpoints are given
+(:class:`FieldFiles`, :attr:`DiscoveryConfig.workers`): each examination runs on one thread
+wherever it runs, so the result is the same bits as examining them one after another here.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 import os
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
 import torch
 from tqdm import tqdm
 
-from regnf.core.threads import one_thread
+from regnf.core.threads import one_thread, worker_count
 from regnf.neural_fields.evaluation import world_to_field
 from regnf.neural_fields.field import Field
 from regnf.neural_fields.oriented_box import OrientedBox
@@ -126,6 +132,12 @@ class DiscoveryConfig:
     holds only what the views observed (measured: the low-coverage ac-room's ``fc``, Δt 1.23 %
     and Δs 1.13 % in its candidate box, 0.59 % and 0.95 % after the refit, 2.6 s; in its true
     box, 0.60 % and 0.94 %)."""
+    workers: int = 0
+    """Worker processes that examine candidates side by side, when :func:`discover` is given
+    the fields' checkpoints (``files``); 0: one per usable core; 1: one after another in this
+    process. Every examination runs on one thread either way, so the result does not depend on
+    it (tested). Measured on the demo's low-coverage ac-room (5 examinations, 2 cores): 45 s
+    one after another, XX s with two workers."""
 
     def __post_init__(self) -> None:
         if self.shortlist < 1:
@@ -137,6 +149,17 @@ class DiscoveryConfig:
             raise ValueError(f"explained_distance must be > 0, got {self.explained_distance}")
         if self.ranking_points < 50:
             raise ValueError(f"ranking_points must be >= 50, got {self.ranking_points}")
+        if self.workers < 0:
+            raise ValueError(f"workers must be >= 0, got {self.workers}")
+
+
+class FieldFiles(NamedTuple):
+    """The checkpoints the fields given to :func:`discover` were loaded from: worker processes
+    load them again (a field is not sent from one process to another)."""
+
+    scene: Path
+    library: dict[str, Path]
+    """Library object name -> checkpoint, for every object of the library."""
 
 
 class Tried(NamedTuple):
@@ -246,7 +269,8 @@ def screened_score(scene_field: Field, library_field: Field, proposal: OrientedB
 
 
 def discover(scene_field: Field, library: Mapping[str, Field],
-             config: DiscoveryConfig | None = None, progress: bool = False) -> DiscoveryResult:
+             config: DiscoveryConfig | None = None, progress: bool = False,
+             files: FieldFiles | None = None) -> DiscoveryResult:
     """Find, identify and register the library's objects in a scene field, with no boxes.
 
     Parameters
@@ -258,86 +282,169 @@ def discover(scene_field: Field, library: Mapping[str, Field],
     config : DiscoveryConfig
     progress : bool
         Show a progress bar over the candidates.
+    files : FieldFiles, optional
+        The checkpoints ``scene_field`` and ``library`` were loaded from: candidates are then
+        examined side by side in :attr:`DiscoveryConfig.workers` processes, with the same
+        result. Without them, one after another in this process.
 
     Returns
     -------
     DiscoveryResult
         One :class:`Discovery` per candidate, largest first.
+
+    Raises
+    ------
+    ValueError
+        No library object, or ``files`` that do not name every library object.
+    RuntimeError
+        An examination failed in a worker (a checkpoint changed since discovery began, for
+        example).
     """
     cfg = config or DiscoveryConfig()
     reg = cfg.registration
-    every_start = dataclasses.replace(reg, confident_score=math.inf)
     if not library:
         raise ValueError("discovery needs at least one library object")
+    if files is not None and set(files.library) != set(library):
+        raise ValueError(f"files name the library objects {sorted(files.library)}, the library holds "
+                         f"{sorted(library)}")
     for f in library.values():
         check_fields(scene_field, f)
-    t0 = time.perf_counter()
-    # One thread, as in register: the same surface, hypotheses and identities on any machine.
-    with one_thread():
-        found = find_candidates(scene_field, cfg.candidates)
-    t1 = time.perf_counter()
-    S_inv = np.linalg.inv(scene_field.to_world.detach().cpu().double().numpy())
-    with one_thread():
-        lib_samples = {name: sample_surface(f, None, reg.library_sampling, side="library")
-                       for name, f in library.items()}
-    lib_few = {name: subset(samples, cfg.ranking_points) for name, samples in lib_samples.items()}
-    def examine(cand: Candidate) -> Discovery:
-        """Rank the library in the candidate's box, register the shortlist, choose."""
-        proposal = cand.box.transformed(S_inv)
-        ts = time.perf_counter()
-        with one_thread():
-            scene_samples = sample_surface(scene_field, proposal, reg.scene_sampling, side="scene")
-            sampling = time.perf_counter() - ts
-            quick = dataclasses.replace(reg, init=cfg.ranking_init)
-            few = subset(scene_samples, cfg.ranking_points)
-            screened: dict[str, float] = {}
-            for name, f in library.items():  # one short registration per library object
-                starts = initialise(scene_field, f, proposal, few, lib_few[name], quick)
-                screened[name] = screened_score(scene_field, f, proposal, few, lib_few[name], starts[0], quick)
-        ranked = sorted(library, key=lambda n: (-round(screened[n], 6), n))
-        tried = []
-        for i, name in enumerate(ranked):
-            result = None
-            if i < cfg.shortlist:  # the full registration, on the samples already taken
-                ti = time.perf_counter()
-                with one_thread():
-                    starts = initialise(scene_field, library[name], proposal, scene_samples,
-                                        lib_samples[name], reg)
-                # Every start refined: the identity compares two objects' confidences (the
-                # armchairs with and without the pillow differ by 0.02-0.03), so each must be
-                # its best hypothesis's, not the first one's (RegistrationConfig.confident_score).
-                result = refine_hypotheses(scene_field, library[name], proposal, scene_samples,
-                                           lib_samples[name], starts, every_start,
-                                           timings={"sampling": sampling,
-                                                    "initialisation": time.perf_counter() - ti})
-            tried.append(Tried(name, screened[name], result))
-        accepted = sorted((t for t in tried if t.result is not None and t.result.accepted),
-                          key=lambda t: -t.result.confidence)
-        chosen = accepted[0] if accepted else None
-        ambiguous: tuple[str, ...] = ()
-        if len(accepted) > 1:
-            a, b = accepted[0], accepted[1]
-            seen = observed_difference(scene_field, library[a.library_name], a.result, library[b.library_name],
-                                       b.result, cfg.difference_tolerance)
-            if seen < cfg.unobserved_difference:
-                chosen, ambiguous = None, (a.library_name, b.library_name)
-        if chosen is not None and cfg.refit_box:
-            refit = register(scene_field, library[chosen.library_name], object_box(chosen.result), reg,
-                             initial=chosen.result.transform,
-                             library_samples=lib_samples[chosen.library_name])
-            if refit.accepted:
-                chosen = chosen._replace(result=refit)
-        return Discovery(cand, proposal, tried, chosen, ambiguous)
+
+    def examine_all(cands: list[Candidate], on_done: Callable[[], None]) -> list[Discovery]:
+        if pool is None or len(cands) < 2:
+            out = []
+            for cand in cands:
+                out.append(examine(cand, scene_field, library, lib_samples, cfg))
+                on_done()
+            return out
+        return pool.examine(cands, lib_samples, on_done)
 
     def explains(d: Discovery, half: Candidate) -> bool:
         assert d.chosen is not None and d.chosen.result is not None
         return explained_fraction(scene_field, library[d.chosen.library_name], d.chosen.result, half.points,
                                   cfg.explained_distance) >= cfg.half_explained
 
-    discoveries = examined(found, examine, explains, scene_field, cfg, progress)
+    workers = 1 if files is None else worker_count(cfg.workers or None)
+    with contextlib.ExitStack() as stack:
+        pool = None
+        if files is not None and workers > 1:  # first: the workers load the fields while candidates are found
+            from regnf.registration.discovery_workers import DiscoveryWorkers
+
+            pool = stack.enter_context(DiscoveryWorkers(files, str(scene_field.device), cfg, workers))
+        t0 = time.perf_counter()
+        # One thread, as in register: the same surface, hypotheses and identities on any machine.
+        with one_thread():
+            found = find_candidates(scene_field, cfg.candidates)
+        t1 = time.perf_counter()
+        if pool is not None:
+            lib_samples = pool.library_samples()
+        else:
+            with one_thread():
+                lib_samples = {name: sample_surface(f, None, reg.library_sampling, side="library")
+                               for name, f in library.items()}
+        discoveries = examined(found, examine_all, explains, scene_field, cfg, progress)
     t2 = time.perf_counter()
     return DiscoveryResult(discoveries, found,
                            {"candidates": t1 - t0, "registration": t2 - t1, "total": t2 - t0})
+
+
+class Ranking(NamedTuple):
+    """The short registration of every library object in one candidate's box (step 2)."""
+
+    proposal: OrientedBox
+    """The candidate's box in the scene field frame."""
+    scene_samples: SurfaceSamples
+    """The scene sampled in the box (every full registration of the candidate reuses them)."""
+    screened: dict[str, float]
+    """Library object name -> the confidence of its best initial hypothesis."""
+    sampling_seconds: float
+
+    def order(self) -> list[str]:
+        """The library, best screened first (ties by name)."""
+        return sorted(self.screened, key=lambda n: (-round(self.screened[n], 6), n))
+
+
+def rank_library(cand: Candidate, scene_field: Field, library: Mapping[str, Field],
+                 library_samples: Mapping[str, SurfaceSamples], config: DiscoveryConfig) -> Ranking:
+    """Step 2 for one candidate: sample its box, score every library object's best initial
+    hypothesis there on a subset of the samples (:attr:`DiscoveryConfig.ranking_points`)."""
+    reg = config.registration
+    S_inv = np.linalg.inv(scene_field.to_world.detach().cpu().double().numpy())
+    proposal = cand.box.transformed(S_inv)
+    ts = time.perf_counter()
+    with one_thread():
+        scene_samples = sample_surface(scene_field, proposal, reg.scene_sampling, side="scene")
+        sampling = time.perf_counter() - ts
+        quick = dataclasses.replace(reg, init=config.ranking_init)
+        few = subset(scene_samples, config.ranking_points)
+        screened: dict[str, float] = {}
+        for name, f in library.items():  # one short registration per library object
+            lib_few = subset(library_samples[name], config.ranking_points)
+            starts = initialise(scene_field, f, proposal, few, lib_few, quick)
+            screened[name] = screened_score(scene_field, f, proposal, few, lib_few, starts[0], quick)
+    return Ranking(proposal, scene_samples, screened, sampling)
+
+
+def register_shortlisted(ranking: Ranking, scene_field: Field, library_field: Field,
+                         library_samples: SurfaceSamples, config: DiscoveryConfig) -> RegistrationResult:
+    """Step 3 for one shortlisted object: the full registration in the candidate's box, on the
+    samples the ranking took, every initial hypothesis refined."""
+    reg = config.registration
+    # Every start refined: the identity compares two objects' confidences (the armchairs with
+    # and without the pillow differ by 0.02-0.03), so each must be its best hypothesis's, not
+    # the first one's (RegistrationConfig.confident_score).
+    every_start = dataclasses.replace(reg, confident_score=math.inf)
+    ti = time.perf_counter()
+    with one_thread():
+        starts = initialise(scene_field, library_field, ranking.proposal, ranking.scene_samples, library_samples, reg)
+    return refine_hypotheses(scene_field, library_field, ranking.proposal, ranking.scene_samples, library_samples,
+                             starts, every_start, timings={"sampling": ranking.sampling_seconds,
+                                                           "initialisation": time.perf_counter() - ti})
+
+
+def choose(cand: Candidate, ranking: Ranking, results: Mapping[str, RegistrationResult], scene_field: Field,
+           library: Mapping[str, Field], library_samples: Mapping[str, SurfaceSamples],
+           config: DiscoveryConfig) -> Discovery:
+    """Step 4: the accepted registration of highest confidence among the shortlisted objects'
+    ``results`` (unless ambiguous), refined once more in the registered object's box."""
+    tried = [Tried(name, ranking.screened[name], results.get(name)) for name in ranking.order()]
+    accepted = sorted((t for t in tried if t.result is not None and t.result.accepted),
+                      key=lambda t: -t.result.confidence)
+    chosen = accepted[0] if accepted else None
+    ambiguous: tuple[str, ...] = ()
+    if len(accepted) > 1:
+        a, b = accepted[0], accepted[1]
+        with one_thread():
+            seen = observed_difference(scene_field, library[a.library_name], a.result, library[b.library_name],
+                                       b.result, config.difference_tolerance)
+        if seen < config.unobserved_difference:
+            chosen, ambiguous = None, (a.library_name, b.library_name)
+    if chosen is not None and config.refit_box:
+        refit = register(scene_field, library[chosen.library_name], object_box(chosen.result), config.registration,
+                         initial=chosen.result.transform, library_samples=library_samples[chosen.library_name])
+        if refit.accepted:
+            chosen = chosen._replace(result=refit)
+    return Discovery(cand, ranking.proposal, tried, chosen, ambiguous)
+
+
+def examine(cand: Candidate, scene_field: Field, library: Mapping[str, Field],
+            library_samples: Mapping[str, SurfaceSamples], config: DiscoveryConfig) -> Discovery:
+    """Steps 2-4 of the module docstring for one candidate, here and in order (the side-by-side
+    path, :mod:`regnf.registration.discovery_workers`, runs the same steps in workers).
+
+    Parameters
+    ----------
+    cand : Candidate
+    scene_field : Field
+    library : mapping of name -> Field
+    library_samples : mapping of name -> SurfaceSamples
+        Each library object's samples, taken with ``config.registration.library_sampling``.
+    config : DiscoveryConfig
+    """
+    ranking = rank_library(cand, scene_field, library, library_samples, config)
+    results = {name: register_shortlisted(ranking, scene_field, library[name], library_samples[name], config)
+               for name in ranking.order()[:config.shortlist]}
+    return choose(cand, ranking, results, scene_field, library, library_samples, config)
 
 
 def overlapping_pairs(candidates: list[Candidate], min_iou: float) -> list[tuple[int, int]]:
@@ -375,34 +482,38 @@ def explained_fraction(scene_field: Field, library_field: Field, result: Registr
     return float(np.mean(metres <= distance)) if len(metres) else 0.0
 
 
-def examined(found: Candidates, examine: Callable[[Candidate], Discovery],
+def examined(found: Candidates,
+             examine_all: Callable[[list[Candidate], Callable[[], None]], list[Discovery]],
              explains: Callable[[Discovery, Candidate], bool], scene_field: Field, config: DiscoveryConfig,
              progress: bool = False) -> list[Discovery]:
-    """What ``examine`` makes of every candidate, overlapping ones first as one; largest box
+    """What ``examine_all`` makes of every candidate, overlapping ones first as one; largest box
     first.
 
     Each pair of :func:`overlapping_pairs` is examined as its points' union first. A matched
     union whose object ``explains`` both halves replaces them and they are not examined; else
     each half is examined, and a matched union replaces the pair only when neither half is
     matched nor ambiguous (see :attr:`DiscoveryConfig.join_overlap`).
+
+    ``examine_all(candidates, on_done)`` examines a list of candidates (side by side, or one
+    after another), calls ``on_done()`` after each and returns their discoveries in order. It
+    is called twice: the unions and the candidates in no pair, then the halves not spared.
     """
     cands = found.candidates
     pairs = overlapping_pairs(cands, config.join_overlap)
     bar = tqdm(total=len(cands) + len(pairs), desc="discover: candidates", unit="candidate", disable=not progress)
-    unions: dict[tuple[int, int], Discovery] = {}
-    for i, j in pairs:
-        union = candidate_of(np.concatenate([cands[i].points, cands[j].points]), found.supports, scene_field,
-                             config.candidates)
-        unions[(i, j)] = examine(union)
-        bar.update()
+    paired = {k for p in pairs for k in p}
+    alone = [k for k in range(len(cands)) if k not in paired]
+    union_cands = [candidate_of(np.concatenate([cands[i].points, cands[j].points]), found.supports, scene_field,
+                                config.candidates) for i, j in pairs]
+    first = examine_all(union_cands + [cands[k] for k in alone], bar.update)
+    unions = dict(zip(pairs, first[:len(pairs)]))
+    single: dict[int, Discovery] = dict(zip(alone, first[len(pairs):]))
     whole = [p for p, d in unions.items() if d.chosen is not None and all(explains(d, cands[k]) for k in p)]
     spared = {k for p in whole for k in p}
     bar.update(len(spared))
-    single: dict[int, Discovery] = {}
-    for k, cand in enumerate(cands):
-        if k not in spared:
-            single[k] = examine(cand)
-            bar.update()
+    halves = [k for p in pairs for k in p if k not in spared]
+    single.update(zip(halves, examine_all([cands[k] for k in halves], bar.update)))
+    single = {k: single[k] for k in sorted(single)}
     bar.close()
     out = [unions[p] for p in whole]
     for p, d in unions.items():

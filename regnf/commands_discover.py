@@ -70,7 +70,12 @@ class Discover:
     def run(self) -> None:
         from regnf.core.atomic_io import write_json
         from regnf.core.output_dir import inspect_output_dir, owned_output_dir
-        from regnf.registration.discovery import discover, discovery_record, instance_payloads
+        from regnf.registration.discovery import (
+            FieldFiles,
+            discover,
+            discovery_record,
+            instance_payloads,
+        )
         from regnf.registration.discovery_view import draw_top_view
         from regnf.scene_graph import add_instance_from_registration, new_stage
 
@@ -98,7 +103,8 @@ class Discover:
             library[f.name], paths[f.name] = f, path
         with owned_output_dir(self.out, DISCOVER_KIND, self.reuse, "the discovery folder") as folder:
             folder = folder.reserve(ENTRIES)
-            result = discover(scene, library, self.discovery, progress=True)
+            result = discover(scene, library, self.discovery, progress=True,
+                              files=FieldFiles(self.scene, dict(paths)))
             payloads = instance_payloads(result, scene, library, self.scene, paths)
             if folder.owns("registration") and (folder.path / "registration").exists():
                 folder.remove("registration")  # an earlier run's: this run's replaces it

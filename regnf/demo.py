@@ -190,14 +190,14 @@ def _discover_all(stage: Path, out: Path, scene_path: Path, library_paths: dict[
     from regnf.core.atomic_io import write_json
     from regnf.neural_fields.checkpoint import load_field
     from regnf.neural_fields.oriented_box import OrientedBox
-    from regnf.registration.discovery import discover, instance_payloads
+    from regnf.registration.discovery import FieldFiles, discover, instance_payloads
     from regnf.registration.discovery_view import draw_top_view
     from regnf.registration.ground_truth import score_discovery
     from regnf.scene_graph import add_instance_from_registration
 
     scene = load_field(scene_path, device=device)
     library = {name: load_field(p, device=device) for name, p in library_paths.items()}
-    result = discover(scene, library, progress=True)
+    result = discover(scene, library, progress=True, files=FieldFiles(scene_path, dict(library_paths)))
     written: dict[int, tuple[str, str]] = {}
     for index, payload in instance_payloads(result, scene, library, scene_path, library_paths):
         rel = f"registration/candidate_{index}.json"
@@ -253,6 +253,7 @@ def _completion(stage: Path, room: Room, config: DemoConfig, out: Path) -> dict[
     from regnf.compositor.render_folder import RenderConfig
     from regnf.compositor.stage_config import StageCompositeConfig
     from regnf.core.image_io import rgb_to_uint8, write_rgb_png
+    from regnf.core.threads import map_one_thread_each
     from regnf.neural_fields.distance_grid import DistanceGrid
     from regnf.neural_fields.evaluation import psnr
     from regnf.neural_fields.sphere_tracer import render
@@ -263,24 +264,28 @@ def _completion(stage: Path, room: Room, config: DemoConfig, out: Path) -> dict[
     grids = {m: DistanceGrid.build(f, sphere.grid_resolution, sphere.grid_lipschitz) for m, f in fields.items()}
     bench = RenderBenchConfig(completion_views=1)
     meshes = room.instance_meshes()
-    rows, per_object = [], []
-    with reference_renderer(room) as ref:
-        for k, inst in enumerate(room.instances):  # one view per object
+    views = []  # (instance index, camera, ground truth)
+    with reference_renderer(room) as ref:  # OpenGL: on this thread
+        for k in range(len(room.instances)):  # one view per object
             cams = unseen_cameras(room, meshes[k].bounds.mean(axis=0), bench, free=fields["scene"])
-            if not cams:
-                continue
-            cam = cams[0]
-            gt = ref.render(cam.camera_to_world, cam.K)
-            gt_rgb, region = rgb_to_uint8(gt.rgb), gt.instance_id.numpy() == k
-            row, scores = [gt_rgb], {}
-            for mode in ("scene", "substitute"):
-                r = render(fields[mode], cam, sphere, grid=grids[mode])
-                rgb = r.rgb.detach().cpu().numpy()
-                scores[mode] = psnr(rgb[region], gt_rgb[region] / 255.0) if region.any() else float("nan")
-                row.append(rgb_to_uint8(rgb))
-            rows.append(np.concatenate(row, axis=1))
-            per_object.append({"instance": inst.id, "object": inst.library,
-                               "psnr_scene": scores["scene"], "psnr_substitute": scores["substitute"]})
+            if cams:
+                views.append((k, cams[0], ref.render(cams[0].camera_to_world, cams[0].K)))
+    modes = ("scene", "substitute")
+    # Side by side, one thread each: the bits of one after another (regnf.core.threads).
+    rendered = map_one_thread_each(lambda job: render(fields[job[0]], job[1], sphere, grid=grids[job[0]]).rgb
+                                   .detach().cpu().numpy(), [(m, cam) for _, cam, _ in views for m in modes])
+    rows, per_object = [], []
+    for j, (k, _, gt) in enumerate(views):
+        gt_rgb, region = rgb_to_uint8(gt.rgb), gt.instance_id.numpy() == k
+        row, scores = [gt_rgb], {}
+        for i, mode in enumerate(modes):
+            rgb = rendered[len(modes) * j + i]
+            scores[mode] = psnr(rgb[region], gt_rgb[region] / 255.0) if region.any() else float("nan")
+            row.append(rgb_to_uint8(rgb))
+        rows.append(np.concatenate(row, axis=1))
+        inst = room.instances[k]
+        per_object.append({"instance": inst.id, "object": inst.library,
+                           "psnr_scene": scores["scene"], "psnr_substitute": scores["substitute"]})
     path = out / "renders" / "completion.png"
     write_rgb_png(path, np.concatenate(rows, axis=0))
     return {"image": str(path.relative_to(out)), "objects": per_object}

@@ -116,6 +116,17 @@ def _halves():
     return field, cfg, Candidates(cands, [], 1200), np.vstack([left, right])
 
 
+def each(examine):
+    """``examined``'s batch examiner from a one-candidate one."""
+    def examine_all(cands, on_done):
+        out = []
+        for c in cands:
+            out.append(examine(c))
+            on_done()
+        return out
+    return examine_all
+
+
 def _union_of(cand, points: np.ndarray) -> bool:
     return len(cand.points) == len(points) and np.allclose(np.sort(cand.points, 0), np.sort(points, 0))
 
@@ -140,7 +151,7 @@ def test_overlapping_candidates_are_examined_first_as_one() -> None:
             chosen = Tried("other", 0.9, None)
         return Discovery(cand, cand.box, [], chosen)
 
-    out = examined(found, examine, lambda d, half: True, field, cfg)
+    out = examined(found, each(examine), lambda d, half: True, field, cfg)
     assert seen == [-1, 2, 3]  # the union first; its halves never on their own
     assert [d.chosen.library_name if d.chosen else None for d in out].count("obj") == 1
     joined = next(d for d in out if d.chosen is not None and d.chosen.library_name == "obj")
@@ -170,15 +181,15 @@ def test_a_union_that_does_not_explain_its_halves_yields_to_them() -> None:
         return half is cands[0]
 
     # One half matched on its own: both halves stay, the union is dropped.
-    out = examined(found, examine_with(True), left_only, field, cfg)
+    out = examined(found, each(examine_with(True)), left_only, field, cfg)
     assert sorted(d.chosen.library_name for d in out if d.chosen) == ["small"]
     assert len(out) == 4
     # Neither half matched: the union replaces them, as an unexplained match is still the best.
-    out = examined(found, examine_with(False), left_only, field, cfg)
+    out = examined(found, each(examine_with(False)), left_only, field, cfg)
     assert sorted(d.chosen.library_name for d in out if d.chosen) == ["big"]
     assert len(out) == 3
     # A union that matches nothing leaves all four as they were, largest first.
-    none = examined(found, lambda c: Discovery(c, c.box, [], None), left_only, field, cfg)
+    none = examined(found, each(lambda c: Discovery(c, c.box, [], None)), left_only, field, cfg)
     assert [d.candidate for d in none] == sorted(cands, key=lambda c: -np.prod(c.box.half_extents))
     with pytest.raises(ValueError, match="join_overlap"):
         DiscoveryConfig(join_overlap=2.0)

@@ -24,7 +24,8 @@ from ..registration.fixtures import OBJECT_HI, OBJECT_LO, make_object, placement
 from ..scene_graph.helpers import checkpoint, make_library, make_stage
 
 CHAIR_TO_SCENE = placement([0, 0, 1], 0.7, [1.0, -0.5, 0.0], 1.0)
-FAST = ["--discovery.candidates.resolution", "128", "--discovery.shortlist", "2"]
+# One process: the analytic fields patched in are not in the checkpoints workers would load.
+FAST = ["--discovery.candidates.resolution", "128", "--discovery.shortlist", "2", "--discovery.workers", "1"]
 
 
 def _printed(capsys: pytest.CaptureFixture[str]) -> str:
