@@ -65,7 +65,8 @@ def map_one_thread_each(fn: Callable[[T], R], items: Sequence[T], workers: int |
     setting, and the small batches of a sphere tracer's last steps do not split. Open3D's
     calls hold the interpreter lock, share one random generator, and its RANSAC on a thread
     other than the main one gave hypotheses that varied from run to run: not for them (so
-    discovery examines its candidates one after another; docs/benchmarks.md, "The demo end to
+    discovery examines its candidates side by side in worker processes, each on its main
+    thread: :mod:`regnf.registration.discovery_workers`; docs/benchmarks.md, "The demo end to
     end").
 
     Parameters

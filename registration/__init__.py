@@ -18,6 +18,7 @@ _EXPORTS = {
     "discover": "discovery",
     "DiscoveryConfig": "discovery",
     "DiscoveryResult": "discovery",
+    "FieldFiles": "discovery",
     "RegistrationConfig": "pipeline",
     "RegistrationResult": "result",
     "OrientedBox": "regnf.neural_fields.oriented_box",
@@ -31,7 +32,7 @@ __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
 if TYPE_CHECKING:  # static analysers see the real names
     from regnf.neural_fields.oriented_box import OrientedBox
 
-    from .discovery import DiscoveryConfig, DiscoveryResult, discover
+    from .discovery import DiscoveryConfig, DiscoveryResult, FieldFiles, discover
     from .metrics import RegistrationErrors, registration_errors
     from .pipeline import RegistrationConfig, register
     from .result import RegistrationResult

@@ -136,8 +136,10 @@ class DiscoveryConfig:
     """Worker processes that examine candidates side by side, when :func:`discover` is given
     the fields' checkpoints (``files``); 0: one per usable core; 1: one after another in this
     process. Every examination runs on one thread either way, so the result does not depend on
-    it (tested). Measured on the demo's low-coverage ac-room (5 examinations, 2 cores): 45 s
-    one after another, XX s with two workers."""
+    it (tested; worker processes, not threads: Open3D's RANSAC on a thread other than the main
+    one gave hypotheses that varied from run to run). Measured on the demo's low-coverage
+    ac-room (5 examinations, 2 cores, three runs each): 44-46 s one after another, 31.5 s with
+    two workers, the same bits."""
 
     def __post_init__(self) -> None:
         if self.shortlist < 1:
