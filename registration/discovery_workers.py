@@ -155,12 +155,11 @@ class DiscoveryWorkers:
                 value = self._value(future, f"the {step} step of candidate {k}")
                 if step == "rank":
                     rankings[k] = value
-                    shortlisted = value.order()[:self.config.shortlist]
-                    for n in shortlisted:
+                    for n in value.shortlisted(self.config):
                         pending[self._submit("register", (value, n, samples[n]))] = ("register", k, n)
                 elif step == "register":
                     results[k][name] = value
-                if step != "choose" and len(results[k]) == min(self.config.shortlist, len(samples)):
+                if step != "choose" and len(results[k]) == len(rankings[k].shortlisted(self.config)):
                     pending[self._submit("choose", (cands[k], rankings[k], results[k], samples))] = ("choose", k, "")
                 elif step == "choose":
                     out[k] = value

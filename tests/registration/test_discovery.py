@@ -213,3 +213,22 @@ def test_explained_fraction_measures_metres_to_the_registered_surface() -> None:
     # 0, 1, 2, 5 and 15 cm from the surface: within 3 cm, the first three.
     assert explained_fraction(scene, Sphere(1.0), result, points, 0.03) == pytest.approx(0.6)
     assert explained_fraction(scene, Sphere(1.0), result, points, 0.055) == pytest.approx(0.8)
+
+
+def test_objects_scoring_near_the_best_are_shortlisted_whatever_the_count() -> None:
+    from regnf.neural_fields.oriented_box import OrientedBox
+    from regnf.registration.discovery import Ranking
+    from regnf.registration.sampling import SurfaceSamples
+
+    empty = SurfaceSamples(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, dtype=np.int64))
+    box = OrientedBox.from_aabb(np.zeros(3), np.ones(3))
+    # The low-coverage mix-room's fc box (2026-12-05): three armchairs within 0.012.
+    tie = Ranking(box, empty, {"fc-nop": 0.583, "mc": 0.580, "fc": 0.571, "wt": 0.257, "dc": 0.216}, 0.0)
+    assert tie.shortlisted(DiscoveryConfig()) == ["fc-nop", "mc", "fc"]
+    assert tie.shortlisted(DiscoveryConfig(shortlist_margin=0.0)) == ["fc-nop", "mc"]
+    # A clear best: the count alone, even when the runner-up and the third are close.
+    clear = Ranking(box, empty, {"t": 0.729, "dc": 0.176, "et": 0.166, "c": 0.155}, 0.0)
+    assert clear.shortlisted(DiscoveryConfig()) == ["t", "dc"]
+    assert clear.shortlisted(DiscoveryConfig(shortlist=1, shortlist_margin=0.6)) == ["t", "dc", "et", "c"]
+    with pytest.raises(ValueError, match="shortlist_margin"):
+        DiscoveryConfig(shortlist_margin=-0.1)
