@@ -309,10 +309,10 @@ def discover(scene_field: Field, library: Mapping[str, Field],
     Raises
     ------
     ValueError
-        No library object, or ``files`` that do not name every library object.
+        No library object, ``files`` that do not name every library object, or a checkpoint
+        that changed since discovery began (in a worker).
     RuntimeError
-        An examination failed in a worker (a checkpoint changed since discovery began, for
-        example).
+        An examination failed in a worker otherwise (a bug, or a worker that died).
     """
     cfg = config or DiscoveryConfig()
     reg = cfg.registration

@@ -64,7 +64,7 @@ def _field(path: Path, device: str, digest: str) -> Field:
     key = (str(path), device)
     if key not in _FIELDS:
         if read_header(path)[DIGEST_KEY] != digest:
-            raise RuntimeError(f"{path}: the checkpoint changed since discovery began")
+            raise ValueError(f"{path}: the checkpoint changed since discovery began")
         _FIELDS[key] = load_field(path, device=device)  # checks the file's bytes against that digest
     return _FIELDS[key]
 
@@ -123,12 +123,18 @@ class DiscoveryWorkers:
 
     @staticmethod
     def _value(future: cf.Future, what: str) -> Any:
+        """The step's value; its error raised here as one line: a ``ValueError`` for what the
+        worker found wrong with the input (a ``ValueError`` there, as in this process), a
+        ``RuntimeError`` otherwise (a bug, or a worker that died)."""
         try:
             value, error = future.result()
         except Exception as exc:  # noqa: BLE001 (the worker died: killed, out of memory)
             value, error = None, f"{type(exc).__name__}: {exc}"
         if error is not None:
-            raise RuntimeError(f"discovery: {what} failed in a worker: {error}")
+            first = error.splitlines()[0] if error.strip() else "no message"
+            kind = first.split(":", 1)[0]
+            bad_input = kind in ("ValueError", "CheckpointError")
+            raise (ValueError if bad_input else RuntimeError)(f"discovery: {what} failed in a worker: {first}")
         return value
 
     def library_samples(self) -> dict[str, SurfaceSamples]:
