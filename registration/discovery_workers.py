@@ -110,8 +110,12 @@ class DiscoveryWorkers:
 
     def __enter__(self) -> DiscoveryWorkers:  # noqa: PYI034 (not subclassed)
         self._pool = self._stack.enter_context(local_pool(self.workers))
-        self._warming = [self._submit("load", ()) for _ in range(self.workers)]
-        self._sampling = {name: self._submit("sample", (name,)) for name in self.files.library}
+        try:
+            self._warming = [self._submit("load", ()) for _ in range(self.workers)]
+            self._sampling = {name: self._submit("sample", (name,)) for name in self.files.library}
+        except BaseException:
+            self._stack.close()  # __exit__ is not called when __enter__ raises
+            raise
         return self
 
     def __exit__(self, *exc: object) -> None:
