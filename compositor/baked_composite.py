@@ -106,10 +106,7 @@ def bake_grids(scene: Field, objects: Mapping[str, tuple[Field, Sequence[np.ndar
             raise ValueError(f"library object {n!r} has no place to be baked for")
         cells.append(min(bake_cell(field, cameras, config, to_world=W) for W in places))
     total = sum(math.prod(grid_nodes(f.bounds, c, config.coarse_stride)) for f, c in zip(fields, cells))
-    if total > config.max_total_nodes:  # before any baking
-        raise ValueError(f"baking these {len(fields)} fields for these views needs {total:,} grid nodes "
-                         f"({16 * total / 2**30:.1f} GB), more than max_total_nodes={config.max_total_nodes:,}: "
-                         "render with the sphere tracer, or take coarser cells (cell_pixels)")
+    _check_nodes(total, f"these {len(fields)} fields", config)  # before any baking
     # The largest first, so that the others fill the remaining workers around it.
     order = sorted(range(len(fields)), key=lambda i: -math.prod(grid_nodes(fields[i].bounds, cells[i])))
     baked_in_order = map_one_thread_each(lambda i: bake(fields[i], cells[i], config, progress=progress),
@@ -163,9 +160,7 @@ def bake_for_views(composite: Field, cameras: Sequence[Camera], config: BakeConf
     if not isinstance(composite, CompositeField):
         cell = bake_cell(composite, cameras, config)
         nodes = math.prod(grid_nodes(composite.bounds, cell, config.coarse_stride))
-        if nodes > config.max_total_nodes:
-            raise ValueError(f"baking this field for these views needs {nodes:,} grid nodes, more than "
-                             f"max_total_nodes={config.max_total_nodes:,}: take coarser cells (cell_pixels)")
+        _check_nodes(nodes, "this field", config)
         return BakedComposite(bake(composite, cell, config, progress=progress), time.perf_counter() - t0, nodes)
     # One grid per library object, shared by its instances.
     places: dict[int, tuple[Field, list[np.ndarray]]] = {}
@@ -174,6 +169,14 @@ def bake_for_views(composite: Field, cameras: Sequence[Camera], config: BakeConf
     grids = bake_grids(masked_scene(composite), {str(k): v for k, v in places.items()}, cameras, config, progress)
     field = with_grids(composite, grids.scene, [grids.objects[str(id(p.field))] for p in composite.placements])
     return BakedComposite(field, time.perf_counter() - t0, grids.nodes)
+
+
+def _check_nodes(total: int, what: str, config: BakeConfig) -> None:
+    """Refuse to bake ``what`` into ``total`` grid nodes beyond ``config.max_total_nodes``."""
+    if total > config.max_total_nodes:
+        raise ValueError(f"baking {what} for these views needs {total:,} grid nodes "
+                         f"({16 * total / 2**30:.1f} GB), more than max_total_nodes={config.max_total_nodes:,}: "
+                         "render with the sphere tracer, or take coarser cells (cell_pixels)")
 
 
 def _nodes(field: Field) -> int:
