@@ -46,6 +46,7 @@ import json
 import math
 import os
 import re
+import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -360,12 +361,43 @@ def _serialised_digest(f: BinaryIO, size: int, where: Path) -> str:
     return h.hexdigest()
 
 
+STABLE_SECONDS = 2.0
+"""A file last modified at least this long before its digest was computed is not hashed again
+in this process while its identity (:func:`_file_identity`) stays the same."""
+_VERIFIED: dict[tuple[int, ...], str] = {}
+"""File identity -> the digest that the file was found to have (see :func:`_check_digest`)."""
+
+
+def _file_identity(path: Path) -> tuple[int, ...] | None:
+    """(device, inode, size, mtime, ctime) of ``path``, or None if it cannot be stated."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    return (st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns)
+
+
 def _check_digest(path: Path, header: dict) -> None:
-    """Compare the digest the header records with the file's (no-op for a legacy header)."""
+    """Compare the digest the header records with the file's (no-op for a legacy header).
+
+    A stage is read many times in one run (every render step, every variant's layer) and
+    its scene field alone is over 100 MB: a file whose digest this process has already checked
+    is not hashed again while its device, inode, size and modification and change times stay
+    the same. Any write changes the modification time (and a replacing rename the inode), but
+    file systems keep those times at a coarse grain (milliseconds), so a file modified within
+    :data:`STABLE_SECONDS` of the check is never remembered: a write that follows so soon could
+    leave every field of the identity as it was (the "racily clean" case of git's index).
+    """
     want = header.get(DIGEST_KEY)
     if want is None:
         return  # a legacy file read with allow_legacy=True
+    before = _file_identity(path)  # stated BEFORE hashing: a write during it changes the identity
+    if before is not None and _VERIFIED.get(before) == want:
+        return
+    checked_at = time.time()
     got = checkpoint_digest(path)
+    if got == want and before is not None and checked_at - max(before[3], before[4]) / 1e9 >= STABLE_SECONDS:
+        _VERIFIED[before] = got
     if got != want:
         raise CheckpointError(
             path,

@@ -278,98 +278,129 @@ def _trace_chunk(
     lo = field.bounds[0].to(o.dtype) - cfg.bounds_pad
     hi = field.bounds[1].to(o.dtype) + cfg.bounds_pad
     t_in, t_out = ray_aabb(o, d, lo, hi)
-    t = t_in.clamp(min=near)
-    t_end = t_out.clamp(max=far)
+    t_start = t_in.clamp(min=near)
+    t_stop = t_out.clamp(max=far)
     fp = cfg.footprint_fraction * pixel_angle
 
     def tol_at(tt: torch.Tensor) -> torch.Tensor:
         return (fp * tt).clamp(min=cfg.tol)
 
-    zeros_l = torch.zeros(n, dtype=torch.long, device=dev)
-    evals, lookups, winner = zeros_l.clone(), zeros_l.clone(), zeros_l - 1
+    # Per ray, written once when the ray stops marching.
+    t = t_start.clone()
     hit = torch.zeros(n, dtype=torch.bool, device=dev)
     bracketed = torch.zeros_like(hit)
-    safe = torch.zeros_like(hit)  # the ray has a known free sphere (t_prev, r_prev)
-    t_prev, r_prev = t.clone(), torch.zeros_like(t)
-    s_neg = torch.zeros_like(t)  # SDF at the inside end of a bracket [t_prev, t]
-    omega_cap = torch.full_like(t, cfg.omega)  # per ray; shrinks after each failed step
-    slope = torch.full_like(t, math.nan)  # -d(sdf)/dt between the last two evaluations
-    prev_eval = torch.zeros_like(hit)  # the safe sphere comes from an evaluation, not the grid
-    relaxed = torch.zeros_like(hit)  # the last step was longer than the safe radius
+    t_prev, r_prev = t_start.clone(), torch.zeros_like(t)  # a bracket's outside end
+    s_neg = torch.zeros_like(t)  # SDF at a bracket's inside end (its t)
+    evals = torch.zeros(n, dtype=torch.long, device=dev)
+    lookups, winner = evals.clone(), evals - 1
     skip_min = cfg.grid_skip_cells * float(grid.cell.min()) if grid is not None else math.inf
-    idx = (t <= t_end).nonzero().squeeze(1)
+
+    # The marching rays' state, compacted (column k is ray ids[k]; rows of one dtype stacked, so
+    # that dropping the stopped rays is three selections, not one per quantity):
+    ids = (t_start <= t_stop).nonzero().squeeze(1)
+    m = ids.numel()
+    F = torch.empty(_F_ROWS, m, dtype=t.dtype, device=dev)
+    F[_O] = o[ids].T
+    F[_D] = d[ids].T
+    F[_T], F[_TE], F[_TP] = t_start[ids], t_stop[ids], t_start[ids]
+    F[_RP] = 0.0
+    F[_SLOPE] = math.nan  # -d(sdf)/dt between the last two evaluations
+    F[_CAP] = cfg.omega  # relaxation cap; shrinks after each failed step
+    # SAFE: the ray has a known free sphere (TP, RP); FROM_EVAL: that sphere comes from an
+    # evaluation, not the grid; RELAXED: the last step was longer than the safe radius.
+    B = torch.zeros(3, m, dtype=torch.bool, device=dev)
+    L = torch.zeros(3, m, dtype=torch.long, device=dev)  # evaluations, look-ups, winner
+    L[_WIN] = -1
 
     for _ in range(cfg.max_steps):
-        if idx.numel() == 0:
+        if ids.numel() == 0:
             break
-        ti = t[idx]
-        p = o[idx] + ti[:, None] * d[idx]
-        cont = []  # rays that keep marching after this iteration
+        T, TE, TP, RP, SLOPE, CAP = F[_T], F[_TE], F[_TP], F[_RP], F[_SLOPE], F[_CAP]
+        SAFE, FROM_EVAL, RELAXED = B[0], B[1], B[2]
+        p = (F[_O] + T * F[_D]).T.contiguous()
+        skip = None
         if grid is not None:
             lb = grid.lower_bound(p)
-            lookups[idx] += 1
+            L[_LK] += 1
             # A point reached by a relaxed (unverified) step may lie beyond a thin surface the
             # step jumped over: its free sphere proves nothing about the segment behind it
             # unless it overlaps the last safe sphere (Keinert's test, with the bound as |r|).
             # Otherwise the point is evaluated, and the failure test below sends it back.
-            verified = ~relaxed[idx] | (r_prev[idx] + lb >= ti - t_prev[idx])
-            skip = (lb >= skip_min) & verified
-            si, lbs = idx[skip], lb[skip]
+            skip = (lb >= skip_min) & (~RELAXED | (RP + lb >= T - TP))
+        r = torch.zeros_like(T)
+        ei = (~skip).nonzero().squeeze(1) if skip is not None else None
+        if ei is None or ei.numel() == ids.numel():
+            ei = None
+            sample = _sample_checked(field, p)
+            r = sample.sdf.to(T.dtype)
+            L[_EV] += sample.evals
+            L[_WIN] = sample.winner
+        elif ei.numel() > 0:
+            sample = _sample_checked(field, p[ei])
+            r[ei] = sample.sdf.to(T.dtype)
+            L[_EV, ei] += sample.evals
+            L[_WIN, ei] = sample.winner
+        evaluated = ~skip if skip is not None else torch.ones_like(SAFE)
+
+        # Keinert's test: the relaxed step left the union of the two unbounding spheres.
+        fail = evaluated & RELAXED & (RP + r.abs() < T - TP)
+        if cfg.bracket_on_sign_change:
+            fail &= r >= 0  # a sign change is a bracket: refine it rather than go back
+        ok = evaluated & ~fail
+        close = ok & (r.abs() < tol_at(T))  # within tolerance on either side
+        neg = ok & (r < 0) & ~close
+        crossed = neg & SAFE
+        stops_on_hit = close | (neg & ~SAFE)
+        move = ok & ~neg & ~close
+        # A hit within tolerance is still off by r / cos(incidence) along the ray; one
+        # secant (Newton) step with the slope measured between the last two samples
+        # removes most of that for free. Skipped where the slope is unknown or grazing.
+        good = torch.isfinite(SLOPE) & (SLOPE > MIN_NEWTON_SLOPE)
+        t_hit = torch.where(good, T + r / SLOPE.clamp(min=MIN_NEWTON_SLOPE), T)
+        # A move: the sample is a safe sphere; the next step is relaxed by the measured slope.
+        dt = T - TP
+        slope = torch.where(FROM_EVAL & (dt > 0), (RP - r) / dt.clamp(min=1e-30), SLOPE)
+        w = _relaxation(CAP, slope, cfg)
+        relax_next = (w > 1.0) & (w * r > cfg.min_step)
+        t_next = T + (w * r).clamp(min=cfg.min_step)
+        # A relaxed step past the exit is unverified: take the plain one there instead.
+        beyond = t_next > TE
+        t_next = torch.where(beyond, T + r.clamp(min=cfg.min_step), t_next)
+        relax_next &= ~beyond
+        # A failed step goes back to the plain one from the last safe point.
+        t_back = TP + RP.clamp(min=cfg.min_step)
+        cap_back = 1.0 + 0.5 * (CAP - 1.0) if cfg.adaptive else torch.ones_like(CAP)
+
+        t_new = torch.where(move, t_next, torch.where(fail, t_back, torch.where(close, t_hit, T)))
+        F[_TP] = torch.where(move, T, TP)
+        F[_RP] = torch.where(move, r, RP)
+        F[_SLOPE] = torch.where(move, slope, SLOPE)
+        F[_CAP] = torch.where(fail, cap_back, CAP)
+        B[2] = torch.where(move, relax_next, RELAXED & ~fail)
+        B[1] = FROM_EVAL | move
+        B[0] = SAFE | move
+        goes_on = fail | (move & (t_new <= TE))
+        if skip is not None:
             # A grid step is an unrelaxed step in guaranteed free space: a safe sphere.
-            t_prev[si], r_prev[si], safe[si], prev_eval[si] = ti[skip], lbs, True, False
-            relaxed[si] = False
-            slope[si] = math.nan  # the grid bound is no SDF value: no slope across it
-            t[si] = ti[skip] + lbs
-            cont.append(si[t[si] <= t_end[si]])
-            idx, ti, p = idx[~skip], ti[~skip], p[~skip]
-        if idx.numel() > 0:
-            s = _sample_checked(field, p)
-            r = s.sdf.to(t.dtype)
-            evals[idx] += s.evals
-            winner[idx] = s.winner
-            step = ti - t_prev[idx]
-            plain = r_prev[idx].clamp(min=cfg.min_step)
-            # Keinert's test: the relaxed step left the union of the two unbounding spheres.
-            fail = relaxed[idx] & (r_prev[idx] + r.abs() < step)
-            if cfg.bracket_on_sign_change:
-                fail &= r >= 0  # a sign change is a bracket: refine it rather than go back
-            fi = idx[fail]
-            t[fi] = t_prev[fi] + plain[fail]
-            relaxed[fi] = False
-            omega_cap[fi] = 1.0 + 0.5 * (omega_cap[fi] - 1.0) if cfg.adaptive else 1.0
-            cont.append(fi)
+            t_new = torch.where(skip, T + lb, t_new)
+            F[_TP] = torch.where(skip, T, F[_TP])
+            F[_RP] = torch.where(skip, lb, F[_RP])
+            F[_SLOPE] = torch.where(skip, math.nan, F[_SLOPE])  # no SDF value: no slope
+            B[0] |= skip
+            B[1] &= ~skip
+            B[2] &= ~skip
+            goes_on |= skip & (t_new <= TE)
+        F[_T] = t_new
 
-            ok = ~fail
-            close = ok & (r.abs() < tol_at(ti))  # within tolerance on either side
-            neg = ok & (r < 0) & ~close
-            first_inside = neg & ~safe[idx]
-            crossed = neg & safe[idx]
-            hit[idx[first_inside | close]] = True
-            # A hit within tolerance is still off by r / cos(incidence) along the ray; one
-            # secant (Newton) step with the slope measured between the last two samples
-            # removes most of that for free. Skipped where the slope is unknown or grazing.
-            ci, rc, mc = idx[close], r[close], slope[idx[close]]
-            good = torch.isfinite(mc) & (mc > MIN_NEWTON_SLOPE)
-            t[ci] = torch.where(good, ti[close] + rc / mc.clamp(min=MIN_NEWTON_SLOPE), ti[close])
-            bracketed[idx[crossed]] = True
-            s_neg[idx[crossed]] = r[crossed]
-
-            move = ok & ~neg & ~close
-            mi, tm, rm = idx[move], ti[move], r[move]
-            dt = tm - t_prev[mi]
-            measured = prev_eval[mi] & (dt > 0)
-            slope[mi] = torch.where(measured, (r_prev[mi] - rm) / dt.clamp(min=1e-30), slope[mi])
-            t_prev[mi], r_prev[mi], safe[mi], prev_eval[mi] = tm, rm, True, True
-            w = _relaxation(omega_cap[mi], slope[mi], cfg)
-            relaxed[mi] = (w > 1.0) & (w * rm > cfg.min_step)
-            t_next = tm + (w * rm).clamp(min=cfg.min_step)
-            # A relaxed step past the exit is unverified: take the plain one there instead.
-            beyond = t_next > t_end[mi]
-            t_next = torch.where(beyond, tm + rm.clamp(min=cfg.min_step), t_next)
-            relaxed[mi] &= ~beyond
-            t[mi] = t_next
-            cont.append(mi[t_next <= t_end[mi]])  # past the bounds' exit (or far): a miss
-        idx = torch.cat(cont) if cont else idx
+        stops = ~goes_on
+        if bool(stops.any()):
+            si = ids[stops]
+            t[si], hit[si], bracketed[si] = t_new[stops], stops_on_hit[stops], crossed[stops]
+            t_prev[si], r_prev[si], s_neg[si] = F[_TP, stops], F[_RP, stops], r[stops]
+            evals[si], lookups[si], winner[si] = L[_EV, stops], L[_LK, stops], L[_WIN, stops]
+            ids, F, B, L = ids[goes_on], F[:, goes_on], B[:, goes_on], L[:, goes_on]
+    # Out of steps: a miss, with its counts.
+    evals[ids], lookups[ids], winner[ids] = L[_EV], L[_LK], L[_WIN]
 
     bi = bracketed.nonzero().squeeze(1)
     if bi.numel() > 0:
@@ -382,6 +413,15 @@ def _trace_chunk(
         hit[:, None], o + t.nan_to_num(posinf=0.0)[:, None] * d, torch.zeros_like(o)
     )
     return TraceHits(hit, t, points, winner, evals, lookups)
+
+
+_O, _D = slice(0, 3), slice(3, 6)
+_T, _TE, _TP, _RP, _SLOPE, _CAP = 6, 7, 8, 9, 10, 11
+_F_ROWS = 12
+"""Rows of the marching rays' float state: origin, direction (3 each), t, exit t, the last
+safe point's t and radius, the SDF's slope along the ray, the relaxation cap."""
+_EV, _LK, _WIN = 0, 1, 2
+"""Rows of their integer state: field evaluations, grid look-ups, winning component."""
 
 
 def _relaxation(cap: torch.Tensor, slope: torch.Tensor, cfg: SphereTracerConfig) -> torch.Tensor:

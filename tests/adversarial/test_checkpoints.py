@@ -114,6 +114,43 @@ def test_an_edited_buffer_without_a_new_digest_fails_the_digest(tmp_path: Path) 
     refused(verify_checkpoint, path, "content digest mismatch")
 
 
+def _flip_last_byte(path: Path) -> None:
+    """Edit the file in place (same inode, same size): its last tensor byte inverted."""
+    with open(path, "r+b") as f:
+        f.seek(-1, os.SEEK_END)
+        b = f.read(1)
+        f.seek(-1, os.SEEK_END)
+        f.write(bytes([b[0] ^ 0xFF]))
+
+
+def test_a_file_edited_in_place_right_after_its_check_is_refused(tmp_path: Path) -> None:
+    # Freshly written: never remembered as checked, however fast the edit follows.
+    path = saved(tmp_path)
+    verify_checkpoint(path)
+    _flip_last_byte(path)
+    refused(verify_checkpoint, path, "content digest mismatch")
+    refused(load_field, path, "content digest mismatch")
+
+
+def test_a_stable_file_is_hashed_once_until_it_changes(tmp_path: Path, monkeypatch) -> None:
+    import regnf.neural_fields.checkpoint as ckpt
+
+    monkeypatch.setattr(ckpt, "STABLE_SECONDS", 0.0)  # as if the file were older
+    path = saved(tmp_path)
+    hashed: list[Path] = []
+    real = ckpt.checkpoint_digest
+    monkeypatch.setattr(ckpt, "checkpoint_digest", lambda p: hashed.append(p) or real(p))
+    verify_checkpoint(path)
+    load_field(path)
+    verify_checkpoint(path)
+    assert hashed == [path]  # checked once, then known by its identity
+    # A replacing write (a new file renamed over it, as every regnf writer does) is hashed again.
+    edited = rewrite(saved(tmp_path, "g.safetensors"), _move_to_world_5m, redigest=False)
+    os.replace(edited, path)
+    refused(verify_checkpoint, path, "content digest mismatch")
+    assert len(hashed) == 2
+
+
 @pytest.mark.parametrize(
     ("to_world", "match"),
     [
