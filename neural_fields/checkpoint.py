@@ -760,8 +760,13 @@ def load_field(
         raise CheckpointError(path, f"truncated or corrupted tensor data ({exc})") from exc
     _check_stored_twice(path, header, state)
     counts = state.pop(VISIBILITY_TENSOR, None)
-    field = NeuralSDF(config, bounds=bounds, to_world=to_world, info=info)
-    field.load_state_dict(state)
+    # The skeleton takes the stored tensors as they are: building a second field would
+    # initialise every grid at random only to overwrite it (a second for a room's field).
+    field = skeleton
+    field.load_state_dict(state, assign=True)
+    left = [n for n, t in [*field.named_parameters(), *field.named_buffers()] if t.is_meta]
+    if left:  # every tensor of the state dict was checked above: a bug if it fires
+        raise RuntimeError(f"{path}: tensors {left} were not loaded")
     if visibility is not None:
         meta = {k: v for k, v in visibility.items() if k != "resolution"}
         try:
