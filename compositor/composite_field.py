@@ -10,8 +10,10 @@ meshing and both renderers accept it::
 with ``T_i`` the similarity library field frame -> scene field frame and ``s_i`` its scale
 (docs/design.md section 1.9 writes the same with the inverse map, scene -> library, and divides
 by its scale ``1 / s_i``). Each placed field is culled to its oriented box (see
-:mod:`regnf.compositor.placement`): with culling, the composite keeps the sign of the exact one
-everywhere, never exceeds it in magnitude, and equals it within ``cull_pad`` of the surface.
+:mod:`regnf.compositor.placement`), and the scene to where it is not deeper than ``cull_pad``
+inside a removal region (:meth:`CompositeField.scene_masked`): with culling, the composite keeps
+the sign of the exact one everywhere, never exceeds it in magnitude, and equals it within
+``cull_pad`` of the surface.
 """
 
 from __future__ import annotations
@@ -41,7 +43,8 @@ class CompositeConfig:
     """How a :class:`CompositeField` evaluates its components."""
 
     cull: bool = True
-    """Evaluate each placed field only inside its padded oriented box."""
+    """Evaluate each placed field only inside its padded oriented box, and the scene only
+    outside the removal regions shrunk by ``cull_pad``."""
     cull_pad: float = 0.02
     """Culling margin in scene field units; must exceed the renderer's hit tolerance."""
 
@@ -119,19 +122,42 @@ class CompositeField(Field):
         self.to(scene.device)
 
     def scene_masked(self, x: torch.Tensor) -> FieldSample:
-        """``max(S_scene, -M)`` (n,) at points ``x`` (n, 3); winner 0 everywhere."""
+        """``max(S_scene, -M)`` (n,) at points ``x`` (n, 3); winner 0 everywhere.
+
+        With ``config.cull``, the scene is evaluated only where ``-M <= cull_pad``: deeper
+        inside a removal region ``-M`` itself stands in, a lower bound of the masked SDF of the
+        same (positive) sign, as a placed object's box distance stands in for it (a third of a
+        substitution view's samples lie there, where the scene's network was wasted).
+        """
         check_points(x, self)
-        # Through evaluate() so that a composite used as a scene reports its full cost.
-        s, _, evals = self.scene.evaluate(x)
-        if len(self.removals) > 0:
-            # A running min, not a stack: memory stays one value per point however many regions.
-            m = None
-            for region in self.removals:
-                r = region.evaluate(x)
-                m = r.sdf.to(s.dtype) if m is None else torch.minimum(m, r.sdf.to(s.dtype))
-                evals = evals + r.evals
-            s = torch.maximum(s, -m)
-        return FieldSample(s, torch.zeros_like(evals), evals)
+        if len(self.removals) == 0:
+            # Through evaluate() so that a composite used as a scene reports its full cost.
+            s, _, evals = self.scene.evaluate(x)
+            return FieldSample(s, torch.zeros_like(evals), evals)
+        # A running min, not a stack: memory stays one value per point however many regions.
+        m, region_evals = None, None
+        for region in self.removals:
+            r = region.evaluate(x)
+            m = r.sdf if m is None else torch.minimum(m, r.sdf.to(m.dtype))
+            region_evals = r.evals if region_evals is None else region_evals + r.evals
+        need = None
+        if self.config.cull:
+            need = (-m <= self.config.cull_pad).nonzero().squeeze(1)
+            if need.numel() == x.shape[0]:
+                need = None
+        if need is None:
+            s, _, evals = self.scene.evaluate(x)
+            m = m.to(s.dtype)
+        else:
+            evals = torch.zeros_like(region_evals)
+            s = -m
+            if need.numel() > 0:
+                sub = self.scene.evaluate(x[need])
+                m = m.to(sub.sdf.dtype)
+                # Out-of-place index_put keeps autograd through both the scene and the regions.
+                s = (-m).index_put((need,), sub.sdf)
+                evals = evals.index_put((need,), sub.evals.to(evals.dtype))
+        return FieldSample(torch.maximum(s, -m), torch.zeros_like(region_evals), evals + region_evals)
 
     def evaluate(self, x: torch.Tensor) -> FieldSample:
         """Composite SDF (n,), winning component (n,) and evaluations (n,) at ``x`` (n, 3).

@@ -104,10 +104,15 @@ def test_culling_is_conservative_exact_near_surfaces_and_cheaper() -> None:
     near = np.abs(e) < CompositeConfig().cull_pad
     assert near.sum() > 50
     np.testing.assert_allclose(c[near], e[near], atol=1e-12)
-    # Exact: scene + object everywhere; culled: the object only inside its padded box.
+    # Exact: scene + object everywhere; culled: the object only inside its padded box, the
+    # scene only where it is not deeper than cull_pad inside the removal region.
     assert bool((exact.evals == 2).all())
     assert int(culled.evals.sum()) < 0.7 * int(exact.evals.sum())
-    assert bool((culled.evals >= 1).all())
+    comp = make_composite(cull=True)
+    deep = (-comp.removals[0].evaluate(x).sdf > CompositeConfig().cull_pad).numpy()
+    assert deep.sum() > 50 and (~deep).sum() > 50
+    in_box = (comp.placements[0].box.sdf(x) <= CompositeConfig().cull_pad).numpy()
+    np.testing.assert_array_equal(culled.evals.numpy(), (~deep).astype(int) + in_box.astype(int))
 
 
 def _shell_scene() -> tuple[Field, ShellRegion, ShellRegion]:

@@ -135,7 +135,8 @@ def test_prebuilt_grid_gives_the_same_image_and_bounds_distances() -> None:
     a = render(field, cam, SphereTracerConfig(grid_resolution=24), grid=grid)
     b = render(field, cam, SphereTracerConfig(grid_resolution=24))
     assert torch.equal(a.depth, b.depth) and torch.equal(a.evals_per_pixel, b.evals_per_pixel)
-    assert grid.build_evals >= 24**3
+    # At most the scene and the object at each cell centre; culling leaves some out.
+    assert 24**3 // 2 < grid.build_evals < 2 * 24**3
     # The look-up is a lower bound of the true distance to the surface (exact sphere).
     sph = Sphere(0.5, (0.1, 0.0, -0.2))
     g = DistanceGrid.build(sph, resolution=16)
