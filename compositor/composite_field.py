@@ -25,9 +25,10 @@ import numpy as np
 import torch
 
 from regnf.neural_fields.field import Field, FieldInfo, FieldSample, check_points
+from regnf.neural_fields.oriented_box import OrientedBoxes
 
 from .placement import PlacedObject, Placement
-from .regions import RemovalRegion
+from .regions import BoxRegionUnion, OrientedBoxRegion, RemovalRegion
 
 SCENE_ID = 0
 """Winner id of the scene field."""
@@ -119,6 +120,11 @@ class CompositeField(Field):
         self.instance_ids: tuple[int, ...] = tuple(ids)
         self.tints: tuple[tuple[float, float, float] | None, ...] = tuple(tints)
         self.config = config
+        # Every box distance of a query at once (see OrientedBoxes): the placed objects' culling
+        # boxes, and the removal regions when they are all boxes (the usual case).
+        self.placement_boxes = OrientedBoxes([p.box for p in placements]) if placements else None
+        boxes_only = len(removals) > 0 and all(isinstance(r, OrientedBoxRegion) for r in removals)
+        self.removal_union = BoxRegionUnion(list(removals)) if boxes_only else None
         self.to(scene.device)
 
     def scene_masked(self, x: torch.Tensor) -> FieldSample:
@@ -134,12 +140,15 @@ class CompositeField(Field):
             # Through evaluate() so that a composite used as a scene reports its full cost.
             s, _, evals = self.scene.evaluate(x)
             return FieldSample(s, torch.zeros_like(evals), evals)
-        # A running min, not a stack: memory stays one value per point however many regions.
-        m, region_evals = None, None
-        for region in self.removals:
-            r = region.evaluate(x)
-            m = r.sdf if m is None else torch.minimum(m, r.sdf.to(m.dtype))
-            region_evals = r.evals if region_evals is None else region_evals + r.evals
+        if self.removal_union is not None:
+            m, region_evals = self.removal_union.evaluate(x)
+        else:
+            # A running min, not a stack: memory stays one value per point however many regions.
+            m, region_evals = None, None
+            for region in self.removals:
+                r = region.evaluate(x)
+                m = r.sdf if m is None else torch.minimum(m, r.sdf.to(m.dtype))
+                region_evals = r.evals if region_evals is None else region_evals + r.evals
         need = None
         if self.config.cull:
             need = (-m <= self.config.cull_pad).nonzero().squeeze(1)
@@ -166,9 +175,10 @@ class CompositeField(Field):
         scene only where it is strictly closer.
         """
         best, winner, evals = self.scene_masked(x)
+        boxes = self.placement_boxes.sdf(x) if self.placement_boxes is not None and self.config.cull else None
         # A loop over the handful of objects; each step is vectorised over all points.
-        for placement, iid in zip(self.placements, self.instance_ids, strict=True):
-            sample = placement.evaluate(x)
+        for k, (placement, iid) in enumerate(zip(self.placements, self.instance_ids, strict=True)):
+            sample = placement.evaluate(x, None if boxes is None else boxes[k])
             v = sample.sdf.to(best.dtype)
             closer = v < best
             best = torch.where(closer, v, best)

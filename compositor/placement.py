@@ -90,14 +90,18 @@ class Placement(torch.nn.Module):
         """(2, 3) float64 outer-frame AABB of the object's box (CPU)."""
         return self.box.aabb()
 
-    def evaluate(self, x: torch.Tensor) -> CulledSample:
-        """Distances (n,) in outer units of points ``x`` (n, 3), culled (see the module)."""
+    def evaluate(self, x: torch.Tensor, box_distance: torch.Tensor | None = None) -> CulledSample:
+        """Distances (n,) in outer units of points ``x`` (n, 3), culled (see the module).
+
+        ``box_distance`` (n,): the signed distance of ``x`` to :attr:`box` when the caller has
+        it already (a composite computes every placement's at once); computed here if None.
+        """
         n = x.shape[0]
         if not self.cull:
             return CulledSample(
                 self.mapped.sdf(x), torch.ones(n, dtype=torch.long, device=x.device)
             )
-        bound = self.box.sdf(x)
+        bound = self.box.sdf(x) if box_distance is None else box_distance
         near = bound <= self.pad
         idx = near.nonzero().squeeze(1)
         if idx.numel() > 0:

@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from regnf.neural_fields.field import Field
-from regnf.neural_fields.oriented_box import ArrayLike, OrientedBox
+from regnf.neural_fields.oriented_box import ArrayLike, OrientedBox, OrientedBoxes
 
 from .placement import Placement
 
@@ -115,6 +115,30 @@ class OrientedBoxRegion(RemovalRegion):
         return RegionSample(
             self.box.sdf(x), torch.zeros(x.shape[0], dtype=torch.long, device=x.device)
         )
+
+
+class BoxRegionUnion(torch.nn.Module):
+    """The union of :class:`OrientedBoxRegion` s, ``M = min_k M_k``, evaluated at once
+    (:class:`~regnf.neural_fields.oriented_box.OrientedBoxes`); the same values as the regions
+    one by one, to float rounding.
+
+    Parameters
+    ----------
+    regions : sequence of OrientedBoxRegion
+        At least one.
+    """
+
+    def __init__(self, regions: list[OrientedBoxRegion]) -> None:
+        super().__init__()
+        self.boxes = OrientedBoxes([r.box for r in regions])
+        # The floor cut as a half-space per region; -inf cuts nothing.
+        floors = [-np.inf if r.keep_floor is None else r.keep_floor + r.floor_margin for r in regions]
+        self.register_buffer("floors", torch.tensor(floors, dtype=torch.float64), persistent=False)
+
+    def evaluate(self, x: torch.Tensor) -> RegionSample:
+        """The union's SDF M (n,) in scene units at ``x`` (n, 3); no field is evaluated."""
+        m = torch.maximum(self.boxes.sdf(x), self.floors.to(x.dtype)[:, None] - x[:, 2])
+        return RegionSample(m.min(dim=0).values, torch.zeros(x.shape[0], dtype=torch.long, device=x.device))
 
 
 class ShellRegion(RemovalRegion):

@@ -249,3 +249,40 @@ class OrientedBox(_OrientedBoxFields):
             np.asarray(data["half_extents"]),
             np.asarray(data["rotation"]),
         )
+
+
+class OrientedBoxes(torch.nn.Module):
+    """Several oriented boxes whose signed distances are evaluated at once.
+
+    A composite asks for the distance to every placed object's box, and to every removal box, at
+    each sphere-tracing step: one matrix product for all of them, instead of a few small kernels
+    per box, halves the interpreter's share of a step, which is what limits two views traced
+    side by side on two threads.
+
+    Parameters
+    ----------
+    boxes : sequence of OrientedBox
+        At least one.
+    """
+
+    def __init__(self, boxes: Sequence[OrientedBox]) -> None:
+        super().__init__()
+        if not boxes:
+            raise ValueError("OrientedBoxes needs at least one box")
+        R = np.stack([b.rotation for b in boxes])  # (k, 3, 3), columns the box axes
+        C = np.stack([b.center for b in boxes])
+        # x R_k - c_k R_k for every k from one product with the (3, 3k) block row [R_0 R_1 ...].
+        self.register_buffer("axes", torch.from_numpy(R.transpose(1, 0, 2).reshape(3, -1).copy()), persistent=False)
+        self.register_buffer("offsets", torch.from_numpy(np.einsum("ki,kij->kj", C, R).reshape(-1)), persistent=False)
+        self.register_buffer("half_extents", torch.from_numpy(np.stack([b.half_extents for b in boxes])),
+                             persistent=False)
+
+    def __len__(self) -> int:
+        return int(self.half_extents.shape[0])
+
+    def sdf(self, x: torch.Tensor) -> torch.Tensor:
+        """Exact signed distances (k, n) of points ``x`` (n, 3) to each box, in ``x``'s dtype."""
+        local = (x @ self.axes.to(x.dtype) - self.offsets.to(x.dtype)).view(x.shape[0], len(self), 3)
+        q = local.abs() - self.half_extents.to(x.dtype)
+        d = torch.linalg.vector_norm(q.clamp(min=0.0), dim=-1) + q.max(dim=-1).values.clamp(max=0.0)
+        return d.T.contiguous()

@@ -9,7 +9,7 @@ from scipy.spatial.transform import Rotation
 
 from regnf.compositor import CompositeConfig, CompositeField
 from regnf.compositor.placement import PlacedObject
-from regnf.compositor.regions import OrientedBoxRegion, ShellRegion
+from regnf.compositor.regions import BoxRegionUnion, OrientedBoxRegion, ShellRegion
 from regnf.neural_fields.analytic import Box, Sphere, Union
 from regnf.neural_fields.field import Field
 from regnf.neural_fields.similarity import similarity_matrix
@@ -255,3 +255,22 @@ def test_meshing_and_plain_sphere_tracing_accept_a_composite() -> None:
     pose[:3, 3] = H.PLACED_CENTER + np.array([0.0, -1.5, 0.0])
     out = render(comp, Camera(K, 16, 16, pose), SphereTracerConfig.plain())  # to_world = I
     assert bool(out.mask[8, 8]) and float(out.depth[8, 8]) == pytest.approx(1.3, abs=1e-3)
+
+
+def test_removal_boxes_at_once_are_the_regions_one_by_one() -> None:
+    rot = Rotation.from_euler("z", 30, degrees=True).as_matrix()
+    regions = [OrientedBoxRegion(H.REGION_CENTER, H.REGION_HALF, H.REGION_ROT, keep_floor=H.FLOOR_Z,
+                                 floor_margin=H.FLOOR_MARGIN),
+               OrientedBoxRegion((0.4, -0.3, 0.2), (0.1, 0.2, 0.3), rot)]  # this one cuts the floor too
+    x = H.tensor(H.random_points(5000, seed=7))
+    union = BoxRegionUnion(regions).evaluate(x)
+    one_by_one = torch.minimum(regions[0].evaluate(x).sdf, regions[1].evaluate(x).sdf)
+    np.testing.assert_allclose(union.sdf.numpy(), one_by_one.numpy(), atol=1e-12)
+    assert bool((union.evals == 0).all())
+    # Both regions matter somewhere, and the floor is spared by the first only.
+    inside = [(r.evaluate(x).sdf < 0).numpy() for r in regions]
+    assert inside[0].sum() > 20 and inside[1].sum() > 20
+    # A composite with box removals uses the union; with another kind of region, the loop.
+    assert make_composite().removal_union is not None
+    scene, shell, _ = _shell_scene()
+    assert CompositeField(scene, removals=[shell]).removal_union is None
