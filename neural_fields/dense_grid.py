@@ -35,6 +35,15 @@ def grid_shape(resolution: int, extent: torch.Tensor) -> tuple[int, int, int]:
     return tuple(max(2, math.ceil(resolution * r)) for r in rel)  # type: ignore[return-value]
 
 
+
+def initial_values(shape: tuple[int, ...], std: float) -> torch.Tensor:
+    """Random normal values of ``std``, or, on the meta device (a skeleton whose values will be
+    loaded, :func:`regnf.neural_fields.checkpoint.load_field`), an empty tensor: drawing there
+    would import torch's compiler stack, a second per process, for values nobody reads."""
+    if torch.empty(0).is_meta:
+        return torch.empty(shape)
+    return torch.randn(shape) * std
+
 class DenseGridEncoding(torch.nn.Module):
     """Concatenated trilinear features from ``levels`` dense grids.
 
@@ -63,7 +72,7 @@ class DenseGridEncoding(torch.nn.Module):
             nx, ny, nz = grid_shape(res, extent)
             # grid_sample indexes a 5-D volume as (N, C, D, H, W) with coordinates (x, y, z)
             # mapping to (W, H, D): store z-major so that x runs along W.
-            self.grids.append(torch.nn.Parameter(torch.randn(1, features, nz, ny, nx) * init_std))
+            self.grids.append(torch.nn.Parameter(initial_values((1, features, nz, ny, nx), init_std)))
 
     @property
     def output_dim(self) -> int:

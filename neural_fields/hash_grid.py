@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import torch
 
-from regnf.neural_fields.dense_grid import grid_shape, level_resolutions
+from regnf.neural_fields.dense_grid import grid_shape, initial_values, level_resolutions
 
 _PRIMES = (1, 2654435761, 805459861)
 _CORNERS = torch.tensor([[(i >> 2) & 1, (i >> 1) & 1, i & 1] for i in range(8)])
@@ -46,7 +46,7 @@ class HashGridEncoding(torch.nn.Module):
         self.tables = torch.nn.ParameterList()
         for shape in self.shapes:
             n = (shape[0] + 1) * (shape[1] + 1) * (shape[2] + 1)
-            self.tables.append(torch.nn.Parameter(torch.randn(min(n, self.table_size), features) * init_std))
+            self.tables.append(torch.nn.Parameter(initial_values((min(n, self.table_size), features), init_std)))
         self.register_buffer("corners", _CORNERS.clone(), persistent=False)
 
     @property

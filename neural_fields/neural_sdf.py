@@ -211,6 +211,8 @@ class NeuralSDF(Field):
         # (features start near zero and their input weights at zero), so early training is
         # already a valid distance field and the eikonal term is satisfied from step 0.
         cfg = self.config
+        if self.sdf_layers[0].weight.is_meta:
+            return  # a skeleton: its weights will be loaded (see dense_grid.initial_values)
         for i, layer in enumerate(self.sdf_layers):
             out_dim, in_dim = layer.weight.shape
             if i == len(self.sdf_layers) - 1:
