@@ -30,7 +30,7 @@ import torch
 from tqdm import tqdm
 
 from regnf.compositor import Camera, look_at, render, render_volume
-from regnf.compositor.baked_composite import bake_for_views
+from regnf.compositor.baked_composite import bake_for_views, baked_tracing
 from regnf.compositor.stage_config import StageCompositeConfig
 from regnf.compositor.substitution import SubstitutedInstance, build_composite
 from regnf.compositor.volume_renderer import VolumeRendererConfig
@@ -156,11 +156,13 @@ def _free_at(field: Field, point: np.ndarray) -> float:
     return float(d[0]) * field.world_scale
 
 
-def _render_both(field: Field, camera: Camera, config: RenderBenchConfig, grid: DistanceGrid,
+def _render_both(field: Field, camera: Camera, config: RenderBenchConfig, grid: DistanceGrid | None,
                  renderer: str):
     t0 = time.perf_counter()
-    if renderer in ("sphere", "baked"):
+    if renderer == "sphere":
         out = render(field, camera, config.sphere, grid=grid)
+    elif renderer == "baked":
+        out = render(field, camera, baked_tracing(config.sphere))
     elif renderer == "sphere-matched":
         coarse = dataclasses.replace(config.sphere, footprint_fraction=config.matched_footprint_fraction)
         out = render(field, camera, coarse, grid=grid)
@@ -197,8 +199,8 @@ def speed_rows(cache: Cache, library: dict[str, Field], config: RenderBenchConfi
                 baked = bake_for_views(neural, cams, config.bake, progress=progress)
                 field = baked.field
                 extra = {"bake_seconds": baked.seconds, "bake_nodes": baked.nodes}
-            grid = DistanceGrid.build(field, resolution=config.sphere.grid_resolution,
-                                      lipschitz=config.sphere.grid_lipschitz)
+            grid = None if renderer == "baked" else DistanceGrid.build(
+                field, resolution=config.sphere.grid_resolution, lipschitz=config.sphere.grid_lipschitz)
             evals, secs, psnrs, vs_neural = [], [], [], []
             for k, cam in enumerate(tqdm(cams, desc=f"render {renderer}", disable=not progress)):
                 gt = rgb_to_uint8(ref.render(cam.camera_to_world, cam.K).rgb)

@@ -14,6 +14,7 @@ for the many composites of one stage that ``regnf generate`` renders.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from collections.abc import Mapping, Sequence
@@ -25,9 +26,9 @@ from regnf.core.threads import map_one_thread_each
 from regnf.neural_fields.baked_field import BakeConfig, BakedField, bake, bake_cell, grid_nodes
 from regnf.neural_fields.camera import Camera
 from regnf.neural_fields.field import Field
+from regnf.neural_fields.sphere_tracer import SphereTracerConfig
 
 from .composite_field import CompositeField
-from .placement import PlacedObject
 
 
 class BakedComposite(NamedTuple):
@@ -56,9 +57,11 @@ class BakedGrids(NamedTuple):
 
 
 def masked_scene(composite: CompositeField) -> CompositeField:
-    """The scene of ``composite`` less its removal regions, with no placed objects."""
-    return CompositeField(composite.scene, [], list(composite.removals), composite.config,
-                          info=composite.scene.info)
+    """The scene of ``composite`` less its removal regions, with no placed objects, evaluated
+    everywhere (no culling): a grid holds the masked scene's distances, not the lower bounds that
+    stand in for them deep inside a removal region (:meth:`CompositeField.scene_masked`)."""
+    return CompositeField(composite.scene, [], list(composite.removals),
+                          dataclasses.replace(composite.config, cull=False), info=composite.scene.info)
 
 
 def placed_to_world(composite: CompositeField) -> list[np.ndarray]:
@@ -121,10 +124,20 @@ def with_grids(composite: CompositeField, scene: BakedField, objects: Sequence[B
     placement, in order) in place of its fields; similarities, instance ids and tints kept."""
     if len(objects) != len(composite.placements):
         raise ValueError(f"{len(objects)} grids for {len(composite.placements)} placed objects")
-    placed = [PlacedObject(g, p.mapped.matrix.cpu().numpy(), iid, tint)
-              for g, p, iid, tint in zip(objects, composite.placements, composite.instance_ids,
-                                         composite.tints, strict=True)]
+    placed = [obj._replace(field=g) for obj, g in zip(composite.placed(), objects, strict=True)]
     return CompositeField(scene, placed, [], composite.config, info=composite.info)
+
+
+def baked_tracing(config: SphereTracerConfig) -> SphereTracerConfig:
+    """The sphere tracer's settings for a baked field: ``config`` without the distance grid.
+
+    The grid skips empty space with one look-up where a network would be evaluated; a baked
+    field's value is a look-up already, and the grid's steps only add to the steps the field's
+    own distances take. Measured on ``regnf generate``'s variants of the demo's stage (8 views
+    of 256 x 192, one thread): 5.08 s a variant with the 32-cell grid, 4.42 s without
+    (docs/generation.md).
+    """
+    return dataclasses.replace(config, grid_resolution=0)
 
 
 def is_baked(field: Field) -> bool:

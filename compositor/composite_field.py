@@ -214,6 +214,12 @@ class CompositeField(Field):
             )
         return out
 
+    def placed(self) -> list[PlacedObject]:
+        """The placed objects as given to the constructor: field, library -> scene similarity,
+        instance id and tint (to build a composite of the same components with another config)."""
+        return [PlacedObject(p.field, p.mapped.matrix.detach().cpu().numpy(), iid, tint)
+                for p, iid, tint in zip(self.placements, self.instance_ids, self.tints, strict=True)]
+
     def scale_of(self, instance_id: int) -> float:
         """The library -> scene scale ``s`` of an instance."""
         return self._placement(instance_id).scale

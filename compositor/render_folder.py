@@ -55,7 +55,7 @@ from regnf.neural_fields.field import Field
 from regnf.neural_fields.shading import check_camera_outside
 from regnf.neural_fields.sphere_tracer import SphereTracerConfig, render
 
-from .baked_composite import bake_for_views
+from .baked_composite import bake_for_views, baked_tracing
 from .contact_sheets import contact_sheet
 from .sequence_io import SEQUENCE_FORMATS, require_mp4, write_sequence
 from .volume_renderer import VolumeRendererConfig, render_volume
@@ -341,6 +341,7 @@ def _render_into(
     if config.renderer == "baked":
         baked = bake_for_views(field, cameras, config.bake, progress=config.progress)
         field, t_bake = baked.field, baked.seconds
+        config = dataclasses.replace(config, sphere=baked_tracing(config.sphere))
     grid = None
     if config.renderer in ("sphere", "baked") and config.sphere.grid_resolution > 0:
         s = config.sphere

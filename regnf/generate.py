@@ -180,6 +180,10 @@ class GenerateConfig:
     def output_settings(self) -> dict[str, Any]:
         """Every setting that changes what a variant's files hold (not how or where it runs)."""
         render = dataclasses.replace(self.render, progress=False, overwrite=False)
+        if render.renderer == "baked":  # the tracer's settings as the baked renderer uses them
+            from regnf.compositor.baked_composite import baked_tracing
+
+            render = dataclasses.replace(render, sphere=baked_tracing(render.sphere))
         return {
             "cameras": dataclasses.asdict(self.cameras),
             "jitter_cameras": self.jitter_cameras,

@@ -49,9 +49,7 @@ def test_removals_go_into_the_scene_grid_and_each_library_field_is_baked_once() 
     # the composite evaluated everywhere: culled, it is exact only within cull_pad (0.02) of a
     # surface, and this band is wider.
     x = torch.as_tensor(H.random_points(20000, seed=3), dtype=torch.float32)
-    unculled = CompositeField(comp.scene, [PlacedObject(p.field, p.mapped.matrix.numpy(), i, t) for p, i, t in
-                                           zip(comp.placements, comp.instance_ids, comp.tints, strict=True)],
-                              list(comp.removals), CompositeConfig(cull=False))
+    unculled = CompositeField(comp.scene, comp.placed(), list(comp.removals), CompositeConfig(cull=False))
     exact, approx = unculled.evaluate(x), baked.evaluate(x)
     near = exact.sdf.abs() < 0.05
     cell = float(baked.scene.info.provenance["baked"]["cell"])
