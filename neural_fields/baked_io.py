@@ -20,7 +20,7 @@ from safetensors import SafetensorError, safe_open
 from safetensors.torch import save as save_to_bytes
 
 from regnf.core.atomic_io import write_bytes
-from regnf.neural_fields.baked_field import BakedField
+from regnf.neural_fields.baked_field import RGB_STORAGE, BakedField
 from regnf.neural_fields.field import FieldInfo, Symmetry
 
 HEADER_KEY = "regnf-baked"
@@ -55,7 +55,7 @@ def save_baked(field: BakedField, path: str | os.PathLike) -> Path:
         "provenance": field.info.provenance,
     }
     tensors = {"sdf": field.sdf_grid[0, 0].detach().cpu().contiguous(),
-               "rgb": field.rgb_grid[0].detach().cpu().contiguous()}
+               "rgb": field.rgb_grid[0].detach().cpu().to(RGB_STORAGE).contiguous()}  # exact: kept so
     # Serialised in memory and written by atomic_io (a kill leaves no half file under the name).
     write_bytes(path, save_to_bytes(tensors, metadata={HEADER_KEY: json.dumps(header)}))
     return path

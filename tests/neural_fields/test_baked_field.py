@@ -79,7 +79,8 @@ def test_colour_at_the_surface_is_the_sources(baked: BakedField) -> None:
     red = np.array([-0.3, 0.0, 0.0]) + 0.4 * u
     red = red[red[:, 0] < -0.05]  # away from the other sphere
     c = baked.color(torch.as_tensor(red, dtype=torch.float32)).numpy()
-    np.testing.assert_allclose(c, np.broadcast_to(RED, c.shape), atol=1e-5)
+    # Kept to half precision: at most 2.4e-4 off in [0, 1] (RGB_STORAGE).
+    np.testing.assert_allclose(c, np.broadcast_to(RED, c.shape), atol=2.5e-4)
 
 
 def test_bake_cell_follows_the_pixel_footprint_and_the_node_cap() -> None:
