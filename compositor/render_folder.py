@@ -53,7 +53,7 @@ from regnf.neural_fields.camera import Camera
 from regnf.neural_fields.distance_grid import DistanceGrid
 from regnf.neural_fields.field import Field
 from regnf.neural_fields.shading import check_camera_outside
-from regnf.neural_fields.sphere_tracer import SphereTracerConfig, render
+from regnf.neural_fields.sphere_tracer import SphereTracerConfig, render_many
 
 from .baked_composite import bake_for_views, baked_tracing
 from .contact_sheets import contact_sheet
@@ -80,6 +80,9 @@ whole in memory (colour, depth, normals, instance ids, per-pixel counters: about
 pixel, 1 GB at this size, before the renderer's own working memory), so a larger size fails
 only after minutes of work, or takes the machine's memory; it is refused before anything is
 rendered."""
+TRACE_PIXELS = 1 << 20
+"""Most pixels of views traced together (:attr:`RenderConfig.views_per_trace`): 21 views of
+256 x 192; a view of more is traced alone. Bounds the working memory a batch adds."""
 
 
 @dataclass(frozen=True)
@@ -113,8 +116,16 @@ class RenderConfig:
     """Render into a folder that already holds a render (its old view files are replaced)."""
     progress: bool = True
     """Show a progress bar."""
+    views_per_trace: int = 3
+    """Views the sphere tracer traces together, their rays in one wavefront
+    (:func:`regnf.neural_fields.sphere_tracer.render_many`: the slow rays at the end of a trace
+    are traced once a batch, not once a view), at most :data:`TRACE_PIXELS` pixels a batch
+    unless a view alone is larger. The batches are consecutive views, set by this and the
+    views' sizes, not by ``workers``, so the images are the same on any machine. 3: the demo's
+    6 views make one batch for each of two cores; ``regnf generate`` traces a variant's views
+    in one batch (its workers are processes of one thread each)."""
     workers: int | None = None
-    """Views rendered side by side, each on one CPU thread (None: one per usable core, at most
+    """Batches of views (``views_per_trace``) rendered side by side, each on one CPU thread (None: one per usable core, at most
     ``torch.get_num_threads()``; :func:`regnf.core.threads.map_one_thread_each`). The images are
     the same on any count (a lone view, too, renders on one thread); a view's ``seconds`` in
     ``render.json`` is its own wall time, so with two workers it is that of a view sharing the
@@ -123,6 +134,8 @@ class RenderConfig:
     def __post_init__(self) -> None:
         if self.workers is not None and self.workers < 1:
             raise ValueError(f"workers must be >= 1, got {self.workers}")
+        if self.views_per_trace < 1:
+            raise ValueError(f"views_per_trace must be >= 1, got {self.views_per_trace}")
         if self.renderer not in RENDERERS:
             raise ValueError(f"renderer must be one of {RENDERERS}, got {self.renderer!r}")
         if self.sequence not in SEQUENCE_FORMATS:
@@ -232,11 +245,28 @@ def check_sequence(cameras: Sequence[Camera], config: RenderConfig) -> None:
         require_mp4()
 
 
-def render_one(field: Field, camera: Camera, config: RenderConfig, grid: DistanceGrid | None) -> Render:
-    """One view with the configured renderer (``grid`` for the sphere tracer)."""
+def view_batches(cameras: Sequence[Camera], views_per_trace: int) -> list[list[int]]:
+    """The views traced together (:attr:`RenderConfig.views_per_trace`): consecutive camera
+    indices, at most ``views_per_trace`` and :data:`TRACE_PIXELS` pixels a batch (a larger view alone)."""
+    batches: list[list[int]] = []
+    pixels = 0
+    for k, cam in enumerate(cameras):
+        size = cam.width * cam.height
+        if batches and len(batches[-1]) < views_per_trace and pixels + size <= TRACE_PIXELS:
+            batches[-1].append(k)
+            pixels += size
+        else:
+            batches.append([k])
+            pixels = size
+    return batches
+
+
+def render_batch(field: Field, cameras: Sequence[Camera], config: RenderConfig,
+                 grid: DistanceGrid | None) -> list[Render]:
+    """Views with the configured renderer: the sphere tracer's in one wavefront (``grid`` for it)."""
     if config.renderer == "volume":
-        return render_volume(field, camera, config.volume)
-    return render(field, camera, config.sphere, grid)
+        return [render_volume(field, camera, config.volume) for camera in cameras]
+    return render_many(field, cameras, config.sphere, grid)
 
 
 def render_views(
@@ -351,18 +381,23 @@ def _render_into(
     total_evals, total_pixels = 0, 0
     bar = tqdm(total=len(cameras), desc=f"render {len(cameras)} views", unit="view", disable=not config.progress)
 
-    def timed(cam: Camera) -> tuple[Render, float]:
+    def timed(batch: list[int]) -> list[tuple[Render, float]]:
         t0 = time.perf_counter()
-        return render_one(field, cam, config, grid), time.perf_counter() - t0
+        renders = render_batch(field, [cameras[k] for k in batch], config, grid)
+        took = (time.perf_counter() - t0) / len(batch)  # the batch's time, shared by its views
+        return [(r, took) for r in renders]
 
-    # Views side by side, one CPU thread each (each view is vectorised over its pixels; the
-    # 3-D grid look-ups run on one thread whatever torch's setting, so one view on two threads
-    # leaves a core idle much of the time); as many at a time as there are workers, each
-    # written before the next ones start, so that memory holds that many views, not all.
+    # Batches of views side by side, one CPU thread each (each batch is vectorised over its
+    # pixels; the 3-D grid look-ups run on one thread whatever torch's setting, so one batch
+    # on two threads leaves a core idle much of the time); as many at a time as there are
+    # workers, each written before the next ones start, so that memory holds that many, not all.
+    batches = view_batches(cameras, config.views_per_trace)
     chunk = worker_count(config.workers)
-    rendered = (view for start in range(0, len(cameras), chunk)
-                for view in map_one_thread_each(timed, cameras[start:start + chunk], chunk, bar.update))
+    rendered = (view for start in range(0, len(batches), chunk)
+                for batch in map_one_thread_each(timed, batches[start:start + chunk], chunk)
+                for view in batch)
     for k, (cam, (r, took)) in enumerate(zip(cameras, rendered)):
+        bar.update(1)
         t_write = time.perf_counter()
         names = view_files(k)
         rgb8 = rgb_to_uint8(r.rgb)

@@ -50,7 +50,7 @@ from regnf.core.cameras import ray_aabb
 from regnf.core.render_result import Render
 from regnf.neural_fields.camera import Camera, CameraRays, camera_rays
 from regnf.neural_fields.distance_grid import DistanceGrid
-from regnf.neural_fields.field import DEFAULT_CHUNK, Field, FieldSample
+from regnf.neural_fields.field import Field, FieldSample
 from regnf.neural_fields.shading import check_camera_outside, shade_hits
 
 Rays = TypeVar("Rays", bound=tuple)
@@ -58,6 +58,12 @@ Rays = TypeVar("Rays", bound=tuple)
 BACKGROUND_ID = -1
 """Instance id (winner) of a ray or pixel that hit nothing."""
 
+WAVEFRONT = 32768
+"""Rays marching at once by default. Smaller batches pay the loop's fixed cost more often,
+larger ones miss the caches. One thread, 8 views of 256 x 192 of a variant of the demo's
+baked composite traced together: 4.45, 4.05, 3.94 and 4.15 s with 8192, 16384, 32768 and
+65536 (4.25 s one view at a time); 4 views of the neural composite: 6.71, 6.35 and 6.42 s with
+16384, 32768 and 65536 (6.74 s one at a time)."""
 REFINE_METHODS = ("illinois", "bisection")
 """Root refinements of a bracketed crossing."""
 ADAPTIVE_MARGIN = 0.95
@@ -106,8 +112,9 @@ class SphereTracerConfig:
     """METRES from the camera beyond which :func:`render` ignores surfaces."""
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     """RGB of pixels that hit nothing."""
-    chunk: int = DEFAULT_CHUNK
-    """Rays traced (and shaded) per batch, to bound memory."""
+    chunk: int = WAVEFRONT
+    """Rays marching at once (a ray that stops makes room for the next waiting one; see
+    :func:`trace`), and points shaded per batch: bounds the working memory."""
     check_camera: bool = True
     """:func:`render` refuses a camera whose centre is inside matter."""
 
@@ -219,7 +226,7 @@ def trace(
     dirs: torch.Tensor,
     config: SphereTracerConfig = SphereTracerConfig(),
     grid: DistanceGrid | None = None,
-    pixel_angle: float = 0.0,
+    pixel_angle: float | torch.Tensor = 0.0,
 ) -> TraceHits:
     """Intersect rays with the zero level set of ``field`` (see the module).
 
@@ -239,8 +246,9 @@ def trace(
     grid : DistanceGrid, optional
         Built from ``field``; built here (once per call) if None and
         ``config.grid_resolution > 0``. Pass one to amortise it over many calls.
-    pixel_angle : float
-        Radians per pixel, for the footprint-relative tolerance; 0 disables it.
+    pixel_angle : float or (n,) float
+        Radians per pixel (per ray: rays of several cameras), for the footprint-relative
+        tolerance; 0 disables it.
 
     Returns
     -------
@@ -254,17 +262,14 @@ def trace(
             field, config.grid_resolution, config.grid_lipschitz, config.chunk
         )
     dev = field.device
-
-    def empty() -> TraceHits:
-        z = torch.zeros(0, device=dev)
-        zl = z.long()
-        return TraceHits(z.bool(), z, torch.zeros(0, 3, device=dev), zl, zl, zl)
-
-    return by_chunks(origins, dirs, config.chunk, dev,
-                     lambda o, d: _trace_chunk(field, o, d, near, far, config, grid, pixel_angle), empty)
+    o, d = origins.to(dev), dirs.to(dev)
+    angle = torch.as_tensor(pixel_angle, dtype=o.dtype, device=dev)
+    if angle.ndim > 1 or (angle.ndim == 1 and angle.shape[0] != o.shape[0]):
+        raise ValueError(f"pixel_angle must be a float or ({o.shape[0]},), got shape {tuple(angle.shape)}")
+    return _trace_wavefront(field, o, d, near, far, config, grid, angle.expand(o.shape[0]))
 
 
-def _trace_chunk(
+def _trace_wavefront(
     field: Field,
     o: torch.Tensor,
     d: torch.Tensor,
@@ -272,18 +277,19 @@ def _trace_chunk(
     far: float,
     cfg: SphereTracerConfig,
     grid: DistanceGrid | None,
-    pixel_angle: float,
+    pixel_angle: torch.Tensor,
 ) -> TraceHits:
+    """Trace every ray of ``o``, ``d`` (n, 3) with at most ``cfg.chunk`` of them marching at once."""
     n, dev = o.shape[0], o.device
     lo = field.bounds[0].to(o.dtype) - cfg.bounds_pad
     hi = field.bounds[1].to(o.dtype) + cfg.bounds_pad
     t_in, t_out = ray_aabb(o, d, lo, hi)
     t_start = t_in.clamp(min=near)
     t_stop = t_out.clamp(max=far)
-    fp = cfg.footprint_fraction * pixel_angle
+    fp = cfg.footprint_fraction * pixel_angle  # (n,): tolerance per unit of t
 
-    def tol_at(tt: torch.Tensor) -> torch.Tensor:
-        return (fp * tt).clamp(min=cfg.tol)
+    def tol_at(tt: torch.Tensor, rays: torch.Tensor) -> torch.Tensor:
+        return (fp[rays] * tt).clamp(min=cfg.tol)
 
     # Per ray, written once when the ray stops marching.
     t = t_start.clone()
@@ -296,23 +302,38 @@ def _trace_chunk(
     skip_min = cfg.grid_skip_cells * float(grid.cell.min()) if grid is not None else math.inf
 
     # The marching rays' state, compacted (column k is ray ids[k]; rows of one dtype stacked, so
-    # that dropping the stopped rays is three selections, not one per quantity):
-    ids = (t_start <= t_stop).nonzero().squeeze(1)
-    m = ids.numel()
-    F = torch.empty(_F_ROWS, m, dtype=t.dtype, device=dev)
-    F[_O] = o[ids].T
-    F[_D] = d[ids].T
-    F[_T], F[_TE], F[_TP] = t_start[ids], t_stop[ids], t_start[ids]
-    F[_RP] = 0.0
-    F[_SLOPE] = math.nan  # -d(sdf)/dt between the last two evaluations
-    F[_CAP] = cfg.omega  # relaxation cap; shrinks after each failed step
+    # that dropping the stopped rays is three selections, not one per quantity). A wavefront:
+    # the rays march cfg.chunk at a time, and each ray that stops makes room for the next
+    # waiting one. The field is then evaluated in batches of about that size until the queue
+    # is empty, and the long tail of slow rays (grazing an outline), whose steps cost the
+    # loop's fixed overhead for a few points each, is paid once per call, not once per chunk.
+    queue = (t_start <= t_stop).nonzero().squeeze(1)
+    admitted = 0
+    ids = queue[:0]
+    F = torch.empty(_F_ROWS, 0, dtype=t.dtype, device=dev)
     # SAFE: the ray has a known free sphere (TP, RP); FROM_EVAL: that sphere comes from an
     # evaluation, not the grid; RELAXED: the last step was longer than the safe radius.
-    B = torch.zeros(3, m, dtype=torch.bool, device=dev)
-    L = torch.zeros(3, m, dtype=torch.long, device=dev)  # evaluations, look-ups, winner
-    L[_WIN] = -1
+    B = torch.zeros(3, 0, dtype=torch.bool, device=dev)
+    L = torch.zeros(_L_ROWS, 0, dtype=torch.long, device=dev)  # evaluations, look-ups, winner, steps
 
-    for _ in range(cfg.max_steps):
+    while True:
+        room = min(cfg.chunk - ids.numel(), queue.numel() - admitted)
+        if room > 0:
+            new = queue[admitted:admitted + room]
+            admitted += room
+            Fn = torch.empty(_F_ROWS, room, dtype=t.dtype, device=dev)
+            Fn[_O] = o[new].T
+            Fn[_D] = d[new].T
+            Fn[_T], Fn[_TE], Fn[_TP] = t_start[new], t_stop[new], t_start[new]
+            Fn[_RP] = 0.0
+            Fn[_SLOPE] = math.nan  # -d(sdf)/dt between the last two evaluations
+            Fn[_CAP] = cfg.omega  # relaxation cap; shrinks after each failed step
+            Fn[_FP] = fp[new]
+            Ln = torch.zeros(_L_ROWS, room, dtype=torch.long, device=dev)
+            Ln[_WIN] = -1
+            ids, F = torch.cat((ids, new)), torch.cat((F, Fn), 1)
+            B = torch.cat((B, torch.zeros(3, room, dtype=torch.bool, device=dev)), 1)
+            L = torch.cat((L, Ln), 1)
         if ids.numel() == 0:
             break
         T, TE, TP, RP, SLOPE, CAP = F[_T], F[_TE], F[_TP], F[_RP], F[_SLOPE], F[_CAP]
@@ -347,7 +368,7 @@ def _trace_chunk(
         if cfg.bracket_on_sign_change:
             fail &= r >= 0  # a sign change is a bracket: refine it rather than go back
         ok = evaluated & ~fail
-        close = ok & (r.abs() < tol_at(T))  # within tolerance on either side
+        close = ok & (r.abs() < (F[_FP] * T).clamp(min=cfg.tol))  # within tolerance on either side
         neg = ok & (r < 0) & ~close
         crossed = neg & SAFE
         stops_on_hit = close | (neg & ~SAFE)
@@ -392,15 +413,16 @@ def _trace_chunk(
             goes_on |= skip & (t_new <= TE)
         F[_T] = t_new
 
-        stops = ~goes_on
+        L[_STEPS] += 1
+        # Out of steps: a miss (``hit`` and ``bracketed`` are False for a ray that goes on).
+        stops = ~goes_on | (L[_STEPS] >= cfg.max_steps)
         if bool(stops.any()):
             si = ids[stops]
             t[si], hit[si], bracketed[si] = t_new[stops], stops_on_hit[stops], crossed[stops]
             t_prev[si], r_prev[si], s_neg[si] = F[_TP, stops], F[_RP, stops], r[stops]
             evals[si], lookups[si], winner[si] = L[_EV, stops], L[_LK, stops], L[_WIN, stops]
-            ids, F, B, L = ids[goes_on], F[:, goes_on], B[:, goes_on], L[:, goes_on]
-    # Out of steps: a miss, with its counts.
-    evals[ids], lookups[ids], winner[ids] = L[_EV], L[_LK], L[_WIN]
+            keep = ~stops
+            ids, F, B, L = ids[keep], F[:, keep], B[:, keep], L[:, keep]
 
     bi = bracketed.nonzero().squeeze(1)
     if bi.numel() > 0:
@@ -416,12 +438,14 @@ def _trace_chunk(
 
 
 _O, _D = slice(0, 3), slice(3, 6)
-_T, _TE, _TP, _RP, _SLOPE, _CAP = 6, 7, 8, 9, 10, 11
-_F_ROWS = 12
+_T, _TE, _TP, _RP, _SLOPE, _CAP, _FP = 6, 7, 8, 9, 10, 11, 12
+_F_ROWS = 13
 """Rows of the marching rays' float state: origin, direction (3 each), t, exit t, the last
-safe point's t and radius, the SDF's slope along the ray, the relaxation cap."""
-_EV, _LK, _WIN = 0, 1, 2
-"""Rows of their integer state: field evaluations, grid look-ups, winning component."""
+safe point's t and radius, the SDF's slope along the ray, the relaxation cap, the hit
+tolerance per unit of t (the pixel's footprint fraction)."""
+_EV, _LK, _WIN, _STEPS = 0, 1, 2, 3
+_L_ROWS = 4
+"""Rows of their integer state: field evaluations, grid look-ups, winning component, steps."""
 
 
 def _relaxation(cap: torch.Tensor, slope: torch.Tensor, cfg: SphereTracerConfig) -> torch.Tensor:
@@ -479,7 +503,7 @@ def _refine(
         r = s.sdf.to(a.dtype)
         evals[rays] += s.evals
         winner[rays] = s.winner
-        tol = tol_at(m)
+        tol = tol_at(m, rays)
         done = (r.abs() < tol) | (bb - aa < tol)
         root[act[done]] = m[done]
         outside = ~done & (r > 0)
@@ -526,18 +550,52 @@ def render(
         ``evals_per_pixel`` counts tracing only (shading adds one SDF gradient and one
         colour query per hit pixel).
     """
-    rays = camera_rays(field, camera)
+    return render_many(field, [camera], config, grid)[0]
+
+
+@torch.no_grad()
+def render_many(
+    field: Field,
+    cameras: Sequence[Camera],
+    config: SphereTracerConfig = SphereTracerConfig(),
+    grid: DistanceGrid | None = None,
+) -> list[Render]:
+    """Sphere-trace several views of ``field`` in one wavefront: :func:`render` of each camera.
+
+    The rays of every view march together (``config.chunk`` at a time), so the slow rays at
+    the end of a trace, few points a step, are traced once for all views instead of once a
+    view: on one thread, 8 views of the demo's baked composite in 3.9 s instead of 4.3 s.
+    A ray's trace is its own, so the images are those of :func:`render` up to the last bits
+    of a network's batched evaluation (exactly the same on a baked field).
+
+    Parameters
+    ----------
+    field : Field
+    cameras : sequence of Camera
+        Each with its own size and intrinsics.
+    config : SphereTracerConfig
+    grid : DistanceGrid, optional
+        Prebuilt for ``field``; see :func:`trace`.
+
+    Returns
+    -------
+    list of Render
+        One per camera, in order.
+    """
+    rays = [camera_rays(field, camera) for camera in cameras]
     if config.check_camera:
-        check_camera_outside(field, rays.origin)
-    hits = trace(
-        field,
-        rays.origins,
-        rays.dirs,
-        config,
-        grid,
-        rays.pixel_angle,
-    )
-    return _to_render(field, camera, rays, hits, config.background, config.chunk)
+        for r in rays:
+            check_camera_outside(field, r.origin)
+    angles = torch.cat([torch.full_like(r.z_scale, r.pixel_angle) for r in rays])
+    hits = trace(field, torch.cat([r.origins for r in rays]), torch.cat([r.dirs for r in rays]), config,
+                 grid, angles)
+    renders, start = [], 0
+    for camera, r in zip(cameras, rays, strict=True):
+        end = start + r.z_scale.shape[0]
+        view = TraceHits(*(x[start:end] for x in hits))
+        renders.append(_to_render(field, camera, r, view, config.background, config.chunk))
+        start = end
+    return renders
 
 
 def _to_render(

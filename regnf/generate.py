@@ -147,9 +147,10 @@ class GenerateConfig:
     different places."""
     composite: StageCompositeConfig = field(default_factory=StageCompositeConfig)
     """Removal settings of the substituted instances (the mode is always substitute)."""
-    render: RenderConfig = field(default_factory=lambda: RenderConfig(progress=False))
+    render: RenderConfig = field(default_factory=lambda: RenderConfig(progress=False, views_per_trace=16))
     """Renderer settings (the progress bar per variant is off: the run shows one over variants).
-    ``baked`` bakes the fields once for the whole data set (see the module)."""
+    ``baked`` bakes the fields once for the whole data set (see the module). A variant's views
+    are traced together, up to 16 (a worker is one thread: nothing runs beside a batch)."""
     executor: ExecutorConfig = field(default_factory=ExecutorConfig)
     """Where the variants run."""
     retry_failed: bool = True

@@ -232,7 +232,7 @@ KILLED_RENDER = textwrap.dedent('''
 
     if __name__ == "__main__":
         out, ready = Path(sys.argv[1]), Path(sys.argv[2])
-        real, calls = RV.render_one, []
+        real, calls = RV.render_batch, []
 
         def hanging(*args, **kwargs):
             calls.append(1)
@@ -241,10 +241,10 @@ KILLED_RENDER = textwrap.dedent('''
                 time.sleep(600)
             return real(*args, **kwargs)
 
-        RV.render_one = hanging
+        RV.render_batch = hanging
         cameras = orbit_around_bounds(np.array(BOUNDS), OrbitConfig(**ORBIT))
         RV.render_views(G.composite("own", StageCompositeConfig(mode="scene")), cameras, out,
-                        RV.RenderConfig(progress=False))
+                        RV.RenderConfig(progress=False, views_per_trace=1))
 ''')
 RENDER_BOUNDS = [[-1.6, -1.4, 0.0], [1.6, 1.4, 1.2]]
 """Bounds of the golden scene the render tests orbit."""

@@ -66,7 +66,7 @@ def test_a_failure_midway_leaves_the_folder_as_it_was(tmp_path: Path, monkeypatc
     out = tmp_path / "out"
     render_views(field, cameras(3), out, QUIET)
     before = {p.name: p.read_bytes() for p in out.iterdir()}
-    real = RV.render_one
+    real = RV.render_batch
     calls = []
 
     def failing(*args, **kwargs):
@@ -75,10 +75,10 @@ def test_a_failure_midway_leaves_the_folder_as_it_was(tmp_path: Path, monkeypatc
             raise ValueError("field returned a non-finite SDF")
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(RV, "render_one", failing)
+    monkeypatch.setattr(RV, "render_batch", failing)
     with pytest.raises(ValueError, match="non-finite"):
         render_views(G.composite("other", StageCompositeConfig()), cameras(3), out,
-                     RenderConfig(progress=False, overwrite=True))
+                     RenderConfig(progress=False, overwrite=True, views_per_trace=1))
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before  # no staging folder, no new image
 
 
@@ -181,14 +181,39 @@ def test_a_view_larger_than_the_limit_is_refused_before_rendering(tmp_path: Path
     assert not (tmp_path / "out").exists()
 
 
-def test_views_side_by_side_are_the_images_of_one_after_another(tmp_path: Path) -> None:
+@pytest.mark.parametrize("views_per_trace", [1, 2])
+def test_views_side_by_side_are_the_images_of_one_after_another(tmp_path: Path, views_per_trace: int) -> None:
     field = G.composite("own", StageCompositeConfig())
     cams = cameras(3)
     for workers in (1, 2):
-        render_views(field, cams, tmp_path / str(workers), RenderConfig(progress=False, workers=workers))
+        render_views(field, cams, tmp_path / str(workers),
+                     RenderConfig(progress=False, workers=workers, views_per_trace=views_per_trace))
     for k in range(3):
         for kind in ("rgb", "depth", "instance"):
             one = (tmp_path / "1" / f"{kind}_{k:04d}.png").read_bytes()
             assert one == (tmp_path / "2" / f"{kind}_{k:04d}.png").read_bytes(), (kind, k)
     with pytest.raises(ValueError, match="workers"):
         RenderConfig(workers=0)
+
+
+def test_views_traced_together_are_the_views_traced_alone(tmp_path: Path) -> None:
+    # An analytic composite: a ray's trace is its own, so batching changes no bit.
+    field = G.composite("own", StageCompositeConfig())
+    cams = [*cameras(2), *cameras(2, width=30, height=20)]
+    for per in (1, 4):
+        render_views(field, cams, tmp_path / str(per), RenderConfig(progress=False, views_per_trace=per))
+    for k in range(4):
+        for kind in ("rgb", "depth", "instance"):
+            one = (tmp_path / "1" / f"{kind}_{k:04d}.png").read_bytes()
+            assert one == (tmp_path / "4" / f"{kind}_{k:04d}.png").read_bytes(), (kind, k)
+    with pytest.raises(ValueError, match="views_per_trace"):
+        RenderConfig(views_per_trace=0)
+
+
+def test_view_batches_are_consecutive_and_bounded() -> None:
+    small, big = cameras(1)[0], Camera.from_fov(1024, 1024, 60.0, cameras(1)[0].camera_to_world)
+    assert RV.view_batches([small] * 7, 3) == [[0, 1, 2], [3, 4, 5], [6]]
+    assert RV.view_batches([small] * 2, 1) == [[0], [1]]
+    assert RV.TRACE_PIXELS == 1024 * 1024  # so that a 1024 x 1024 view fills a batch alone
+    assert RV.view_batches([small, big, small, small], 3) == [[0], [1], [2, 3]]
+    assert RV.view_batches([], 3) == []

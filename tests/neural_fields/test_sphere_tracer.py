@@ -15,7 +15,7 @@ from regnf.core.cameras import pinhole_rays
 from regnf.neural_fields.analytic import Box, Sphere
 from regnf.neural_fields.camera import Camera
 from regnf.neural_fields.field import Field
-from regnf.neural_fields.sphere_tracer import SphereTracerConfig, TraceHits, render, trace
+from regnf.neural_fields.sphere_tracer import SphereTracerConfig, TraceHits, render, render_many, trace
 from regnf.registration.sampling import SAMPLING_TRACE
 
 CPU = torch.device("cpu")
@@ -182,12 +182,42 @@ def test_steps_zero_outside_bounds_and_near_far() -> None:
     assert empty.hit.shape == (0,) and empty.points.shape == (0, 3)
 
 
-def test_chunked_trace_equals_unchunked() -> None:
-    field = Sphere(0.5)
-    o, d, _, tr = _trace_camera(field, np.array([0.0, -2.0, 0.0]), np.zeros(3), n=32)
-    tr_small = trace(field, o, d, dataclasses.replace(SAMPLING_TRACE, chunk=100))
-    assert torch.equal(tr.hit, tr_small.hit) and torch.equal(tr.evals, tr_small.evals)
-    assert torch.allclose(tr.t[tr.hit], tr_small.t[tr.hit])
+@pytest.mark.parametrize("config", CONFIGS.values(), ids=CONFIGS.keys())
+@pytest.mark.parametrize("max_steps", [256, 7])
+def test_wavefront_trace_equals_one_batch(config: SphereTracerConfig, max_steps: int) -> None:
+    # A ray's trace is its own: 100 rays marching at once, the next admitted as each stops,
+    # give the bits of all 1024 at once; with 7 steps a ray, rays admitted late get 7 too.
+    field = Box((0.4, 0.3, 0.5), (0.0, 0.1, 0.0))
+    o, d, _ = pinhole_rays(intrinsics(30.0, 32, 32), look_at(np.array([0.3, -2.0, 0.8]), np.zeros(3)), 32, 32,
+                           device=CPU)
+    cfg = dataclasses.replace(config, max_steps=max_steps, footprint_fraction=0.05)
+    whole = trace(field, o, d, dataclasses.replace(cfg, chunk=o.shape[0]), pixel_angle=1 / 30)
+    small = trace(field, o, d, dataclasses.replace(cfg, chunk=100), pixel_angle=1 / 30)
+    for a, b in zip(whole, small, strict=True):
+        assert torch.equal(a, b)
+    assert 100 < int(whole.hit.sum()) < o.shape[0]
+    assert int(whole.evals.max()) <= max_steps + cfg.max_refine
+    if max_steps == 7:  # some rays ran out of steps: misses, not hits
+        assert int(whole.hit.sum()) < int(trace(field, o, d, config, pixel_angle=1 / 30).hit.sum())
+
+
+def test_render_many_is_render_of_each_camera() -> None:
+    # Two cameras of other sizes and focal lengths: each ray keeps its own pixel's footprint
+    # tolerance (5 % of 1/20 and of 1/90 rad a unit of t, far above the absolute 1e-5).
+    field = Sphere(0.5, (0.0, 0.0, 0.0), color=(0.9, 0.4, 0.2))
+    cams = [Camera(intrinsics(20.0, 24, 16), 24, 16, look_at(np.array([0.0, -2.5, 0.3]), np.zeros(3))),
+            Camera(intrinsics(90.0, 40, 30), 40, 30, look_at(np.array([1.8, 1.2, 0.9]), np.zeros(3)))]
+    cfg = SphereTracerConfig(footprint_fraction=0.05, chunk=300)
+    many = render_many(field, cams, cfg)
+    assert len(many) == 2
+    for cam, got in zip(cams, many, strict=True):
+        alone = render(field, cam, cfg)
+        assert got.rgb.shape == (cam.height, cam.width, 3)
+        for a, b in zip(alone, got, strict=True):
+            assert torch.equal(a, b)
+    with pytest.raises(ValueError, match="pixel_angle"):
+        trace(field, torch.zeros(4, 3) - 2.0, torch.tensor([[0.0, 0.0, 1.0]] * 4), cfg,
+              pixel_angle=torch.ones(3))
 
 
 def test_render_depth_is_z_depth() -> None:
