@@ -540,16 +540,6 @@ class _Batch:
         self.kernel = AdaptiveRobustLoss(
             K, alpha_lo=cfg.alpha_lo, alpha_hi=cfg.alpha_hi, scale_init=cfg.kernel_scale_init
         ).to(dev)
-        groups = [
-            {"params": [self.w], "lr": cfg.lr_rotation},
-            {"params": [self.tau], "lr": cfg.lr_translation},
-            {"params": list(self.kernel.parameters()), "lr": cfg.lr_kernel},
-        ]
-        if not cfg.fix_scale:
-            groups.append({"params": [self.log_s], "lr": cfg.lr_scale})
-        if cfg.level_set_offset:
-            groups.append({"params": [self.delta], "lr": cfg.lr_offset})
-        self.opt = torch.optim.Adam(groups)
         # One generator per hypothesis, all with the same seed: a hypothesis draws the same
         # jitter whether it is refined alone or in a batch.
         self.gens = [torch.Generator().manual_seed(int(cfg.seed)) for _ in range(K)]
@@ -1097,9 +1087,29 @@ def refine_many(
     ]
 
 
+def _adam(batch: _Batch) -> torch.optim.Adam:
+    """Adam over the batch's pose, offset and kernel parameters, at the configured rates.
+
+    Made only when Adam refines: torch's optimisers import its compiler (torch._dynamo) on
+    first use, 1.4 s of the first registration in a process otherwise.
+    """
+    cfg = batch.cfg
+    groups = [
+        {"params": [batch.w], "lr": cfg.lr_rotation},
+        {"params": [batch.tau], "lr": cfg.lr_translation},
+        {"params": list(batch.kernel.parameters()), "lr": cfg.lr_kernel},
+    ]
+    if not cfg.fix_scale:
+        groups.append({"params": [batch.log_s], "lr": cfg.lr_scale})
+    if cfg.level_set_offset:
+        groups.append({"params": [batch.delta], "lr": cfg.lr_offset})
+    return torch.optim.Adam(groups)
+
+
 def _run_adam(batch: _Batch, histories: list[list[dict]], steps: list[int]) -> None:
     """The paper's refinement: Adam on the pose, the offset and the kernel together."""
     cfg = batch.cfg
+    opt = _adam(batch)
     previous = batch.pose_snapshot()
     for it in range(cfg.max_iterations):
         if not batch.active:
@@ -1108,7 +1118,7 @@ def _run_adam(batch: _Batch, histories: list[list[dict]], steps: list[int]) -> N
             batch.resample()
         loss, stats = batch.evaluate()
         _check_finite(loss.detach(), f"the refinement loss (iteration {it})")
-        batch.opt.zero_grad(set_to_none=True)
+        opt.zero_grad(set_to_none=True)
         loss.sum().backward()
         _record(batch, histories, it, loss.detach(), stats)
         # Early stop on the transform just evaluated: it is the one returned, no step after.
@@ -1120,7 +1130,7 @@ def _run_adam(batch: _Batch, histories: list[list[dict]], steps: list[int]) -> N
             done += [k for k in _trailing(batch, stats) if k not in done]
         for k in done:
             batch.snapshot(k)
-        batch.opt.step()
+        opt.step()
         for k in batch.active:
             if k not in done:
                 steps[k] += 1

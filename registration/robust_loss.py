@@ -16,8 +16,10 @@ learns one (alpha, c) pair shared by both residual sets, alpha in (0, 1], c init
 
 ``Z(alpha) = integral over the real line of exp(-rho(x, alpha, 1))`` has no closed form for
 general alpha (``pi sqrt(2)`` at 0, ``2 e K_1(1)`` at 1, ``sqrt(2 pi)`` at 2). It is integrated
-numerically (``scipy.integrate.quad``) once, at first use (about 0.3 s, then cached), at knots
-over [0, 2], and ``log Z`` is interpolated by a cubic spline evaluated in torch: the spline is
+numerically once, at first use, at knots over [0, 2] (:func:`partition_table`: a double-exponential
+quadrature of every knot at once, 4 ms; ``scipy.integrate.quad`` knot by knot took 0.3-0.4 s of
+the first registration in every process, and stays the tests' reference), and ``log Z`` is
+interpolated by a cubic spline evaluated in torch: the spline is
 C2, so the loss is smooth and differentiable in alpha. ``log Z`` is not analytic at the ends
 (an ``eps log eps`` term at alpha = 2 - eps, a weaker one at 0), so the knots are graded there
 (spacing proportional to the distance to the end) and uniform in the middle; the spline then
@@ -84,6 +86,52 @@ def partition_numeric(alpha: float) -> float:
     return 2.0 * val
 
 
+QUADRATURE_STEP = 1.0 / 16.0
+"""Step of :func:`partition_table`'s trapezoidal rule in the transformed variable."""
+
+QUADRATURE_SPAN = 4.5
+"""The transformed variable runs over [-span, span]: x from about 1e-31 to 1e31."""
+
+
+def _rho_rows(x: np.ndarray, alphas: np.ndarray) -> np.ndarray:
+    """Barron's rho at scale 1, (len(alphas), len(x)) float64: a row per shape, with its limits."""
+    x2 = np.square(x)[None, :]
+    a = alphas[:, None]
+    beta = np.abs(a - 2.0)
+    with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
+        general = beta / np.where(a == 0.0, 1.0, a) * np.expm1(
+            0.5 * a * np.log1p(x2 / np.where(beta == 0.0, 1.0, beta)))
+    return np.where(a == 0.0, np.log1p(0.5 * x2), np.where(a == 2.0, 0.5 * x2, general))
+
+
+def partition_table(alphas: np.ndarray) -> np.ndarray:
+    """``Z(alpha)`` of many shapes at once: :func:`partition_numeric`, vectorised.
+
+    The half line is mapped by ``x = exp(pi / 2 sinh t)`` (a double-exponential rule: the
+    integrand then decays doubly exponentially at both ends of t, for the algebraic tail of
+    alpha = 0 as for the Gaussian of alpha = 2) and integrated by the trapezoidal rule in t.
+    Measured against ``quad`` at the spline's 458 knots: at most 2.3e-13 apart (relative).
+
+    Parameters
+    ----------
+    alphas : (n,) float
+        Shapes in [0, 2].
+
+    Returns
+    -------
+    (n,) float64
+    """
+    alphas = np.asarray(alphas, dtype=np.float64)
+    if alphas.size and not (alphas.min() >= 0.0 and alphas.max() <= ALPHA_TABLE_MAX):
+        raise ValueError(f"the partition function is tabulated for alpha in [0, 2], got {alphas.min()}..{alphas.max()}")
+    h = QUADRATURE_STEP
+    t = np.arange(-QUADRATURE_SPAN, QUADRATURE_SPAN + 0.5 * h, h)
+    x = np.exp(0.5 * np.pi * np.sinh(t))
+    dx = h * 0.5 * np.pi * np.cosh(t) * x
+    with np.errstate(over="ignore"):
+        return 2.0 * (np.exp(-_rho_rows(x, alphas)) * dx).sum(axis=1)
+
+
 class _Spline(NamedTuple):
     """A cubic spline: ``f(a) = sum_k coef[k, i] (a - knots[i])^(3 - k)`` on [knots[i], knots[i+1]]."""
 
@@ -107,7 +155,7 @@ def _log_partition_spline() -> _Spline:
     from scipy.interpolate import CubicSpline
 
     alphas = _knots()
-    log_z = np.log([partition_numeric(float(a)) for a in alphas])
+    log_z = np.log(partition_table(alphas))
     spline = CubicSpline(alphas, log_z, bc_type="not-a-knot")
     return _Spline(alphas, np.asarray(spline.c))
 

@@ -15,7 +15,13 @@ from regnf.core.cameras import pinhole_rays
 from regnf.neural_fields.analytic import Box, Sphere
 from regnf.neural_fields.camera import Camera
 from regnf.neural_fields.field import Field
-from regnf.neural_fields.sphere_tracer import SphereTracerConfig, TraceHits, render, render_many, trace
+from regnf.neural_fields.sphere_tracer import (
+    SphereTracerConfig,
+    TraceHits,
+    render,
+    render_many,
+    trace,
+)
 from regnf.registration.sampling import SAMPLING_TRACE
 
 CPU = torch.device("cpu")

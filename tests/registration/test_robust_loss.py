@@ -15,6 +15,7 @@ from regnf.registration.robust_loss import (
     general_rho,
     log_partition,
     partition_numeric,
+    partition_table,
     robust_nll,
 )
 
@@ -44,6 +45,15 @@ def test_partition_closed_forms() -> None:
 def test_log_partition_matches_direct_integration(alpha: float) -> None:
     got = float(log_partition(torch.tensor(alpha, dtype=torch.float64)))
     assert got == pytest.approx(math.log(_direct_partition(alpha)), abs=1e-7)
+
+
+def test_partition_table_matches_quadrature() -> None:
+    # The vectorised rule against quad, shape by shape, at both ends and in between.
+    alphas = np.array([0.0, 1e-9, 1e-6, 0.0037, 0.5, 1.0, 1.5, 1.99, 2.0 - 1e-9, 2.0])
+    want = np.array([partition_numeric(float(a)) for a in alphas])
+    np.testing.assert_allclose(partition_table(alphas), want, rtol=1e-10)
+    with pytest.raises(ValueError, match="alpha in"):
+        partition_table(np.array([0.5, 2.5]))
 
 
 def test_rho_hand_values() -> None:
