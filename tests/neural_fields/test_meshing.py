@@ -114,3 +114,27 @@ def test_chunk_and_device_explicit(sphere: Sphere) -> None:
     big = extract_mesh(sphere, resolution=16)
     np.testing.assert_allclose(small.vertices, big.vertices)
     np.testing.assert_array_equal(small.faces, big.faces)
+
+
+def test_grid_chunks_side_by_side_are_the_bits_of_one_thread(monkeypatch: pytest.MonkeyPatch) -> None:
+    # A network (its batched evaluation is where threads could change bits): chunks on two
+    # threads give the grid of one after another on one thread, each in its own place.
+    import regnf.neural_fields.meshing as M
+    from regnf.core.threads import one_thread
+    from tests.neural_fields.test_checkpoint import make_field
+
+    field = make_field()
+    bounds = field.bounds.double().numpy()
+    cells, _ = grid_shape(bounds, 20)
+    two = M.sample_grid(field, bounds, cells, chunk=700)
+    monkeypatch.setattr(M, "usable_cores", lambda: 1)
+    with one_thread():
+        one = M.sample_grid(field, bounds, cells, chunk=700)
+    np.testing.assert_array_equal(two, one)
+    # And each node holds its own point's value.
+    ijk = np.array([[0, 0, 0], [3, 7, 2], [20, 13, 15]])
+    ijk = np.minimum(ijk, cells)
+    pts = bounds[0] + ijk * (bounds[1] - bounds[0]) / cells
+    with torch.no_grad():
+        want = field.sdf(torch.as_tensor(pts, dtype=torch.float32)).numpy()
+    np.testing.assert_allclose(two[tuple(ijk.T)], want, atol=1e-6)
