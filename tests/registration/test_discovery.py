@@ -3,6 +3,8 @@ what the library lacks stays unmatched."""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -226,9 +228,18 @@ def test_objects_scoring_near_the_best_are_shortlisted_whatever_the_count() -> N
     tie = Ranking(box, empty, {"fc-nop": 0.583, "mc": 0.580, "fc": 0.571, "wt": 0.257, "dc": 0.216}, 0.0)
     assert tie.shortlisted(DiscoveryConfig()) == ["fc-nop", "mc", "fc"]
     assert tie.shortlisted(DiscoveryConfig(shortlist_margin=0.0)) == ["fc-nop", "mc"]
-    # A clear best: the count alone, even when the runner-up and the third are close.
+    # A clear best: it alone, the runner-up being further behind than shortlist_gap; with the
+    # gap open, the count alone, even when the runner-up and the third are close.
     clear = Ranking(box, empty, {"t": 0.729, "dc": 0.176, "et": 0.166, "c": 0.155}, 0.0)
-    assert clear.shortlisted(DiscoveryConfig()) == ["t", "dc"]
+    assert clear.shortlisted(DiscoveryConfig()) == ["t"]
+    assert clear.shortlisted(DiscoveryConfig(shortlist_gap=math.inf)) == ["t", "dc"]
     assert clear.shortlisted(DiscoveryConfig(shortlist=1, shortlist_margin=0.6)) == ["t", "dc", "et", "c"]
+    # The demo's room (2026-12-05): a runner-up 0.08 behind is registered, one 0.26 behind is not.
+    near = Ranking(box, empty, {"fc": 0.346, "fc-nop": 0.266, "mc": 0.1}, 0.0)
+    far = Ranking(box, empty, {"dc": 0.639, "c": 0.377, "mc": 0.004}, 0.0)
+    assert near.shortlisted(DiscoveryConfig()) == ["fc", "fc-nop"]
+    assert far.shortlisted(DiscoveryConfig()) == ["dc"]
     with pytest.raises(ValueError, match="shortlist_margin"):
         DiscoveryConfig(shortlist_margin=-0.1)
+    with pytest.raises(ValueError, match="shortlist_gap"):
+        DiscoveryConfig(shortlist_gap=-0.1)
