@@ -362,7 +362,7 @@ def _run_demo(folder: OutputFolder, config: DemoConfig, cache: Cache | None) -> 
         new_stage(stage, scene_path, [library_paths[n] for n in names],
                   provenance={"made_by": "regnf demo", "room": config.room, "coverage": config.coverage})
     with log.step("discover and register the objects", "no boxes: candidates from the field's surface, "
-                  "a short registration of every library object in each, the best two and any as good fully registered"):
+                  "a short registration of every library object in each, the best and any close behind fully registered"):
         registrations, discovery = _discover_all(stage, out / "stage", scene_path, library_paths, capture,
                                                  config.device)
     accepted = [r for r in registrations if r["accepted"]]
@@ -436,7 +436,7 @@ def _summary(config: DemoConfig, out: Path, stage: Path, usdz: Path, log: StepLo
     missed = [r for r in registrations if not r["accepted"]]
     note = (f"The room was captured with {config.coverage} coverage. No boxes were given: discovery found "
             f"{discovery['candidates']} candidates in the scene field, identified {discovery['identified']} of them "
-            f"(a short registration of every library object in each, the best two and any as good fully registered) and left "
+            f"(a short registration of every library object in each, the best and any close behind fully registered) and left "
             f"{discovery['unmatched']} unmatched, in {discovery['seconds']['total']:.0f} s; the errors are measured "
             f"against the true poses. {len(registrations) - len(missed)} of {len(registrations)} objects were found, "
             f"identified as the right library object and written to the stage; "
