@@ -256,7 +256,7 @@ def _completion(stage: Path, room: Room, config: DemoConfig, out: Path) -> dict[
     from regnf.core.threads import map_one_thread_each
     from regnf.neural_fields.distance_grid import DistanceGrid
     from regnf.neural_fields.evaluation import psnr
-    from regnf.neural_fields.sphere_tracer import render
+    from regnf.neural_fields.sphere_tracer import render_many
 
     sphere = RenderConfig().sphere
     fields = {mode: composite_from_stage(stage, StageCompositeConfig(mode=mode, box_pad=config.completion_box_pad),
@@ -271,15 +271,19 @@ def _completion(stage: Path, room: Room, config: DemoConfig, out: Path) -> dict[
             if cams:
                 views.append((k, cams[0], ref.render(cams[0].camera_to_world, cams[0].K)))
     modes = ("scene", "substitute")
-    # Side by side, one thread each: the bits of one after another (regnf.core.threads).
-    rendered = map_one_thread_each(lambda job: render(fields[job[0]], job[1], sphere, grid=grids[job[0]]).rgb
-                                   .detach().cpu().numpy(), [(m, cam) for _, cam, _ in views for m in modes])
+    # Batches of views traced together (as render_views does), side by side, one thread each:
+    # the bits of one after another (regnf.core.threads).
+    per, cams = RenderConfig().views_per_trace, [cam for _, cam, _ in views]
+    jobs = [(m, range(s, min(s + per, len(cams)))) for m in modes for s in range(0, len(cams), per)]
+    batches = map_one_thread_each(lambda job: [r.rgb.detach().cpu().numpy() for r in render_many(
+        fields[job[0]], [cams[j] for j in job[1]], sphere, grid=grids[job[0]])], jobs)
+    rendered = {(m, j): rgb for (m, idx), imgs in zip(jobs, batches) for j, rgb in zip(idx, imgs)}
     rows, per_object = [], []
     for j, (k, _, gt) in enumerate(views):
         gt_rgb, region = rgb_to_uint8(gt.rgb), gt.instance_id.numpy() == k
         row, scores = [gt_rgb], {}
-        for i, mode in enumerate(modes):
-            rgb = rendered[len(modes) * j + i]
+        for mode in modes:
+            rgb = rendered[mode, j]
             scores[mode] = psnr(rgb[region], gt_rgb[region] / 255.0) if region.any() else float("nan")
             row.append(rgb_to_uint8(rgb))
         rows.append(np.concatenate(row, axis=1))
