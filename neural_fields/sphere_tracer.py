@@ -50,7 +50,7 @@ from regnf.core.cameras import ray_aabb
 from regnf.core.render_result import Render
 from regnf.neural_fields.camera import Camera, CameraRays, camera_rays
 from regnf.neural_fields.distance_grid import DistanceGrid
-from regnf.neural_fields.field import Field, FieldSample
+from regnf.neural_fields.field import DEFAULT_CHUNK, Field, FieldSample
 from regnf.neural_fields.shading import check_camera_outside, shade_hits
 
 Rays = TypeVar("Rays", bound=tuple)
@@ -58,12 +58,13 @@ Rays = TypeVar("Rays", bound=tuple)
 BACKGROUND_ID = -1
 """Instance id (winner) of a ray or pixel that hit nothing."""
 
-WAVEFRONT = 32768
-"""Rays marching at once by default. Smaller batches pay the loop's fixed cost more often,
-larger ones miss the caches. One thread, 8 views of 256 x 192 of a variant of the demo's
-baked composite traced together: 4.45, 4.05, 3.94 and 4.15 s with 8192, 16384, 32768 and
-65536 (4.25 s one view at a time); 4 views of the neural composite: 6.71, 6.35 and 6.42 s with
-16384, 32768 and 65536 (6.74 s one at a time)."""
+WAVEFRONT = DEFAULT_CHUNK
+"""Rays marching at once by default (65536). Smaller batches pay the loop's fixed cost more
+often, larger ones miss the caches, and a view split over two batches takes more steps. Measured
+on 2 cores: one view of 256 x 192 on two threads (``regnf bench render``) 4-10 % faster with
+65536 than with 32768; the demo's 6 substitution views in two batches of 3 on two threads,
+6.41-6.46 s with 65536 and 6.49 s with 32768; 8 views of a baked variant traced together on one
+thread, 4.45, 4.05, 3.94 and 4.15 s with 8192, 16384, 32768 and 65536 (4.25 s a view at a time)."""
 REFINE_METHODS = ("illinois", "bisection")
 """Root refinements of a bracketed crossing."""
 ADAPTIVE_MARGIN = 0.95
@@ -564,7 +565,9 @@ def render_many(
 
     The rays of every view march together (``config.chunk`` at a time), so the slow rays at
     the end of a trace, few points a step, are traced once for all views instead of once a
-    view: on one thread, 8 views of the demo's baked composite in 3.9 s instead of 4.3 s.
+    view: on one thread, 8 views of a variant of the demo's baked composite in 4.15 s instead of
+    4.25 s, and the demo's 6 substitution views in two batches of 3 on two threads in 6.7 s
+    instead of 7.4 s (:attr:`regnf.compositor.render_folder.RenderConfig.views_per_trace`).
     A ray's trace is its own, so the images are those of :func:`render` up to the last bits
     of a network's batched evaluation (exactly the same on a baked field).
 
