@@ -39,6 +39,7 @@ is a hit at its start; a ray that leaves the bounds (or ``far``) or runs out of
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -315,9 +316,9 @@ def _trace_wavefront(
     # SAFE: the ray has a known free sphere (TP, RP); FROM_EVAL: that sphere comes from an
     # evaluation, not the grid; RELAXED: the last step was longer than the safe radius.
     B = torch.zeros(3, 0, dtype=torch.bool, device=dev)
-    L = torch.zeros(_L_ROWS, 0, dtype=torch.long, device=dev)  # evaluations, look-ups, winner, steps
+    L = torch.zeros(_L_ROWS, 0, dtype=torch.long, device=dev)  # evaluations, look-ups, winner, first step
 
-    while True:
+    for it in itertools.count():
         room = min(cfg.chunk - ids.numel(), queue.numel() - admitted)
         if room > 0:
             new = queue[admitted:admitted + room]
@@ -332,6 +333,7 @@ def _trace_wavefront(
             Fn[_FP] = fp[new]
             Ln = torch.zeros(_L_ROWS, room, dtype=torch.long, device=dev)
             Ln[_WIN] = -1
+            Ln[_FIRST] = it
             ids, F = torch.cat((ids, new)), torch.cat((F, Fn), 1)
             B = torch.cat((B, torch.zeros(3, room, dtype=torch.bool, device=dev)), 1)
             L = torch.cat((L, Ln), 1)
@@ -414,15 +416,16 @@ def _trace_wavefront(
             goes_on |= skip & (t_new <= TE)
         F[_T] = t_new
 
-        L[_STEPS] += 1
-        # Out of steps: a miss (``hit`` and ``bracketed`` are False for a ray that goes on).
-        stops = ~goes_on | (L[_STEPS] >= cfg.max_steps)
+        stops, keep = ~goes_on, goes_on
+        if it + 1 >= cfg.max_steps:  # no ray has taken max_steps steps before this iteration
+            # Out of steps: a miss (``hit`` and ``bracketed`` are False for a ray that goes on).
+            stops = stops | (it + 1 - L[_FIRST] >= cfg.max_steps)
+            keep = ~stops
         if bool(stops.any()):
             si = ids[stops]
             t[si], hit[si], bracketed[si] = t_new[stops], stops_on_hit[stops], crossed[stops]
             t_prev[si], r_prev[si], s_neg[si] = F[_TP, stops], F[_RP, stops], r[stops]
             evals[si], lookups[si], winner[si] = L[_EV, stops], L[_LK, stops], L[_WIN, stops]
-            keep = ~stops
             ids, F, B, L = ids[keep], F[:, keep], B[:, keep], L[:, keep]
 
     bi = bracketed.nonzero().squeeze(1)
@@ -444,9 +447,10 @@ _F_ROWS = 13
 """Rows of the marching rays' float state: origin, direction (3 each), t, exit t, the last
 safe point's t and radius, the SDF's slope along the ray, the relaxation cap, the hit
 tolerance per unit of t (the pixel's footprint fraction)."""
-_EV, _LK, _WIN, _STEPS = 0, 1, 2, 3
+_EV, _LK, _WIN, _FIRST = 0, 1, 2, 3
 _L_ROWS = 4
-"""Rows of their integer state: field evaluations, grid look-ups, winning component, steps."""
+"""Rows of their integer state: field evaluations, grid look-ups, winning component, the
+iteration of the ray's first step."""
 
 
 def _relaxation(cap: torch.Tensor, slope: torch.Tensor, cfg: SphereTracerConfig) -> torch.Tensor:
