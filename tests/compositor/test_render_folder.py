@@ -181,6 +181,13 @@ def test_a_view_larger_than_the_limit_is_refused_before_rendering(tmp_path: Path
     assert not (tmp_path / "out").exists()
 
 
+def assert_same_views(a: Path, b: Path, n: int) -> None:
+    """The first ``n`` views' RGB, depth and instance PNGs of render folders ``a`` and ``b`` are the same bytes."""
+    for k in range(n):
+        for kind in ("rgb", "depth", "instance"):
+            assert (a / f"{kind}_{k:04d}.png").read_bytes() == (b / f"{kind}_{k:04d}.png").read_bytes(), (kind, k)
+
+
 @pytest.mark.parametrize("views_per_trace", [1, 2])
 def test_views_side_by_side_are_the_images_of_one_after_another(tmp_path: Path, views_per_trace: int) -> None:
     field = G.composite("own", StageCompositeConfig())
@@ -188,10 +195,7 @@ def test_views_side_by_side_are_the_images_of_one_after_another(tmp_path: Path, 
     for workers in (1, 2):
         render_views(field, cams, tmp_path / str(workers),
                      RenderConfig(progress=False, workers=workers, views_per_trace=views_per_trace))
-    for k in range(3):
-        for kind in ("rgb", "depth", "instance"):
-            one = (tmp_path / "1" / f"{kind}_{k:04d}.png").read_bytes()
-            assert one == (tmp_path / "2" / f"{kind}_{k:04d}.png").read_bytes(), (kind, k)
+    assert_same_views(tmp_path / "1", tmp_path / "2", 3)
     with pytest.raises(ValueError, match="workers"):
         RenderConfig(workers=0)
 
@@ -202,10 +206,7 @@ def test_views_traced_together_are_the_views_traced_alone(tmp_path: Path) -> Non
     cams = [*cameras(2), *cameras(2, width=30, height=20)]
     for per in (1, 4):
         render_views(field, cams, tmp_path / str(per), RenderConfig(progress=False, views_per_trace=per))
-    for k in range(4):
-        for kind in ("rgb", "depth", "instance"):
-            one = (tmp_path / "1" / f"{kind}_{k:04d}.png").read_bytes()
-            assert one == (tmp_path / "4" / f"{kind}_{k:04d}.png").read_bytes(), (kind, k)
+    assert_same_views(tmp_path / "1", tmp_path / "4", 4)
     with pytest.raises(ValueError, match="views_per_trace"):
         RenderConfig(views_per_trace=0)
 
