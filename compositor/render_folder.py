@@ -125,11 +125,12 @@ class RenderConfig:
     6 views make one batch for each of two cores; ``regnf generate`` traces a variant's views
     in one batch (its workers are processes of one thread each)."""
     workers: int | None = None
-    """Batches of views (``views_per_trace``) rendered side by side, each on one CPU thread (None: one per usable core, at most
-    ``torch.get_num_threads()``; :func:`regnf.core.threads.map_one_thread_each`). The images are
-    the same on any count (a lone view, too, renders on one thread); a view's ``seconds`` in
-    ``render.json`` is its own wall time, so with two workers it is that of a view sharing the
-    machine."""
+    """Batches of views (``views_per_trace``) rendered side by side, each on one CPU thread
+    (None: one per usable core, at most ``torch.get_num_threads()``;
+    :func:`regnf.core.threads.map_one_thread_each`). The images are the same on any count (a
+    lone batch, too, renders on one thread); a view's ``seconds`` in ``render.json`` is its
+    batch's wall time shared among the batch's views, so with two workers it is that of a batch
+    sharing the machine."""
 
     def __post_init__(self) -> None:
         if self.workers is not None and self.workers < 1:

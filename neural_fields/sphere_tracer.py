@@ -589,6 +589,8 @@ def render_many(
     list of Render
         One per camera, in order.
     """
+    if not cameras:
+        return []
     rays = [camera_rays(field, camera) for camera in cameras]
     if config.check_camera:
         for r in rays:

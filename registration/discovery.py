@@ -102,12 +102,13 @@ class DiscoveryConfig:
     shortlist_gap: float = 0.15
     """The objects after the best count towards :attr:`shortlist` only if their short-registration
     score is within this of the best one's: further behind, the full registration has never
-    overturned the order. Measured on the discovery benchmark of 2026-12-05 (34 candidates, 6
-    rooms): the full registrations reversed the short one's order only where the two scored
+    overturned the order. Measured on two discovery benchmark runs of 2026-12-05 (34 candidates:
+    three rooms at two coverages, and the ac-room without ``mc``): the full registrations
+    reversed the short one's order only where the two scored
     within 0.08 of each other (the mix-room's armchairs, 0.005 apart; both rejected in the
     low-coverage ac-room, 0.08; both far below acceptance in an empty box, 0.02), and the right
     object never ranked behind another by more than 0.012. Each full registration spared is
-    2.5-4.5 s of one core: the demo's discovery registers 7 objects instead of 10. inf: the
+    1.6-4.7 s of one core: the demo's discovery registers 7 objects instead of 10. inf: the
     count alone."""
     shortlist_margin: float = 0.05
     """Objects whose short-registration score is within this of the best one's are fully

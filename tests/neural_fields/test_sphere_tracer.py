@@ -221,6 +221,7 @@ def test_render_many_is_render_of_each_camera() -> None:
         assert got.rgb.shape == (cam.height, cam.width, 3)
         for a, b in zip(alone, got, strict=True):
             assert torch.equal(a, b)
+    assert render_many(field, [], cfg) == []
     with pytest.raises(ValueError, match="pixel_angle"):
         trace(field, torch.zeros(4, 3) - 2.0, torch.tensor([[0.0, 0.0, 1.0]] * 4), cfg,
               pixel_angle=torch.ones(3))
