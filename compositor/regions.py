@@ -69,13 +69,18 @@ class RemovalRegion(torch.nn.Module, metaclass=abc.ABCMeta):
         """SDF of the region's shape before the floor cut, for points ``x`` (n, 3)."""
         ...
 
+    @property
+    def cut_height(self) -> float:
+        """Scene-frame z below which nothing is removed: the floor plus its margin (-inf: no cut).
+        The cut is the half-space z >= cut_height, of SDF ``cut_height - z``, intersected by max."""
+        return -np.inf if self.keep_floor is None else self.keep_floor + self.floor_margin
+
     def evaluate(self, x: torch.Tensor) -> RegionSample:
         """The region's SDF M (n,) in scene units, floor cut included, with its cost."""
         sample = self.shape_sdf(x)
         if self.keep_floor is None:
             return sample
-        # Half-space z >= floor + margin has SDF (floor + margin) - z; intersect by max.
-        above = (self.keep_floor + self.floor_margin) - x[:, 2]
+        above = self.cut_height - x[:, 2]
         return RegionSample(torch.maximum(sample.sdf, above.to(sample.sdf.dtype)), sample.evals)
 
     def sdf(self, x: torch.Tensor) -> torch.Tensor:
@@ -131,8 +136,8 @@ class BoxRegionUnion(torch.nn.Module):
     def __init__(self, regions: list[OrientedBoxRegion]) -> None:
         super().__init__()
         self.boxes = OrientedBoxes([r.box for r in regions])
-        # The floor cut as a half-space per region; -inf cuts nothing.
-        floors = [-np.inf if r.keep_floor is None else r.keep_floor + r.floor_margin for r in regions]
+        # Each region's floor cut (RemovalRegion.cut_height; -inf cuts nothing).
+        floors = [r.cut_height for r in regions]
         self.register_buffer("floors", torch.tensor(floors, dtype=torch.float64), persistent=False)
 
     def evaluate(self, x: torch.Tensor) -> RegionSample:
