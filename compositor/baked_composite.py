@@ -18,7 +18,7 @@ import dataclasses
 import math
 import time
 from collections.abc import Mapping, Sequence
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -54,6 +54,8 @@ class BakedGrids(NamedTuple):
     """Wall time of the baking (NaN for grids read back from files)."""
     nodes: int
     """Grid nodes over every baked field."""
+    whole: BakedField | None = None
+    """The scene field alone, nothing removed (its views without substitution), when baked."""
 
 
 def masked_scene(composite: CompositeField) -> CompositeField:
@@ -72,7 +74,7 @@ def placed_to_world(composite: CompositeField) -> list[np.ndarray]:
 
 def bake_grids(scene: Field, objects: Mapping[str, tuple[Field, Sequence[np.ndarray]]],
                cameras: Sequence[Camera], config: BakeConfig | None = None, progress: bool = False,
-               workers: int | None = None) -> BakedGrids:
+               workers: int | None = None, whole: Field | None = None) -> BakedGrids:
     """Bake a masked scene and library objects for ``cameras``.
 
     Parameters
@@ -91,6 +93,8 @@ def bake_grids(scene: Field, objects: Mapping[str, tuple[Field, Sequence[np.ndar
     workers : int, optional
         Fields baked at once, each on one CPU thread (:func:`regnf.core.threads.map_one_thread_each`);
         None: one per usable core. One thread per field makes the grids the same on any machine.
+    whole : Field, optional
+        The scene field itself, nothing removed, to bake as well (:attr:`BakedGrids.whole`).
 
     Raises
     ------
@@ -108,6 +112,9 @@ def bake_grids(scene: Field, objects: Mapping[str, tuple[Field, Sequence[np.ndar
         if not places:
             raise ValueError(f"library object {n!r} has no place to be baked for")
         cells.append(min(bake_cell(field, cameras, config, to_world=W) for W in places))
+    if whole is not None:
+        fields.append(whole)
+        cells.append(bake_cell(whole, cameras, config))
     total = sum(math.prod(grid_nodes(f.bounds, c, config.coarse_stride)) for f, c in zip(fields, cells))
     _check_nodes(total, f"these {len(fields)} fields", config)  # before any baking
     # The largest first, so that the others fill the remaining workers around it.
@@ -116,7 +123,7 @@ def bake_grids(scene: Field, objects: Mapping[str, tuple[Field, Sequence[np.ndar
                                          order, workers)
     baked = dict(zip(order, baked_in_order))
     return BakedGrids(baked[0], {n: baked[k] for k, n in enumerate(names, start=1)},
-                      time.perf_counter() - t0, total)
+                      time.perf_counter() - t0, total, baked[len(names) + 1] if whole is not None else None)
 
 
 def with_grids(composite: CompositeField, scene: BakedField, objects: Sequence[BakedField]) -> CompositeField:
@@ -126,6 +133,32 @@ def with_grids(composite: CompositeField, scene: BakedField, objects: Sequence[B
         raise ValueError(f"{len(objects)} grids for {len(composite.placements)} placed objects")
     placed = [obj._replace(field=g) for obj, g in zip(composite.placed(), objects, strict=True)]
     return CompositeField(scene, placed, [], composite.config, info=composite.info)
+
+
+def with_object_grids(comp: Any, selections: Mapping[str, str], grids: BakedGrids) -> CompositeField:
+    """The composite of a stage whose instances show ``selections`` with ``grids`` (baked by
+    :func:`bake_grids` for its masked scene and objects) in place of its fields.
+
+    Parameters
+    ----------
+    comp : StageComposite
+        :func:`regnf.compositor.from_stage.composite_from_scene` of the stage with those
+        selections (substitute mode).
+    selections : mapping of str -> str
+        Instance id -> the library object it shows.
+    grids : BakedGrids
+        Holds a grid for every object shown.
+
+    Raises
+    ------
+    ValueError
+        ``grids`` lack an object shown.
+    """
+    name_of = {comp.instance_ids[iid]: name for iid, name in selections.items()}
+    missing = sorted(set(name_of.values()) - set(grids.objects))
+    if missing:
+        raise ValueError(f"the baked grids hold no {missing}: bake them for these objects again")
+    return with_grids(comp.field, grids.scene, [grids.objects[name_of[k]] for k in comp.field.instance_ids])
 
 
 def baked_tracing(config: SphereTracerConfig) -> SphereTracerConfig:

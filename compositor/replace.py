@@ -36,6 +36,7 @@ from regnf.scene_graph import (
     read_stage,
 )
 
+from .baked_composite import BakedGrids, with_object_grids
 from .from_stage import composite_from_scene, composite_from_stage
 from .nerfstudio import transforms_json
 from .render_folder import RenderConfig, RenderReport, check_cameras, check_sequence, render_views
@@ -135,6 +136,7 @@ def replace_and_render(
     cameras: Sequence[Camera],
     config: ReplaceConfig = ReplaceConfig(),
     allow_outside: bool = False,
+    grids: BakedGrids | None = None,
 ) -> ReplacementResult:
     """Swap every instance at random (same class), render the result, write training data.
 
@@ -159,6 +161,12 @@ def replace_and_render(
     allow_outside : bool
         Read a stage whose asset paths leave its folder (see :func:`regnf.scene_graph.read_stage`);
         its base is then exported into ``out``, self-contained.
+    grids : BakedGrids, optional
+        The stage's masked scene and library objects baked once
+        (:func:`regnf.compositor.baked_composite.bake_grids`, with ``config.composite``'s
+        removal settings): the variant renders on them with the baked renderer, whatever
+        ``config.render.renderer`` says, instead of baking its own (for several seeds of one
+        stage). Every object a seed may pick must have its grid.
 
     Raises
     ------
@@ -166,7 +174,7 @@ def replace_and_render(
         The stage cannot be read or the layer cannot be written (the message names the file).
     ValueError
         No camera, a camera inside matter, an existing layer in ``out`` (unless overwriting),
-        a sequence of views of different sizes.
+        a sequence of views of different sizes, grids without an object the seed picks.
     regnf.compositor.sequence_io.SequenceBackendError
         An MP4 sequence without its package (an ``ImportError``); nothing is written then.
     """
@@ -184,6 +192,9 @@ def replace_and_render(
     device = torch.device(config.device)
     scene = read_stage(src, allow_outside=allow_outside)
     selections = pick_replacements(scene, seed)
+    if grids is not None and set(selections.values()) - set(grids.objects):
+        raise ValueError(f"the baked grids hold no {sorted(set(selections.values()) - set(grids.objects))}, "
+                         f"which seed {seed} shows: bake them for every object a seed may pick")
     preview = composite_from_scene(swapped(scene, selections),
                                    original_selections(src, scene, allow_outside=allow_outside), src,
                                    composite_cfg, device)
@@ -208,7 +219,11 @@ def replace_and_render(
             "composite_config": dataclasses.asdict(composite_cfg),
             "load_seconds": time.perf_counter() - t0,
         }
-        report = render_views(comp.field, cameras, dest, config.render, metadata)
+        field, render = comp.field, config.render
+        if grids is not None:
+            field = with_object_grids(comp, selections, grids)
+            render = dataclasses.replace(render, renderer="baked")
+        report = render_views(field, cameras, dest, render, metadata)
         extra = {"seed": int(seed), "stage": LAYER_NAME, "selections": selections,
                  "instance_ids": comp.instance_ids,
                  "mask": "instance PNG, uint16 id + 1 (0 background)", "depth_unit_scale_factor": 1e-3}

@@ -101,7 +101,8 @@ def load_baked(path: str | os.PathLike, device: torch.device | str = "cpu") -> B
             to_world = _matrix(path, header, "to_world", (4, 4))
             if not bool((bounds[1].float() > bounds[0].float()).all()):
                 raise BakedFileError(path, f"header 'bounds' must have lo < hi on every axis, got {bounds.tolist()}")
-            sdf, rgb = f.get_tensor("sdf").float(), f.get_tensor("rgb").float()
+            # The colour as stored (half precision): BakedField converts it once.
+            sdf, rgb = f.get_tensor("sdf").float(), f.get_tensor("rgb")
     except (OSError, SafetensorError, json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise BakedFileError(path, f"cannot read baked grids ({type(exc).__name__}: {exc})") from None
     if not bool(torch.isfinite(sdf).all()):

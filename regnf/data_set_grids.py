@@ -1,5 +1,9 @@
 """The baked grids of a data set: baked once by ``regnf generate``, read by every variant.
 
+``regnf demo`` keeps the grids of its stage the same way in the cache
+(:func:`cached_stage_grids`), keyed by everything they are made from, so that a second run
+reads them instead of baking again.
+
 ``out/baked/`` holds ``scene.safetensors`` (the scene less its removal regions: every
 instance is removed in every variant, so this is the same for all of them), one
 ``object_<k>.safetensors`` per library object a variant may show, and ``index.json``, written
@@ -10,7 +14,9 @@ data set's key and every file still has its digest, and bakes them again otherwi
 
 from __future__ import annotations
 
+import concurrent.futures as cf
 import dataclasses
+import hashlib
 import json
 import os
 from collections.abc import Mapping, Sequence
@@ -19,15 +25,11 @@ from typing import Any
 
 import numpy as np
 
-from regnf.compositor.baked_composite import (
-    BakedGrids,
-    bake_grids,
-    masked_scene,
-    placed_to_world,
-    with_grids,
-)
+from regnf.compositor.baked_composite import BakedGrids, bake_grids, masked_scene, placed_to_world
 from regnf.compositor.stage_config import StageCompositeConfig
 from regnf.core.atomic_io import write_json
+from regnf.core.file_lock import folder_lock
+from regnf.core.threads import usable_cores
 from regnf.neural_fields.baked_field import BakeConfig, BakedField
 from regnf.neural_fields.baked_io import load_baked, save_baked
 from regnf.neural_fields.camera import Camera
@@ -38,11 +40,13 @@ INDEX = "index.json"
 """The record of the grids, written after them."""
 SCENE_FILE = "scene.safetensors"
 """The scene less its removal regions."""
+WHOLE_FILE = "whole_scene.safetensors"
+"""The scene field alone, nothing removed (only when asked for)."""
 
 
 def bake_for_data_set(base: Path, folder: Path, key: str, cameras: Sequence[Camera], bake: BakeConfig,
                       composite: StageCompositeConfig, device: str = "cpu",
-                      progress: bool = False) -> tuple[Path, float]:
+                      progress: bool = False, substitution: bool = False) -> tuple[Path, float]:
     """The grids of the data set whose base stage is ``base``, in ``folder``: (its index, the
     seconds spent baking, 0 when the grids were kept).
 
@@ -66,13 +70,17 @@ def bake_for_data_set(base: Path, folder: Path, key: str, cameras: Sequence[Came
     device : str
     progress : bool
         Show a progress bar per baked field.
+    substitution : bool
+        Bake the grids of the stage's own views too: the scene field alone
+        (``whole_scene.safetensors``) and every instance's own object (a replacement shows
+        another one); grids kept without them are baked again.
     """
     from regnf.compositor.from_stage import composite_from_scene
     from regnf.compositor.replace import replacement_candidates, swapped
     from regnf.scene_graph import original_selections, read_stage
 
     index = folder / INDEX
-    if _index_checks_out(index, key):
+    if _index_checks_out(index, key, substitution):
         return index, 0.0
     scene = read_stage(base)
     originals = original_selections(base, scene)
@@ -80,6 +88,8 @@ def bake_for_data_set(base: Path, folder: Path, key: str, cameras: Sequence[Came
     loaded: dict = {}
     comp = composite_from_scene(scene, originals, base, config, device, loaded=loaded)
     where = replacement_candidates(scene)
+    if substitution:
+        where = {iid: sorted({*names, scene.instances[iid].library_name}) for iid, names in where.items()}
     objects: dict[str, tuple[Any, list[np.ndarray]]] = {}
     for name in sorted({n for names in where.values() for n in names}):
         # Every instance that may show it, showing it: its placements there give its places.
@@ -92,7 +102,8 @@ def bake_for_data_set(base: Path, folder: Path, key: str, cameras: Sequence[Came
         field = next(p.field for p, k in zip(placed.field.placements, placed.field.instance_ids)
                      if any(k_of[iid] == k for iid in at))
         objects[name] = (field, places)
-    grids = bake_grids(masked_scene(comp.field), objects, cameras, bake, progress)
+    grids = bake_grids(masked_scene(comp.field), objects, cameras, bake, progress,
+                       whole=comp.field.scene if substitution else None)
     folder.mkdir(parents=True, exist_ok=True)
     # An old index stays until the new one replaces it: if this run is killed in between, the
     # files it rewrote no longer match its digests (and the next run bakes again), unless they
@@ -101,7 +112,9 @@ def bake_for_data_set(base: Path, folder: Path, key: str, cameras: Sequence[Came
     names = {}
     for k, name in enumerate(sorted(grids.objects)):
         names[name] = _saved(grids.objects[name], folder / f"object_{k}.safetensors")
-    write_json(index, {"config_key": key, "scene": files["scene"], "objects": names, "nodes": grids.nodes})
+    if grids.whole is not None:
+        files["whole_scene"] = _saved(grids.whole, folder / WHOLE_FILE)
+    write_json(index, {"config_key": key, **files, "objects": names, "nodes": grids.nodes})
     return index, grids.seconds
 
 
@@ -111,25 +124,32 @@ def _saved(grid: BakedField, path: Path) -> dict[str, str]:
 
 
 def _entries(record: Mapping[str, Any]) -> list[Mapping[str, Any]]:
-    return [record["scene"], *record["objects"].values()]
+    whole = [record["whole_scene"]] if "whole_scene" in record else []
+    return [record["scene"], *record["objects"].values(), *whole]
 
 
-def _index_checks_out(index: Path, key: str) -> bool:
-    """Whether ``index`` records grids of ``key`` whose files all have their digests."""
+def _index_checks_out(index: Path, key: str, substitution: bool = False) -> bool:
+    """Whether ``index`` records grids of ``key`` (with the whole scene's, for ``substitution``)
+    whose files all have their digests."""
     try:
         record = json.loads(index.read_text(encoding="utf-8"))
-        if record.get("config_key") != key:
+        if record.get("config_key") != key or (substitution and "whole_scene" not in record):
             return False
-        for entry in _entries(record):
+        entries = _entries(record)
+        paths = []
+        for entry in entries:
             name = entry["file"]
             if name != Path(name).name or name.startswith(".") or not name.endswith(".safetensors"):
                 return False
-            path = index.parent / name
-            if not path.is_file() or sha256_file(path) != entry["sha256"]:
+            paths.append(index.parent / name)
+            if not paths[-1].is_file():
                 return False
+        # Hashing releases the interpreter's lock: the files are hashed side by side.
+        with cf.ThreadPoolExecutor(usable_cores()) as pool:
+            digests = list(pool.map(sha256_file, paths))
+        return all(d == entry["sha256"] for d, entry in zip(digests, entries, strict=True))
     except (OSError, UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError, AttributeError):
         return False
-    return True
 
 
 def load_data_set_grids(index: str | os.PathLike, device: str = "cpu") -> BakedGrids:
@@ -145,22 +165,68 @@ def load_data_set_grids(index: str | os.PathLike, device: str = "cpu") -> BakedG
         record = json.loads(index.read_text(encoding="utf-8"))
         scene_file = record["scene"]["file"]
         object_files = {str(n): e["file"] for n, e in record["objects"].items()}
+        whole_file = record["whole_scene"]["file"] if "whole_scene" in record else None
         nodes = int(record["nodes"])
     except (OSError, UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
         raise ValueError(f"{index}: not a record of baked grids ({type(exc).__name__}: {exc})") from None
-    for name in (scene_file, *object_files.values()):
+    for name in (scene_file, *object_files.values(), *([whole_file] if whole_file is not None else [])):
         if not isinstance(name, str) or name != Path(name).name or name.startswith("."):
             raise ValueError(f"{index}: grid file {name!r} is not a plain file name in {index.parent}")
     return BakedGrids(load_baked(index.parent / scene_file, device),
                       {n: load_baked(index.parent / f, device) for n, f in object_files.items()},
-                      float("nan"), nodes)
+                      float("nan"), nodes,
+                      load_baked(index.parent / whole_file, device) if whole_file is not None else None)
 
 
-def with_data_set_grids(comp: Any, selections: Mapping[str, str], grids: BakedGrids) -> Any:
-    """The composite of a variant (a :class:`regnf.compositor.from_stage.StageComposite` whose
-    instances show ``selections``) with the data set's grids in place of its fields."""
-    name_of = {comp.instance_ids[iid]: name for iid, name in selections.items()}
-    missing = sorted(set(name_of.values()) - set(grids.objects))
-    if missing:
-        raise ValueError(f"the data set's baked grids hold no {missing}; remove {INDEX} to bake them again")
-    return with_grids(comp.field, grids.scene, [grids.objects[name_of[k]] for k in comp.field.instance_ids])
+GRIDS_VERSION = 1
+"""Bump when the grids that the same fields, cameras and settings bake change."""
+
+
+def stage_grids_key(stage: Path, cameras: Sequence[Camera], bake: BakeConfig,
+                    composite: StageCompositeConfig) -> str:
+    """A key of everything :func:`bake_for_data_set` makes the grids of ``stage`` from.
+
+    The scene field's and every library field's content digest (from their checkpoints'
+    headers; loading a field checks it against its bytes), each instance's object, registered
+    object and similarity, the cameras, and the bake and removal settings.
+    """
+    from regnf.neural_fields.checkpoint import DIGEST_KEY, read_header
+    from regnf.scene_graph import original_selections, read_stage
+
+    scene = read_stage(stage)
+    originals = original_selections(stage, scene)
+    record = {
+        "version": GRIDS_VERSION,
+        "scene": read_header(scene.scene.checkpoint).get(DIGEST_KEY),
+        "library": {n: [r.label, read_header(r.checkpoint).get(DIGEST_KEY)] for n, r in sorted(scene.library.items())},
+        "instances": {i: [r.library_name, originals.get(i), np.round(r.object_to_scene, 9).tolist()]
+                      for i, r in sorted(scene.instances.items())},
+        "cameras": [[np.round(np.asarray(c.K, np.float64), 6).tolist(),
+                     np.round(np.asarray(c.camera_to_world, np.float64), 9).tolist(), c.width, c.height]
+                    for c in cameras],
+        "bake": dataclasses.asdict(bake),
+        "composite": dataclasses.asdict(dataclasses.replace(composite, mode="substitute")),
+        "substitution": True,
+    }
+    return hashlib.sha256(json.dumps(record, sort_keys=True).encode()).hexdigest()[:16]
+
+
+def cached_stage_grids(root: Path, label: str, stage: Path, cameras: Sequence[Camera], bake: BakeConfig,
+                       composite: StageCompositeConfig, device: str = "cpu",
+                       progress: bool = False) -> tuple[BakedGrids, float]:
+    """The grids of ``stage`` for its views and replacements (:func:`bake_for_data_set` with
+    ``substitution``) from
+    ``root/<label>-<key>/``, baked there first when they are missing or damaged: (the grids,
+    the seconds spent baking, 0 when read).
+
+    ``key`` is :func:`stage_grids_key`. The folder's lock is held while the grids are checked,
+    baked and read, so two processes wanting the same grids bake them once.
+    """
+    key = stage_grids_key(stage, cameras, bake, composite)
+    folder = root / f"{label}-{key}"
+    folder.mkdir(parents=True, exist_ok=True)
+    with folder_lock(folder, "the baked grids", timeout=float("inf")):
+        index, seconds = bake_for_data_set(stage, folder, key, cameras, bake, composite, device, progress,
+                                           substitution=True)
+        return load_data_set_grids(index, device), seconds
+

@@ -6,14 +6,16 @@
    library objects (distilled from their meshes);
 2. train the room's scene field (both cached: a second run reuses them);
 3. write a USD stage with the scene field and the library;
-4. register every object of the room (its true box is the proposal, the paper's assumption)
-   and measure the result against the ground-truth pose; accepted ones become instances;
-5. render the scene field alone and with every instance substituted by its library field,
-   around the room and, per object, from a side the capture never saw (next to the
-   ground-truth render: object completion);
-6. render two random instance replacements;
-7. export the stage as one ``.usdz``;
-8. write ``report.html`` with every image, the registration table, loss curves and timings.
+4. discover the library's objects in the scene field with no boxes and register them; each is
+   measured against the ground-truth pose, and the identified ones become instances;
+5. bake the scene, the scene less its instances and every library object into grids for the
+   orbit's pixel footprint (kept in the cache under ``baked/``: a second run reads them);
+6. render the scene field alone and with every instance substituted by its library field
+   around the room (on the grids), and, per object, both through the networks from a side the
+   capture never saw (next to the ground-truth render: object completion);
+7. render two random instance replacements on the grids;
+8. export the stage as one ``.usdz``;
+9. write ``report.html`` with every image, the registration table, loss curves and timings.
 
 Layout of ``out``::
 
@@ -55,6 +57,7 @@ from regnf.neural_fields.cache import Cache, default_cache_dir
 from regnf.registration.metrics import BARS
 
 if TYPE_CHECKING:
+    from regnf.compositor.baked_composite import BakedGrids
     from regnf.core.output_dir import OutputFolder
     from regnf.neural_fields.camera import Camera
     from regnf.scene_graph.validation import ValidationReport
@@ -100,6 +103,8 @@ class DemoConfig:
 
 DEMO_KIND = "demo"
 """Kind of command recorded in the demo folder's marker."""
+GRIDS_DIR = "baked"
+"""Folder of the cache that holds the demo stages' baked grids (:func:`regnf.data_set_grids.cached_stage_grids`)."""
 REMADE = ("stage", "renders", "replacements", "report")
 """Folders of ``out`` made again from scratch on every run (an earlier demo's are removed)."""
 
@@ -168,7 +173,8 @@ class StepLog:
         t0 = time.perf_counter()
         yield record
         record["seconds"] = time.perf_counter() - t0
-        record["cached"] = bool(cacheable and self._entries() == before)
+        # A block may say itself whether it made anything (what it reused may be checked and kept).
+        record.setdefault("cached", bool(cacheable and self._entries() == before))
         self.steps.append(record)
         console.print(f"  {record['seconds']:.1f} s" + (" (cached)" if record["cached"] else ""))
 
@@ -307,17 +313,27 @@ def _orbit_cameras(stage: Path, config: DemoConfig) -> list[Camera]:
 
 
 def _render_mode(stage: Path, mode: str, cameras: list[Camera], out: Path,
-                 config: DemoConfig) -> dict[str, Any]:
-    """Render the stage's composite in ``mode`` into ``out``; its speed."""
+                 config: DemoConfig, grids: BakedGrids | None = None) -> dict[str, Any]:
+    """Render the stage's composite in ``mode`` into ``out`` (on ``grids`` when given: the whole
+    scene's, or the masked scene's and the objects'); its speed."""
+    from regnf.compositor.baked_composite import with_grids, with_object_grids
     from regnf.compositor.from_stage import composite_from_stage
     from regnf.compositor.render_folder import RenderConfig, render_views
     from regnf.compositor.stage_config import StageCompositeConfig
 
     comp = composite_from_stage(stage, StageCompositeConfig(mode=mode, box_pad=config.completion_box_pad),
                                 config.device)
-    report = render_views(comp.field, cameras, out, RenderConfig(sequence="gif", overwrite=True),
-                          {"stage": str(stage), "mode": mode, "instance_ids": comp.instance_ids})
-    return {"seconds_per_view": float(np.mean(report.seconds)), "evals_per_pixel": report.evals_per_pixel_mean}
+    field, render = comp.field, RenderConfig(sequence="gif", overwrite=True)
+    if grids is not None and mode == "scene":
+        field = with_grids(comp.field, grids.whole, [])
+    elif grids is not None:
+        field = with_object_grids(comp, {i: r.library_name for i, r in comp.scene.instances.items()}, grids)
+    if grids is not None:
+        render = dataclasses.replace(render, renderer="baked")
+    report = render_views(field, cameras, out, render, {"stage": str(stage), "mode": mode,
+                                                          "instance_ids": comp.instance_ids})
+    return {"seconds_per_view": float(np.mean(report.seconds)), "evals_per_pixel": report.evals_per_pixel_mean,
+            "renderer": render.renderer}
 
 
 def run_demo(out: str | Path = Path("out/demo"), config: DemoConfig = DemoConfig(),
@@ -336,10 +352,12 @@ def _run_demo(folder: OutputFolder, config: DemoConfig, cache: Cache | None) -> 
     from regnf.compositor.replace import ReplaceConfig, replace_and_render
     from regnf.compositor.stage_config import StageCompositeConfig
     from regnf.core.atomic_io import write_json
+    from regnf.neural_fields.baked_field import BakeConfig
     from regnf.scene_graph import export_stage, new_stage, validate_stage
     from regnf.synthetic.capture import RoomCaptureConfig
     from regnf.synthetic.rooms import ROOM_CONTENTS, make_room
 
+    from .data_set_grids import cached_stage_grids
     from .report import write_report
 
     t_start = time.perf_counter()
@@ -374,19 +392,24 @@ def _run_demo(folder: OutputFolder, config: DemoConfig, cache: Cache | None) -> 
         raise RuntimeError("no registration was accepted: nothing to composite")
 
     cameras = _orbit_cameras(stage, config)
+    substitute = StageCompositeConfig(mode="substitute", box_pad=config.completion_box_pad)
+    with log.step("bake the grids", "the scene, the scene less the instances and every library object, for the orbit",
+                  cacheable=True) as rec:
+        grids, seconds = cached_stage_grids(cache.root / GRIDS_DIR, config.room, stage, cameras, BakeConfig(),
+                                            substitute, config.device, progress=True)
+        rec["cached"] = seconds == 0.0
     renders = {}
     for mode, what in (("scene", "the scene field alone"), ("substitute", "instances substituted")):
-        with log.step(f"render {mode}", f"{len(cameras)} orbit views, {what}"):
-            renders[mode] = _render_mode(stage, mode, cameras, out / "renders" / mode, config)
+        with log.step(f"render {mode}", f"{len(cameras)} orbit views on the grids, {what}"):
+            renders[mode] = _render_mode(stage, mode, cameras, out / "renders" / mode, config, grids)
     room = make_room(config.room, seed=capture_cfg.seed)
     with log.step("render object completion", "one unseen view per object, against ground truth"):
         completion = _completion(stage, room, config, out)
     replacements = []
     for seed in config.replacement_seeds:
-        with log.step(f"random replacement, seed {seed}", f"{len(cameras)} orbit views"):
-            cfg = ReplaceConfig(StageCompositeConfig(mode="substitute", box_pad=config.completion_box_pad),
-                                device=config.device)
-            res = replace_and_render(stage, seed, out / "replacements" / f"seed_{seed}", cameras, cfg)
+        with log.step(f"random replacement, seed {seed}", f"{len(cameras)} orbit views, on the grids"):
+            cfg = ReplaceConfig(substitute, device=config.device)
+            res = replace_and_render(stage, seed, out / "replacements" / f"seed_{seed}", cameras, cfg, grids=grids)
             replacements.append({"seed": seed, "selections": res.selections})
     usdz = out / f"{config.room}.usdz"
     with log.step("export the .usdz", "one self-contained package"):
@@ -422,9 +445,11 @@ def _summary(config: DemoConfig, out: Path, stage: Path, usdz: Path, log: StepLo
                   f"pose. PSNR on the object's pixels: {per_obj} (mean gain {gain:+.1f} dB)."),
          "images": [{"path": completion["image"], "caption": "ground truth | scene field | substituted"}]},
         {"title": "Scene field and substitution around the room",
-         "text": (f"{config.orbit_views} views on an orbit inside the room, sphere traced at "
-                  f"{renders['substitute']['seconds_per_view']:.1f} s per {config.width}x{config.height} view "
-                  f"({renders['substitute']['evals_per_pixel']:.1f} field evaluations per pixel)."),
+         "text": (f"{config.orbit_views} views on an orbit inside the room, {config.width}x{config.height}, sphere "
+                  "traced on grids baked once from the fields (cells of half a pixel's footprint, kept in the "
+                  "cache; the object completion above is traced through the networks): "
+                  f"{renders['scene']['seconds_per_view']:.2f} s per view of the scene field alone, "
+                  f"{renders['substitute']['seconds_per_view']:.2f} s with every instance substituted."),
          "images": [{"path": "renders/scene/contact_sheet.png", "caption": "the scene field alone"},
                     {"path": "renders/substitute/contact_sheet.png",
                      "caption": "every registered instance substituted by its library field"},

@@ -329,13 +329,18 @@ def render_variant(task: VariantTask) -> VariantOutput:
 
 def _with_data_set_grids(comp: Any, selections: dict[str, str], index: Path, device: str) -> Any:
     """The variant's composite on the data set's grids, loaded once per worker process."""
-    from .data_set_grids import load_data_set_grids, with_data_set_grids
+    from regnf.compositor.baked_composite import with_object_grids
+
+    from .data_set_grids import load_data_set_grids
 
     stamp = (str(index), index.stat().st_mtime_ns, device)
     if _WORKER_CACHE.get("grids_stamp") != stamp:
         _WORKER_CACHE.pop("grids", None)  # the old grids go before the new ones come
         _WORKER_CACHE.update(grids=load_data_set_grids(index, device), grids_stamp=stamp)
-    return with_data_set_grids(comp, selections, _WORKER_CACHE["grids"])
+    try:
+        return with_object_grids(comp, selections, _WORKER_CACHE["grids"])
+    except ValueError as exc:
+        raise ValueError(f"{index}: {exc} (remove it to bake them again)") from None
 
 
 def _settings_key(settings: dict[str, Any]) -> str:

@@ -268,15 +268,41 @@ def test_the_baked_renderer_draws_each_variant_of_the_neural_fields(stage: Path,
         assert json.loads((baked_reference / b["variant"] / "render.json").read_text())["renderer"] == "baked"
 
 
+def test_one_replacement_on_the_data_set_s_grids_is_its_baked_variant(stage: Path, baked_reference: Path,
+                                                                       tmp_path: Path) -> None:
+    """The single-variant path given the grids (as the demo renders its replacements) draws the
+    seed's variant of the baked data set, and refuses grids without an object the seed picks
+    before it writes anything."""
+    from regnf.data_set_grids import load_data_set_grids
+
+    grids = load_data_set_grids(baked_reference / "baked" / "index.json")
+    rows = {r["seed"]: r for r in load_rows(baked_reference)}
+    seed = 4
+    bounds = field_bounds_metres(composite_from_stage(stage, StageCompositeConfig(mode="scene")).field.scene)
+    cams = variant_cameras(bounds, config(), seed)
+    result = replace_and_render(stage, seed, tmp_path / "one", cams, ReplaceConfig(), grids=grids)
+    assert result.selections == rows[seed]["selections"]
+    record = json.loads((tmp_path / "one" / "render.json").read_text())
+    assert record["renderer"] == "baked" and record["timings"]["bake_seconds"] == 0.0  # read, not baked
+    assert_same_images(tmp_path / "one", baked_reference / rows[seed]["variant"], 3)
+
+    shown = sorted(set(rows[seed]["selections"].values()))
+    partial = grids._replace(objects={n: g for n, g in grids.objects.items() if n != shown[0]})
+    with pytest.raises(ValueError, match=f"hold no .*{shown[0]}"):
+        replace_and_render(stage, seed, tmp_path / "two", cams, ReplaceConfig(), grids=partial)
+    assert not (tmp_path / "two").exists()
+
+
 def test_each_variant_reads_the_grid_of_the_object_it_shows(stage: Path, baked_reference: Path) -> None:
     """The grids a worker puts in place: each baked from the object the instance shows (named by
     its checkpoint), and the composite's distances near the objects within a few cells of the
     neural composite's."""
     import torch
 
+    from regnf.compositor.baked_composite import with_object_grids
     from regnf.compositor.from_stage import composite_from_scene
     from regnf.compositor.replace import swapped
-    from regnf.data_set_grids import load_data_set_grids, with_data_set_grids
+    from regnf.data_set_grids import load_data_set_grids
     from regnf.scene_graph import original_selections
 
     grids = load_data_set_grids(baked_reference / "baked" / "index.json")
@@ -285,7 +311,7 @@ def test_each_variant_reads_the_grid_of_the_object_it_shows(stage: Path, baked_r
     for r in load_rows(baked_reference)[:3]:
         comp = composite_from_scene(swapped(scene, r["selections"]), originals, stage,
                                     StageCompositeConfig(mode="substitute"))
-        baked = with_data_set_grids(comp, r["selections"], grids)
+        baked = with_object_grids(comp, r["selections"], grids)
         for iid, k in comp.instance_ids.items():
             placed = baked.placements[baked.instance_ids.index(k)]
             assert placed.field.info.name == r["selections"][iid]

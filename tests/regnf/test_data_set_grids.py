@@ -1,0 +1,97 @@
+"""The grids of a stage kept in a cache folder (``regnf demo``): baked once, read back the same,
+baked again when damaged, incomplete or made for other cameras."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+import torch
+
+from regnf.compositor.cameras_io import OrbitConfig, field_bounds_metres, orbit_around_bounds
+from regnf.compositor.from_stage import composite_from_stage
+from regnf.compositor.stage_config import StageCompositeConfig
+from regnf.core.threads import one_thread
+from regnf.data_set_grids import (
+    INDEX,
+    WHOLE_FILE,
+    bake_for_data_set,
+    cached_stage_grids,
+    stage_grids_key,
+)
+from regnf.neural_fields.baked_field import BakeConfig, bake, bake_cell
+from regnf.scene_graph import add_instance
+from tests.scene_graph.helpers import make_stage, similarity
+
+SUBSTITUTE = StageCompositeConfig(mode="substitute")
+
+
+@pytest.fixture(scope="module")
+def stage(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    path = make_stage(tmp_path_factory.mktemp("grids"), names=("c", "dc"))
+    add_instance(path, "c", similarity(0.5, (2.2, -0.5, 0.0), 1.0))
+    return path
+
+
+def cameras(stage: Path, n: int = 2, width: int = 24) -> list:
+    scene = composite_from_stage(stage, StageCompositeConfig(mode="scene")).field.scene
+    return orbit_around_bounds(field_bounds_metres(scene), OrbitConfig(n=n, width=width, height=18, radius=4.5))
+
+
+def same_bits(a, b) -> bool:
+    fields = [(a.scene, b.scene), (a.whole, b.whole), *((a.objects[n], b.objects[n]) for n in a.objects)]
+    return sorted(a.objects) == sorted(b.objects) and all(
+        torch.equal(x.sdf_grid, y.sdf_grid) and torch.equal(x.rgb_grid, y.rgb_grid) for x, y in fields)
+
+
+def test_the_grids_are_baked_once_then_read_back(stage: Path, tmp_path: Path) -> None:
+    cams = cameras(stage)
+    first, seconds = cached_stage_grids(tmp_path, "room", stage, cams, BakeConfig(), SUBSTITUTE)
+    assert seconds > 0
+    # Both library objects (the instance may show either), the masked scene and the whole one.
+    assert sorted(first.objects) == ["c", "dc"] and first.whole is not None
+    again, seconds = cached_stage_grids(tmp_path, "room", stage, cams, BakeConfig(), SUBSTITUTE)
+    assert seconds == 0.0 and same_bits(first, again)
+    assert [p.name for p in tmp_path.iterdir()] == [f"room-{stage_grids_key(stage, cams, BakeConfig(), SUBSTITUTE)}"]
+
+
+def test_the_whole_scene_grid_is_the_scene_field_alone(stage: Path, tmp_path: Path) -> None:
+    """Not the masked scene: baked from the scene field itself (one thread, as the bake runs)."""
+    cams = cameras(stage)
+    grids, _ = cached_stage_grids(tmp_path, "room", stage, cams, BakeConfig(), SUBSTITUTE)
+    scene = composite_from_stage(stage, StageCompositeConfig(mode="scene")).field.scene
+    with one_thread():
+        alone = bake(scene, bake_cell(scene, cams, BakeConfig()), BakeConfig())
+    assert torch.equal(grids.whole.sdf_grid, alone.sdf_grid) and torch.equal(grids.whole.rgb_grid, alone.rgb_grid)
+    assert not torch.equal(grids.scene.sdf_grid, alone.sdf_grid)  # the instance's region is cut from that one
+
+
+def test_other_cameras_or_settings_bake_grids_of_their_own(stage: Path, tmp_path: Path) -> None:
+    cams = cameras(stage)
+    keys = {stage_grids_key(stage, c, b, m) for c, b, m in (
+        (cams, BakeConfig(), SUBSTITUTE), (cameras(stage, n=3), BakeConfig(), SUBSTITUTE),
+        (cameras(stage, width=32), BakeConfig(), SUBSTITUTE), (cams, BakeConfig(cell_pixels=1.0), SUBSTITUTE),
+        (cams, BakeConfig(), StageCompositeConfig(mode="substitute", box_pad=0.5)))}
+    assert len(keys) == 5
+    # The mode is always substitute: the key does not depend on the one given.
+    assert stage_grids_key(stage, cams, BakeConfig(), StageCompositeConfig(mode="scene")) in keys
+
+
+def test_a_damaged_or_incomplete_folder_is_baked_again_to_the_same_bits(stage: Path, tmp_path: Path) -> None:
+    cams = cameras(stage)
+    first, _ = cached_stage_grids(tmp_path, "room", stage, cams, BakeConfig(), SUBSTITUTE)
+    folder = next(tmp_path.iterdir())
+    whole = folder / WHOLE_FILE
+    data = bytearray(whole.read_bytes())
+    data[-5] ^= 0xFF
+    whole.write_bytes(bytes(data))
+    again, seconds = cached_stage_grids(tmp_path, "room", stage, cams, BakeConfig(), SUBSTITUTE)
+    assert seconds > 0 and same_bits(first, again)
+    # Grids of the same key without the whole scene's (as a data set keeps them): baked again.
+    key = json.loads((folder / INDEX).read_text())["config_key"]
+    bake_for_data_set(stage, folder, "another key", cams, BakeConfig(), SUBSTITUTE)
+    assert "whole_scene" not in json.loads((folder / INDEX).read_text())
+    (folder / INDEX).write_text((folder / INDEX).read_text().replace("another key", key))
+    third, seconds = cached_stage_grids(tmp_path, "room", stage, cams, BakeConfig(), SUBSTITUTE)
+    assert seconds > 0 and same_bits(first, third)
