@@ -15,6 +15,8 @@ from typing import TYPE_CHECKING, NamedTuple
 
 import torch
 
+from regnf.core.denormals import denormals_flushed
+
 if TYPE_CHECKING:
     from regnf.neural_fields.visibility import VisibilityGrid
 
@@ -180,7 +182,7 @@ class Field(torch.nn.Module, metaclass=abc.ABCMeta):
         Works under ``torch.no_grad()`` too: gradients w.r.t. the points are always
         enabled inside. ``create_graph=True`` keeps the graph for losses on the gradient.
         """
-        with torch.enable_grad():
+        with torch.enable_grad(), denormals_flushed():  # the backward of a network too (core.denormals)
             xr = x.detach().requires_grad_(True) if not create_graph else x
             if not xr.requires_grad:
                 xr = xr.requires_grad_(True)
