@@ -15,11 +15,12 @@ data set's key and every file still has its digest, and bakes them again otherwi
 from __future__ import annotations
 
 import concurrent.futures as cf
+import contextlib
 import dataclasses
 import hashlib
 import json
 import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -28,7 +29,7 @@ import numpy as np
 from regnf.compositor.baked_composite import BakedGrids, bake_grids, masked_scene, placed_to_world
 from regnf.compositor.stage_config import StageCompositeConfig
 from regnf.core.atomic_io import write_json
-from regnf.core.file_lock import folder_lock
+from regnf.core.file_lock import LockBusy, folder_lock
 from regnf.core.threads import usable_cores
 from regnf.neural_fields.baked_field import BakeConfig, BakedField
 from regnf.neural_fields.baked_io import load_baked, save_baked
@@ -212,20 +213,27 @@ def stage_grids_key(stage: Path, cameras: Sequence[Camera], bake: BakeConfig,
 
 
 def cached_stage_grids(root: Path, label: str, stage: Path, cameras: Sequence[Camera], bake: BakeConfig,
-                       composite: StageCompositeConfig, device: str = "cpu",
-                       progress: bool = False) -> tuple[BakedGrids, float]:
+                       composite: StageCompositeConfig, device: str = "cpu", progress: bool = False,
+                       on_wait: Callable[[str], None] | None = None) -> tuple[BakedGrids, float]:
     """The grids of ``stage`` for its views and replacements (:func:`bake_for_data_set` with
-    ``substitution``) from
-    ``root/<label>-<key>/``, baked there first when they are missing or damaged: (the grids,
-    the seconds spent baking, 0 when read).
+    ``substitution``) from ``root/<label>-<key>/``, baked there first when they are missing or
+    damaged: (the grids, the seconds spent baking, 0 when read).
 
     ``key`` is :func:`stage_grids_key`. The folder's lock is held while the grids are checked,
-    baked and read, so two processes wanting the same grids bake them once.
+    baked and read, so two processes wanting the same grids bake them once: the second waits
+    for the first (``on_wait`` is told why, with the message naming the lock's holder).
     """
     key = stage_grids_key(stage, cameras, bake, composite)
     folder = root / f"{label}-{key}"
     folder.mkdir(parents=True, exist_ok=True)
-    with folder_lock(folder, "the baked grids", timeout=float("inf")):
+    with contextlib.ExitStack() as stack:
+        try:
+            stack.enter_context(folder_lock(folder, "the baked grids"))
+        except LockBusy as busy:
+            if on_wait is not None:
+                on_wait(f"{folder}: another regnf process ({busy.holder or 'unknown'}) is baking or reading "
+                        "these grids; waiting for it")
+            stack.enter_context(folder_lock(folder, "the baked grids", timeout=float("inf")))
         index, seconds = bake_for_data_set(stage, folder, key, cameras, bake, composite, device, progress,
                                            substitution=True)
         return load_data_set_grids(index, device), seconds

@@ -396,7 +396,8 @@ def _run_demo(folder: OutputFolder, config: DemoConfig, cache: Cache | None) -> 
     with log.step("bake the grids", "the scene, the scene less the instances and every library object, for the orbit",
                   cacheable=True) as rec:
         grids, seconds = cached_stage_grids(cache.root / GRIDS_DIR, config.room, stage, cameras, BakeConfig(),
-                                            substitute, config.device, progress=True)
+                                            substitute, config.device, progress=True,
+                                            on_wait=lambda why: console.print(f"  {why}"))
         rec["cached"] = seconds == 0.0
     renders = {}
     for mode, what in (("scene", "the scene field alone"), ("substitute", "instances substituted")):

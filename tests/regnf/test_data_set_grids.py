@@ -4,6 +4,7 @@ baked again when damaged, incomplete or made for other cameras."""
 from __future__ import annotations
 
 import json
+import threading
 from pathlib import Path
 
 import pytest
@@ -12,6 +13,7 @@ import torch
 from regnf.compositor.cameras_io import OrbitConfig, field_bounds_metres, orbit_around_bounds
 from regnf.compositor.from_stage import composite_from_stage
 from regnf.compositor.stage_config import StageCompositeConfig
+from regnf.core.file_lock import folder_lock
 from regnf.core.threads import one_thread
 from regnf.data_set_grids import (
     INDEX,
@@ -95,3 +97,27 @@ def test_a_damaged_or_incomplete_folder_is_baked_again_to_the_same_bits(stage: P
     (folder / INDEX).write_text((folder / INDEX).read_text().replace("another key", key))
     third, seconds = cached_stage_grids(tmp_path, "room", stage, cams, BakeConfig(), SUBSTITUTE)
     assert seconds > 0 and same_bits(first, third)
+
+
+def test_a_second_caller_waits_for_the_one_baking_and_says_so(stage: Path, tmp_path: Path) -> None:
+    """Another holder of the folder's lock (a thread here, as another process would): the call
+    says it waits, then reads the grids once the holder is done."""
+    cams = cameras(stage)
+    first, _ = cached_stage_grids(tmp_path, "room", stage, cams, BakeConfig(), SUBSTITUTE)
+    folder = next(tmp_path.iterdir())
+    held, release = threading.Event(), threading.Event()
+
+    def hold() -> None:
+        with folder_lock(folder):
+            held.set()
+            release.wait(10)
+
+    holder = threading.Thread(target=hold)
+    holder.start()
+    held.wait(10)
+    told: list[str] = []
+    threading.Timer(0.3, release.set).start()
+    again, seconds = cached_stage_grids(tmp_path, "room", stage, cams, BakeConfig(), SUBSTITUTE, on_wait=told.append)
+    holder.join()
+    assert seconds == 0.0 and same_bits(first, again)
+    assert len(told) == 1 and str(folder) in told[0] and "waiting" in told[0]
