@@ -54,8 +54,6 @@ class BakedGrids(NamedTuple):
     """Wall time of the baking (NaN for grids read back from files)."""
     nodes: int
     """Grid nodes over every baked field."""
-    whole: BakedField | None = None
-    """The scene field alone, nothing removed (its views without substitution), when baked."""
 
 
 def masked_scene(composite: CompositeField) -> CompositeField:
@@ -74,7 +72,7 @@ def placed_to_world(composite: CompositeField) -> list[np.ndarray]:
 
 def bake_grids(scene: Field, objects: Mapping[str, tuple[Field, Sequence[np.ndarray]]],
                cameras: Sequence[Camera], config: BakeConfig | None = None, progress: bool = False,
-               workers: int | None = None, whole: Field | None = None) -> BakedGrids:
+               workers: int | None = None) -> BakedGrids:
     """Bake a masked scene and library objects for ``cameras``.
 
     Parameters
@@ -93,8 +91,6 @@ def bake_grids(scene: Field, objects: Mapping[str, tuple[Field, Sequence[np.ndar
     workers : int, optional
         Fields baked at once, each on one CPU thread (:func:`regnf.core.threads.map_one_thread_each`);
         None: one per usable core. One thread per field makes the grids the same on any machine.
-    whole : Field, optional
-        The scene field itself, nothing removed, to bake as well (:attr:`BakedGrids.whole`).
 
     Raises
     ------
@@ -112,9 +108,6 @@ def bake_grids(scene: Field, objects: Mapping[str, tuple[Field, Sequence[np.ndar
         if not places:
             raise ValueError(f"library object {n!r} has no place to be baked for")
         cells.append(min(bake_cell(field, cameras, config, to_world=W) for W in places))
-    if whole is not None:
-        fields.append(whole)
-        cells.append(bake_cell(whole, cameras, config))
     total = sum(math.prod(grid_nodes(f.bounds, c, config.coarse_stride)) for f, c in zip(fields, cells))
     _check_nodes(total, f"these {len(fields)} fields", config)  # before any baking
     # The largest first, so that the others fill the remaining workers around it.
@@ -123,7 +116,7 @@ def bake_grids(scene: Field, objects: Mapping[str, tuple[Field, Sequence[np.ndar
                                          order, workers)
     baked = dict(zip(order, baked_in_order))
     return BakedGrids(baked[0], {n: baked[k] for k, n in enumerate(names, start=1)},
-                      time.perf_counter() - t0, total, baked[len(names) + 1] if whole is not None else None)
+                      time.perf_counter() - t0, total)
 
 
 def with_grids(composite: CompositeField, scene: BakedField, objects: Sequence[BakedField]) -> CompositeField:

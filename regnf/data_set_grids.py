@@ -41,8 +41,6 @@ INDEX = "index.json"
 """The record of the grids, written after them."""
 SCENE_FILE = "scene.safetensors"
 """The scene less its removal regions."""
-WHOLE_FILE = "whole_scene.safetensors"
-"""The scene field alone, nothing removed (only when asked for)."""
 
 
 def bake_for_data_set(base: Path, folder: Path, key: str, cameras: Sequence[Camera], bake: BakeConfig,
@@ -72,9 +70,8 @@ def bake_for_data_set(base: Path, folder: Path, key: str, cameras: Sequence[Came
     progress : bool
         Show a progress bar per baked field.
     substitution : bool
-        Bake the grids of the stage's own views too: the scene field alone
-        (``whole_scene.safetensors``) and every instance's own object (a replacement shows
-        another one); grids kept without them are baked again.
+        Bake every instance's own object too (a replacement shows another one), for the
+        stage's substitution; grids kept without one are baked again.
     """
     from regnf.compositor.from_stage import composite_from_scene
     from regnf.compositor.replace import replacement_candidates, swapped
@@ -103,19 +100,17 @@ def bake_for_data_set(base: Path, folder: Path, key: str, cameras: Sequence[Came
         field = next(p.field for p, k in zip(placed.field.placements, placed.field.instance_ids)
                      if any(k_of[iid] == k for iid in at))
         objects[name] = (field, places)
-    grids = bake_grids(masked_scene(comp.field), objects, cameras, bake, progress,
-                       whole=comp.field.scene if substitution else None)
+    grids = bake_grids(masked_scene(comp.field), objects, cameras, bake, progress)
     folder.mkdir(parents=True, exist_ok=True)
     # An old index stays until the new one replaces it: if this run is killed in between, the
     # files it rewrote no longer match its digests (and the next run bakes again), unless they
     # are the very bytes it records.
-    files = {"scene": _saved(grids.scene, folder / SCENE_FILE)}
+    scene_entry = _saved(grids.scene, folder / SCENE_FILE)
     names = {}
     for k, name in enumerate(sorted(grids.objects)):
         names[name] = _saved(grids.objects[name], folder / f"object_{k}.safetensors")
-    if grids.whole is not None:
-        files["whole_scene"] = _saved(grids.whole, folder / WHOLE_FILE)
-    write_json(index, {"config_key": key, **files, "objects": names, "nodes": grids.nodes})
+    record = {"config_key": key, "scene": scene_entry, "objects": names, "nodes": grids.nodes}
+    write_json(index, {**record, "substitution": True} if substitution else record)
     return index, grids.seconds
 
 
@@ -125,16 +120,15 @@ def _saved(grid: BakedField, path: Path) -> dict[str, str]:
 
 
 def _entries(record: Mapping[str, Any]) -> list[Mapping[str, Any]]:
-    whole = [record["whole_scene"]] if "whole_scene" in record else []
-    return [record["scene"], *record["objects"].values(), *whole]
+    return [record["scene"], *record["objects"].values()]
 
 
 def _index_checks_out(index: Path, key: str, substitution: bool = False) -> bool:
-    """Whether ``index`` records grids of ``key`` (with the whole scene's, for ``substitution``)
-    whose files all have their digests."""
+    """Whether ``index`` records grids of ``key`` (with every instance's own object, for
+    ``substitution``) whose files all have their digests."""
     try:
         record = json.loads(index.read_text(encoding="utf-8"))
-        if record.get("config_key") != key or (substitution and "whole_scene" not in record):
+        if record.get("config_key") != key or (substitution and record.get("substitution") is not True):
             return False
         entries = _entries(record)
         paths = []
@@ -166,17 +160,15 @@ def load_data_set_grids(index: str | os.PathLike, device: str = "cpu") -> BakedG
         record = json.loads(index.read_text(encoding="utf-8"))
         scene_file = record["scene"]["file"]
         object_files = {str(n): e["file"] for n, e in record["objects"].items()}
-        whole_file = record["whole_scene"]["file"] if "whole_scene" in record else None
         nodes = int(record["nodes"])
     except (OSError, UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
         raise ValueError(f"{index}: not a record of baked grids ({type(exc).__name__}: {exc})") from None
-    for name in (scene_file, *object_files.values(), *([whole_file] if whole_file is not None else [])):
+    for name in (scene_file, *object_files.values()):
         if not isinstance(name, str) or name != Path(name).name or name.startswith("."):
             raise ValueError(f"{index}: grid file {name!r} is not a plain file name in {index.parent}")
     return BakedGrids(load_baked(index.parent / scene_file, device),
                       {n: load_baked(index.parent / f, device) for n, f in object_files.items()},
-                      float("nan"), nodes,
-                      load_baked(index.parent / whole_file, device) if whole_file is not None else None)
+                      float("nan"), nodes)
 
 
 GRIDS_VERSION = 1

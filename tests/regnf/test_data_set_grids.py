@@ -14,15 +14,14 @@ from regnf.compositor.cameras_io import OrbitConfig, field_bounds_metres, orbit_
 from regnf.compositor.from_stage import composite_from_stage
 from regnf.compositor.stage_config import StageCompositeConfig
 from regnf.core.file_lock import folder_lock
-from regnf.core.threads import one_thread
 from regnf.data_set_grids import (
     INDEX,
-    WHOLE_FILE,
     bake_for_data_set,
     cached_stage_grids,
+    load_data_set_grids,
     stage_grids_key,
 )
-from regnf.neural_fields.baked_field import BakeConfig, bake, bake_cell
+from regnf.neural_fields.baked_field import BakeConfig
 from regnf.scene_graph import add_instance
 from tests.scene_graph.helpers import make_stage, similarity
 
@@ -42,7 +41,7 @@ def cameras(stage: Path, n: int = 2, width: int = 24) -> list:
 
 
 def same_bits(a, b) -> bool:
-    fields = [(a.scene, b.scene), (a.whole, b.whole), *((a.objects[n], b.objects[n]) for n in a.objects)]
+    fields = [(a.scene, b.scene), *((a.objects[n], b.objects[n]) for n in a.objects)]
     return sorted(a.objects) == sorted(b.objects) and all(
         torch.equal(x.sdf_grid, y.sdf_grid) and torch.equal(x.rgb_grid, y.rgb_grid) for x, y in fields)
 
@@ -51,22 +50,23 @@ def test_the_grids_are_baked_once_then_read_back(stage: Path, tmp_path: Path) ->
     cams = cameras(stage)
     first, seconds = cached_stage_grids(tmp_path, "room", stage, cams, BakeConfig(), SUBSTITUTE)
     assert seconds > 0
-    # Both library objects (the instance may show either), the masked scene and the whole one.
-    assert sorted(first.objects) == ["c", "dc"] and first.whole is not None
+    # Both library objects: the instance shows its own (the substitution) or the other chair.
+    assert sorted(first.objects) == ["c", "dc"]
     again, seconds = cached_stage_grids(tmp_path, "room", stage, cams, BakeConfig(), SUBSTITUTE)
     assert seconds == 0.0 and same_bits(first, again)
     assert [p.name for p in tmp_path.iterdir()] == [f"room-{stage_grids_key(stage, cams, BakeConfig(), SUBSTITUTE)}"]
 
 
-def test_the_whole_scene_grid_is_the_scene_field_alone(stage: Path, tmp_path: Path) -> None:
-    """Not the masked scene: baked from the scene field itself (one thread, as the bake runs)."""
+def test_a_data_set_s_grids_lack_the_instance_s_own_object(stage: Path, tmp_path: Path) -> None:
+    """What a replacement never shows is not baked for a data set; the stage's grids have it,
+    with the same bits of the masked scene and the other chair."""
     cams = cameras(stage)
-    grids, _ = cached_stage_grids(tmp_path, "room", stage, cams, BakeConfig(), SUBSTITUTE)
-    scene = composite_from_stage(stage, StageCompositeConfig(mode="scene")).field.scene
-    with one_thread():
-        alone = bake(scene, bake_cell(scene, cams, BakeConfig()), BakeConfig())
-    assert torch.equal(grids.whole.sdf_grid, alone.sdf_grid) and torch.equal(grids.whole.rgb_grid, alone.rgb_grid)
-    assert not torch.equal(grids.scene.sdf_grid, alone.sdf_grid)  # the instance's region is cut from that one
+    grids, _ = cached_stage_grids(tmp_path / "cache", "room", stage, cams, BakeConfig(), SUBSTITUTE)
+    bake_for_data_set(stage, tmp_path / "data", "key", cams, BakeConfig(), SUBSTITUTE)
+    data = load_data_set_grids(tmp_path / "data" / INDEX)
+    assert sorted(data.objects) == ["dc"]
+    assert torch.equal(data.scene.sdf_grid, grids.scene.sdf_grid)
+    assert torch.equal(data.objects["dc"].rgb_grid, grids.objects["dc"].rgb_grid)
 
 
 def test_other_cameras_or_settings_bake_grids_of_their_own(stage: Path, tmp_path: Path) -> None:
@@ -84,16 +84,16 @@ def test_a_damaged_or_incomplete_folder_is_baked_again_to_the_same_bits(stage: P
     cams = cameras(stage)
     first, _ = cached_stage_grids(tmp_path, "room", stage, cams, BakeConfig(), SUBSTITUTE)
     folder = next(tmp_path.iterdir())
-    whole = folder / WHOLE_FILE
-    data = bytearray(whole.read_bytes())
+    damaged = folder / "scene.safetensors"
+    data = bytearray(damaged.read_bytes())
     data[-5] ^= 0xFF
-    whole.write_bytes(bytes(data))
+    damaged.write_bytes(bytes(data))
     again, seconds = cached_stage_grids(tmp_path, "room", stage, cams, BakeConfig(), SUBSTITUTE)
     assert seconds > 0 and same_bits(first, again)
-    # Grids of the same key without the whole scene's (as a data set keeps them): baked again.
+    # Grids of the same key without the instance's own object (as a data set keeps them): baked again.
     key = json.loads((folder / INDEX).read_text())["config_key"]
     bake_for_data_set(stage, folder, "another key", cams, BakeConfig(), SUBSTITUTE)
-    assert "whole_scene" not in json.loads((folder / INDEX).read_text())
+    assert sorted(json.loads((folder / INDEX).read_text())["objects"]) == ["dc"]
     (folder / INDEX).write_text((folder / INDEX).read_text().replace("another key", key))
     third, seconds = cached_stage_grids(tmp_path, "room", stage, cams, BakeConfig(), SUBSTITUTE)
     assert seconds > 0 and same_bits(first, third)
