@@ -105,11 +105,14 @@ def bake_for_data_set(base: Path, folder: Path, key: str, cameras: Sequence[Came
     # An old index stays until the new one replaces it: if this run is killed in between, the
     # files it rewrote no longer match its digests (and the next run bakes again), unless they
     # are the very bytes it records.
-    scene_entry = _saved(grids.scene, folder / SCENE_FILE)
-    names = {}
-    for k, name in enumerate(sorted(grids.objects)):
-        names[name] = _saved(grids.objects[name], folder / f"object_{k}.safetensors")
-    record = {"config_key": key, "scene": scene_entry, "objects": names, "nodes": grids.nodes}
+    order = sorted(grids.objects)
+    jobs = [(grids.scene, folder / SCENE_FILE),
+            *((grids.objects[name], folder / f"object_{k}.safetensors") for k, name in enumerate(order))]
+    # Writing (with its fsync) and hashing release the interpreter's lock: side by side.
+    with cf.ThreadPoolExecutor(usable_cores()) as pool:
+        entries = list(pool.map(lambda job: _saved(*job), jobs))
+    record = {"config_key": key, "scene": entries[0], "objects": dict(zip(order, entries[1:], strict=True)),
+              "nodes": grids.nodes}
     write_json(index, {**record, "substitution": True} if substitution else record)
     return index, grids.seconds
 
