@@ -31,7 +31,7 @@ _PROBE = -100.0
 
 def flushing() -> bool:
     """Whether this thread computes with denormal floats as zero."""
-    return float(torch.exp(torch.tensor(_PROBE))) == 0.0
+    return float(torch.exp(torch.tensor(_PROBE, device="cpu"))) == 0.0  # the CPU's mode, whatever the default device
 
 
 @contextlib.contextmanager
