@@ -5,7 +5,7 @@ Layout (default root ``~/.cache/regnf``, or ``$REGNF_CACHE``)::
     captures/object-<name>-<key>/meta_data.json ...
     captures/room-<name>-<coverage>-<key>/meta_data.json ...
     fields/<name>-<source>-<key>.safetensors
-    baked/<room>-<key>/index.json ...      grids ``regnf demo`` bakes from its stage (regnf.data_set_grids)
+    baked/<room>-<coverage>-<source>/index.json ...   grids ``regnf demo`` bakes from its stage (regnf.data_set_grids)
 
 ``key`` hashes everything the result depends on (generator version, configs, and for a
 field the SHA-256 of the bytes of its training data, whatever the spelling of the capture's

@@ -210,16 +210,18 @@ def stage_grids_key(stage: Path, cameras: Sequence[Camera], bake: BakeConfig,
 def cached_stage_grids(root: Path, label: str, stage: Path, cameras: Sequence[Camera], bake: BakeConfig,
                        composite: StageCompositeConfig, device: str = "cpu", progress: bool = False,
                        on_wait: Callable[[str], None] | None = None) -> tuple[BakedGrids, float]:
-    """The grids of ``stage`` for its views and replacements (:func:`bake_for_data_set` with
-    ``substitution``) from ``root/<label>-<key>/``, baked there first when they are missing or
-    damaged: (the grids, the seconds spent baking, 0 when read).
+    """The grids of ``stage`` for its substitution and replacements (:func:`bake_for_data_set`
+    with ``substitution``) from ``root/<label>/``, baked there first when they are missing,
+    damaged or of another key: (the grids, the seconds spent baking, 0 when read).
 
-    ``key`` is :func:`stage_grids_key`. The folder's lock is held while the grids are checked,
-    baked and read, so two processes wanting the same grids bake them once: the second waits
-    for the first (``on_wait`` is told why, with the message naming the lock's holder).
+    The key is :func:`stage_grids_key`, recorded in the folder's index. One folder per label
+    keeps the cache's size bounded: grids of another key (the fields or the registrations
+    changed) are baked again over the ones there. The folder's lock is held while the grids are
+    checked, baked and read, so two processes wanting the same grids bake them once: the second
+    waits for the first (``on_wait`` is told why, with the message naming the lock's holder).
     """
     key = stage_grids_key(stage, cameras, bake, composite)
-    folder = root / f"{label}-{key}"
+    folder = root / label
     folder.mkdir(parents=True, exist_ok=True)
     with contextlib.ExitStack() as stack:
         try:

@@ -9,7 +9,8 @@
 4. discover the library's objects in the scene field with no boxes and register them; each is
    measured against the ground-truth pose, and the identified ones become instances;
 5. bake the scene less its instances and every library object into grids for the orbit's
-   pixel footprint (kept in the cache under ``baked/``: a second run reads them);
+   pixel footprint (kept in the cache under ``baked/<room>-<coverage>-<library source>/``:
+   a second run reads them);
 6. render the scene field alone around the room through its network (a room's grid cell
    loses the thin parts of the chairs the scene field holds), and with every instance
    substituted by its library field on the grids; per object, both through the networks from a
@@ -393,7 +394,8 @@ def _run_demo(folder: OutputFolder, config: DemoConfig, cache: Cache | None) -> 
     substitute = StageCompositeConfig(mode="substitute", box_pad=config.completion_box_pad)
     with log.step("bake the grids", "the scene less the instances and every library object, for the orbit",
                   cacheable=True) as rec:
-        grids, seconds = cached_stage_grids(cache.root / GRIDS_DIR, config.room, stage, cameras, BakeConfig(),
+        grids, seconds = cached_stage_grids(cache.root / GRIDS_DIR, f"{config.room}-{config.coverage}-"
+                                            f"{config.library_source}", stage, cameras, BakeConfig(),
                                             substitute, config.device, progress=True,
                                             on_wait=lambda why: console.print(f"  {why}"))
         rec["cached"] = seconds == 0.0

@@ -54,7 +54,9 @@ def test_the_grids_are_baked_once_then_read_back(stage: Path, tmp_path: Path) ->
     assert sorted(first.objects) == ["c", "dc"]
     again, seconds = cached_stage_grids(tmp_path, "room", stage, cams, BakeConfig(), SUBSTITUTE)
     assert seconds == 0.0 and same_bits(first, again)
-    assert [p.name for p in tmp_path.iterdir()] == [f"room-{stage_grids_key(stage, cams, BakeConfig(), SUBSTITUTE)}"]
+    assert [p.name for p in tmp_path.iterdir()] == ["room"]
+    key = json.loads((tmp_path / "room" / INDEX).read_text())["config_key"]
+    assert key == stage_grids_key(stage, cams, BakeConfig(), SUBSTITUTE)
 
 
 def test_a_data_set_s_grids_lack_the_instance_s_own_object(stage: Path, tmp_path: Path) -> None:
@@ -69,7 +71,7 @@ def test_a_data_set_s_grids_lack_the_instance_s_own_object(stage: Path, tmp_path
     assert torch.equal(data.objects["dc"].rgb_grid, grids.objects["dc"].rgb_grid)
 
 
-def test_other_cameras_or_settings_bake_grids_of_their_own(stage: Path, tmp_path: Path) -> None:
+def test_other_cameras_or_settings_bake_again_in_the_same_folder(stage: Path, tmp_path: Path) -> None:
     cams = cameras(stage)
     keys = {stage_grids_key(stage, c, b, m) for c, b, m in (
         (cams, BakeConfig(), SUBSTITUTE), (cameras(stage, n=3), BakeConfig(), SUBSTITUTE),
@@ -78,6 +80,13 @@ def test_other_cameras_or_settings_bake_grids_of_their_own(stage: Path, tmp_path
     assert len(keys) == 5
     # The mode is always substitute: the key does not depend on the one given.
     assert stage_grids_key(stage, cams, BakeConfig(), StageCompositeConfig(mode="scene")) in keys
+    # Grids for other cameras replace the ones there, in the one folder of the label.
+    first, _ = cached_stage_grids(tmp_path, "room", stage, cams, BakeConfig(), SUBSTITUTE)
+    other, seconds = cached_stage_grids(tmp_path, "room", stage, cameras(stage, width=32), BakeConfig(), SUBSTITUTE)
+    assert seconds > 0 and other.scene.sdf_grid.shape != first.scene.sdf_grid.shape
+    assert [p.name for p in tmp_path.iterdir()] == ["room"]
+    back, seconds = cached_stage_grids(tmp_path, "room", stage, cams, BakeConfig(), SUBSTITUTE)
+    assert seconds > 0 and same_bits(first, back)
 
 
 def test_a_damaged_or_incomplete_folder_is_baked_again_to_the_same_bits(stage: Path, tmp_path: Path) -> None:
