@@ -2,7 +2,8 @@
 
 ``regnf demo`` keeps the grids of its stage the same way in the cache
 (:func:`cached_stage_grids`), keyed by everything they are made from, so that a second run
-reads them instead of baking again.
+reads them instead of baking again; they hold each instance's own object too (its
+substitution), and their index says so (``"substitution": true``).
 
 ``out/baked/`` holds ``scene.safetensors`` (the scene less its removal regions: every
 instance is removed in every variant, so this is the same for all of them), one
