@@ -290,9 +290,6 @@ def _trace_wavefront(
     t_stop = t_out.clamp(max=far)
     fp = cfg.footprint_fraction * pixel_angle  # (n,): tolerance per unit of t
 
-    def tol_at(tt: torch.Tensor, rays: torch.Tensor) -> torch.Tensor:
-        return (fp[rays] * tt).clamp(min=cfg.tol)
-
     # Per ray, written once when the ray stops marching.
     t = t_start.clone()
     hit = torch.zeros(n, dtype=torch.bool, device=dev)
@@ -371,7 +368,7 @@ def _trace_wavefront(
         if cfg.bracket_on_sign_change:
             fail &= r >= 0  # a sign change is a bracket: refine it rather than go back
         ok = evaluated & ~fail
-        close = ok & (r.abs() < (F[_FP] * T).clamp(min=cfg.tol))  # within tolerance on either side
+        close = ok & (r.abs() < _tolerance(T, F[_FP], cfg))  # within tolerance on either side
         neg = ok & (r < 0) & ~close
         crossed = neg & SAFE
         stops_on_hit = close | (neg & ~SAFE)
@@ -430,7 +427,7 @@ def _trace_wavefront(
 
     bi = bracketed.nonzero().squeeze(1)
     if bi.numel() > 0:
-        t[bi] = _refine(field, o, d, t_prev, r_prev, t, s_neg, bi, cfg, tol_at, evals, winner)
+        t[bi] = _refine(field, o, d, t_prev, r_prev, t, s_neg, bi, cfg, fp, evals, winner)
         hit[bi] = True
 
     t = torch.where(hit, t, torch.full_like(t, math.inf))
@@ -451,6 +448,12 @@ _EV, _LK, _WIN, _FIRST = 0, 1, 2, 3
 _L_ROWS = 4
 """Rows of their integer state: field evaluations, grid look-ups, winning component, the
 iteration of the ray's first step."""
+
+
+def _tolerance(t: torch.Tensor, fp: torch.Tensor, cfg: SphereTracerConfig) -> torch.Tensor:
+    """The hit tolerance at distances ``t`` of rays whose tolerance per unit of t is ``fp``: a
+    fraction of the pixel's footprint, at least ``cfg.tol``."""
+    return (fp * t).clamp(min=cfg.tol)
 
 
 def _relaxation(cap: torch.Tensor, slope: torch.Tensor, cfg: SphereTracerConfig) -> torch.Tensor:
@@ -477,15 +480,15 @@ def _refine(
     s_neg: torch.Tensor,
     bi: torch.Tensor,
     cfg: SphereTracerConfig,
-    tol_at,
+    fp: torch.Tensor,
     evals: torch.Tensor,
     winner: torch.Tensor,
 ) -> torch.Tensor:
     """Roots (len(bi),) of the brackets ``[t_pos (sdf > 0), t_neg (sdf < 0)]`` of rays ``bi``.
 
     Illinois false position: the secant point of the bracket, halving the value kept at an
-    end that survives twice in a row (so that convex SDF profiles converge fast too).
-    ``evals`` and ``winner`` are updated in place.
+    end that survives twice in a row (so that convex SDF profiles converge fast too). ``fp``
+    (n,) is every ray's tolerance per unit of t; ``evals`` and ``winner`` are updated in place.
     """
     a, sa = t_pos[bi].clone(), s_pos[bi].clone()
     b, sb = t_neg[bi].clone(), s_neg[bi].clone()
@@ -508,7 +511,7 @@ def _refine(
         r = s.sdf.to(a.dtype)
         evals[rays] += s.evals
         winner[rays] = s.winner
-        tol = tol_at(m, rays)
+        tol = _tolerance(m, fp[rays], cfg)
         done = (r.abs() < tol) | (bb - aa < tol)
         root[act[done]] = m[done]
         outside = ~done & (r > 0)

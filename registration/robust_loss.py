@@ -52,15 +52,16 @@ _SAFE_EPS = 1e-7
 gradients NaN-free under ``torch.where``), below float32 resolution of the loss."""
 
 
-def _rho_numpy(x: np.ndarray | float, alpha: float) -> np.ndarray:
-    """Barron's rho at scale 1 in float64 numpy, with the alpha = 0 and alpha = 2 limits."""
+def _rho_numpy(x: np.ndarray | float, alpha: np.ndarray | float) -> np.ndarray:
+    """Barron's rho at scale 1 in float64 numpy, with the alpha = 0 and alpha = 2 limits;
+    ``x`` and ``alpha`` broadcast (a row per shape: ``x[None, :]``, ``alpha[:, None]``)."""
     x2 = np.square(np.asarray(x, dtype=np.float64))
-    if alpha == 0.0:
-        return np.log1p(0.5 * x2)
-    if alpha == 2.0:
-        return 0.5 * x2
-    beta = abs(alpha - 2.0)
-    return beta / alpha * np.expm1(0.5 * alpha * np.log1p(x2 / beta))
+    a = np.asarray(alpha, dtype=np.float64)
+    beta = np.abs(a - 2.0)
+    with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
+        general = beta / np.where(a == 0.0, 1.0, a) * np.expm1(
+            0.5 * a * np.log1p(x2 / np.where(beta == 0.0, 1.0, beta)))
+    return np.where(a == 0.0, np.log1p(0.5 * x2), np.where(a == 2.0, 0.5 * x2, general))
 
 
 def partition_numeric(alpha: float) -> float:
@@ -93,17 +94,6 @@ QUADRATURE_SPAN = 4.5
 """The transformed variable runs over [-span, span]: x from about 1e-31 to 1e31."""
 
 
-def _rho_rows(x: np.ndarray, alphas: np.ndarray) -> np.ndarray:
-    """Barron's rho at scale 1, (len(alphas), len(x)) float64: a row per shape, with its limits."""
-    x2 = np.square(x)[None, :]
-    a = alphas[:, None]
-    beta = np.abs(a - 2.0)
-    with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
-        general = beta / np.where(a == 0.0, 1.0, a) * np.expm1(
-            0.5 * a * np.log1p(x2 / np.where(beta == 0.0, 1.0, beta)))
-    return np.where(a == 0.0, np.log1p(0.5 * x2), np.where(a == 2.0, 0.5 * x2, general))
-
-
 def partition_table(alphas: np.ndarray) -> np.ndarray:
     """``Z(alpha)`` of many shapes at once: :func:`partition_numeric`, vectorised.
 
@@ -129,7 +119,7 @@ def partition_table(alphas: np.ndarray) -> np.ndarray:
     x = np.exp(0.5 * np.pi * np.sinh(t))
     dx = h * 0.5 * np.pi * np.cosh(t) * x
     with np.errstate(over="ignore"):
-        return 2.0 * (np.exp(-_rho_rows(x, alphas)) * dx).sum(axis=1)
+        return 2.0 * (np.exp(-_rho_numpy(x[None, :], alphas[:, None])) * dx).sum(axis=1)
 
 
 class _Spline(NamedTuple):
