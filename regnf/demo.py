@@ -258,7 +258,7 @@ def _completion(stage: Path, room: Room, config: DemoConfig, out: Path) -> dict[
     """Per object, one view from a side the capture never saw: truth | scene field | substituted."""
     from regnf.benchmarks.render import RenderBenchConfig, reference_renderer, unseen_cameras
     from regnf.compositor.from_stage import composite_from_stage
-    from regnf.compositor.render_folder import RenderConfig
+    from regnf.compositor.render_folder import RenderConfig, view_batches
     from regnf.compositor.stage_config import StageCompositeConfig
     from regnf.core.image_io import rgb_to_uint8, write_rgb_png
     from regnf.core.threads import map_one_thread_each
@@ -281,8 +281,8 @@ def _completion(stage: Path, room: Room, config: DemoConfig, out: Path) -> dict[
     modes = ("scene", "substitute")
     # Batches of views traced together (as render_views does), side by side, one thread each:
     # the bits of one after another (regnf.core.threads).
-    per, cams = RenderConfig().views_per_trace, [cam for _, cam, _ in views]
-    jobs = [(m, range(s, min(s + per, len(cams)))) for m in modes for s in range(0, len(cams), per)]
+    cams = [cam for _, cam, _ in views]
+    jobs = [(m, batch) for m in modes for batch in view_batches(cams, RenderConfig().views_per_trace)]
     batches = map_one_thread_each(lambda job: [r.rgb.detach().cpu().numpy() for r in render_many(
         fields[job[0]], [cams[j] for j in job[1]], sphere, grid=grids[job[0]])], jobs)
     rendered = {(m, j): rgb for (m, idx), imgs in zip(jobs, batches) for j, rgb in zip(idx, imgs)}
