@@ -267,7 +267,8 @@ def render_batch(field: Field, cameras: Sequence[Camera], config: RenderConfig,
     """Views with the configured renderer: the sphere tracer's in one wavefront (``grid`` for it)."""
     if config.renderer == "volume":
         return [render_volume(field, camera, config.volume) for camera in cameras]
-    return render_many(field, cameras, config.sphere, grid)
+    # The folder keeps no normals: their SDF gradients are not computed.
+    return render_many(field, cameras, config.sphere, grid, normals=False)
 
 
 def render_views(

@@ -91,6 +91,7 @@ def run_tasks(
     fn: Callable[[Any], Any],
     tasks: Sequence[Any],
     config: ExecutorConfig = ExecutorConfig(),
+    pool: cf.ProcessPoolExecutor | None = None,
 ) -> Iterator[TaskOutcome]:
     """Run ``fn(task)`` for every task; yield outcomes in completion order.
 
@@ -102,18 +103,27 @@ def run_tasks(
     tasks : sequence
         One argument per task.
     config : ExecutorConfig
+    pool : ProcessPoolExecutor, optional
+        The local executor's pool (:func:`local_pool`, with ``config.threads_per_task``), kept
+        open after, for a caller that started its workers early; None: a pool of these tasks'
+        own. Not for the ray executor.
 
     Yields
     ------
     TaskOutcome
         One per task, as each finishes.
     """
+    if pool is not None and config.kind != "local":
+        raise ValueError(f"a local pool was given to the {config.kind} executor")
     if not tasks:
         return
     if config.kind == "ray":
         yield from _run_ray(fn, tasks, config)
+    elif pool is not None:
+        yield from _run_in(pool, fn, tasks, config)
     else:
-        yield from _run_local(fn, tasks, config)
+        with local_pool(min(config.width, len(tasks)), config.threads_per_task) as own:
+            yield from _run_in(own, fn, tasks, config)
 
 
 @contextlib.contextmanager
@@ -132,23 +142,22 @@ def local_pool(workers: int, threads_per_task: int = 1) -> Iterator[cf.ProcessPo
     pool.shutdown(wait=True)
 
 
-def _run_local(fn: Callable[[Any], Any], tasks: Sequence[Any], config: ExecutorConfig) -> Iterator[TaskOutcome]:
-    workers = min(config.width, len(tasks))
-    with local_pool(workers, config.threads_per_task) as pool:
-        futures = {pool.submit(call_pinned, fn, config.threads_per_task, t): i for i, t in enumerate(tasks)}
-        try:
-            for fut in cf.as_completed(futures):
-                i = futures[fut]
-                try:
-                    value, error = fut.result()
-                except Exception as exc:  # noqa: BLE001 (the worker died: killed, out of memory)
-                    value, error = None, f"{type(exc).__name__}: {exc}"
-                yield TaskOutcome(i, value, error)
-        except BaseException:
-            # Interrupted (Ctrl-C, a consumer that stopped early): do not start the rest.
-            for fut in futures:
-                fut.cancel()
-            raise
+def _run_in(pool: cf.ProcessPoolExecutor, fn: Callable[[Any], Any], tasks: Sequence[Any],
+            config: ExecutorConfig) -> Iterator[TaskOutcome]:
+    futures = {pool.submit(call_pinned, fn, config.threads_per_task, t): i for i, t in enumerate(tasks)}
+    try:
+        for fut in cf.as_completed(futures):
+            i = futures[fut]
+            try:
+                value, error = fut.result()
+            except Exception as exc:  # noqa: BLE001 (the worker died: killed, out of memory)
+                value, error = None, f"{type(exc).__name__}: {exc}"
+            yield TaskOutcome(i, value, error)
+    except BaseException:
+        # Interrupted (Ctrl-C, a consumer that stopped early): do not start the rest.
+        for fut in futures:
+            fut.cancel()
+        raise
 
 
 def _run_ray(fn: Callable[[Any], Any], tasks: Sequence[Any], config: ExecutorConfig) -> Iterator[TaskOutcome]:

@@ -48,8 +48,8 @@ class Shaded(NamedTuple):
 
     rgb: torch.Tensor
     """(n, 3) float in [0, 1]."""
-    normals: torch.Tensor
-    """(n, 3) float: unit outward normals in the WORLD frame; 0 where missed."""
+    normals: torch.Tensor | None
+    """(n, 3) float: unit outward normals in the WORLD frame; 0 where missed. None when not asked for."""
 
 
 def shade_hits(
@@ -59,18 +59,21 @@ def shade_hits(
     hit: torch.Tensor,
     background: Sequence[float],
     chunk: int,
+    normals: bool = True,
 ) -> Shaded:
-    """Colour (view direction ``dirs``) and autograd normals at the hit ``points`` (n, 3)."""
+    """Colour (view direction ``dirs``) and, with ``normals``, autograd normals at the hit
+    ``points`` (n, 3)."""
     n, dtype, dev = points.shape[0], points.dtype, points.device
     rgb = torch.tensor(list(background), dtype=dtype, device=dev).expand(n, 3).clone()
-    normals = torch.zeros(n, 3, dtype=dtype, device=dev)
+    out = torch.zeros(n, 3, dtype=dtype, device=dev) if normals else None
     R = world_rotation(field, dtype)
     rows = hit.nonzero().squeeze(1)
     for i in range(0, rows.numel(), chunk):  # a loop over chunks bounds autograd memory
         r = rows[i : i + chunk]
         p, d = points[r], dirs[r]
-        _, g = field.sdf_and_gradient(p)
-        normals[r] = torch.nn.functional.normalize(g.to(dtype), dim=-1) @ R.T
+        if out is not None:
+            _, g = field.sdf_and_gradient(p)
+            out[r] = torch.nn.functional.normalize(g.to(dtype), dim=-1) @ R.T
         with torch.no_grad():
             rgb[r] = field.color(p, d).to(dtype).clamp(0.0, 1.0)
-    return Shaded(rgb, normals)
+    return Shaded(rgb, out)

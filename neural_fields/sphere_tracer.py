@@ -119,6 +119,10 @@ class SphereTracerConfig:
     :func:`trace`), and points shaded per batch: bounds the working memory."""
     check_camera: bool = True
     """:func:`render` refuses a camera whose centre is inside matter."""
+    cone_tile: int = 3
+    """Pixels per side of the square tiles whose rays :func:`render_many` first marches as one
+    cone (:func:`cone_starts`): each pixel's ray then starts where its tile's cone came near a
+    surface, not at the camera. 0 or 1: every ray marches from the camera."""
 
     def __post_init__(self) -> None:
         if self.max_steps < 1 or self.max_refine < 0 or self.chunk < 1:
@@ -137,6 +141,8 @@ class SphereTracerConfig:
             )
         if len(self.background) != 3:
             raise ValueError(f"background must be RGB, got {self.background!r}")
+        if isinstance(self.cone_tile, bool) or int(self.cone_tile) != self.cone_tile or self.cone_tile < 0:
+            raise ValueError(f"cone_tile must be an integer >= 0, got {self.cone_tile!r}")
 
     @staticmethod
     def plain() -> SphereTracerConfig:
@@ -229,6 +235,7 @@ def trace(
     config: SphereTracerConfig = SphereTracerConfig(),
     grid: DistanceGrid | None = None,
     pixel_angle: float | torch.Tensor = 0.0,
+    t_min: torch.Tensor | None = None,
 ) -> TraceHits:
     """Intersect rays with the zero level set of ``field`` (see the module).
 
@@ -251,6 +258,9 @@ def trace(
     pixel_angle : float or (n,) float
         Radians per pixel (per ray: rays of several cameras), for the footprint-relative
         tolerance; 0 disables it.
+    t_min : (n,) float, optional
+        Field units: each ray's march starts no nearer than this, the part before it known to
+        be free of surfaces (:func:`cone_starts`).
 
     Returns
     -------
@@ -268,26 +278,37 @@ def trace(
     angle = torch.as_tensor(pixel_angle, dtype=o.dtype, device=dev)
     if angle.ndim > 1 or (angle.ndim == 1 and angle.shape[0] != o.shape[0]):
         raise ValueError(f"pixel_angle must be a float or ({o.shape[0]},), got shape {tuple(angle.shape)}")
-    return _trace_wavefront(field, o, d, near, far, config, grid, angle.expand(o.shape[0]))
+    if t_min is not None and tuple(t_min.shape) != (o.shape[0],):
+        raise ValueError(f"t_min must be ({o.shape[0]},), got shape {tuple(t_min.shape)}")
+    t_start, t_stop = _clip(field, o, d, near, far, config)
+    if t_min is not None:
+        t_start = torch.maximum(t_start, t_min.to(device=dev, dtype=t_start.dtype))
+    return _trace_wavefront(field, o, d, t_start, t_stop, config, grid, angle.expand(o.shape[0]))
+
+
+def _clip(field: Field, o: torch.Tensor, d: torch.Tensor, near: float, far: float,
+          cfg: SphereTracerConfig) -> tuple[torch.Tensor, torch.Tensor]:
+    """Where rays ``o``, ``d`` (n, 3) start and stop (n,) each: their span in the field's bounds
+    (grown by ``cfg.bounds_pad``) and in ``[near, far]`` (field units)."""
+    lo = field.bounds[0].to(o.dtype) - cfg.bounds_pad
+    hi = field.bounds[1].to(o.dtype) + cfg.bounds_pad
+    t_in, t_out = ray_aabb(o, d, lo, hi)
+    return t_in.clamp(min=near), t_out.clamp(max=far)
 
 
 def _trace_wavefront(
     field: Field,
     o: torch.Tensor,
     d: torch.Tensor,
-    near: float,
-    far: float,
+    t_start: torch.Tensor,
+    t_stop: torch.Tensor,
     cfg: SphereTracerConfig,
     grid: DistanceGrid | None,
     pixel_angle: torch.Tensor,
 ) -> TraceHits:
-    """Trace every ray of ``o``, ``d`` (n, 3) with at most ``cfg.chunk`` of them marching at once."""
+    """Trace every ray of ``o``, ``d`` (n, 3) over ``[t_start, t_stop]`` (n,) with at most
+    ``cfg.chunk`` of them marching at once."""
     n, dev = o.shape[0], o.device
-    lo = field.bounds[0].to(o.dtype) - cfg.bounds_pad
-    hi = field.bounds[1].to(o.dtype) + cfg.bounds_pad
-    t_in, t_out = ray_aabb(o, d, lo, hi)
-    t_start = t_in.clamp(min=near)
-    t_stop = t_out.clamp(max=far)
     fp = cfg.footprint_fraction * pixel_angle  # (n,): tolerance per unit of t
 
     # Per ray, written once when the ray stops marching.
@@ -530,6 +551,100 @@ def _refine(
     return root
 
 
+CONE_MARGIN = 0.98
+"""Fraction of a cone step's proven free length that the cone takes (room for rounding)."""
+
+
+@torch.no_grad()
+def cone_starts(
+    field: Field,
+    origins: torch.Tensor,
+    dirs: torch.Tensor,
+    tiles: torch.Tensor,
+    config: SphereTracerConfig = SphereTracerConfig(),
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Where each ray's march may start: its tile's rays marched as one cone, for one
+    evaluation a step instead of one a ray.
+
+    The rays of a tile leave one apex within ``c = 2 sin(theta / 2)`` (the chord of the
+    largest angle ``theta`` between a ray and the tile's mean direction, the axis). If the
+    field is ``r`` at the axis point ``t``, every ray of the tile is free of surfaces from
+    ``t`` to ``t + (r - t c) / (1 + c)``: a point ``s`` along a ray lies within
+    ``s c + (s - t)`` of that axis point. The cone steps so, from the nearest start of its
+    rays (:func:`trace`'s clipping), and stops where its step becomes shorter than its width
+    there, ``t c``, where its axis leaves the bounds, or after ``config.max_steps`` steps.
+    Like the tracer's own steps, this takes the field's value as a distance bound, scaled by
+    ``omega`` where that is below 1. Outside the bounds, which hold every surface, the bound
+    at a point ``e`` away from them is ``hypot(e, r)``, with ``r`` the field's bound at their
+    nearest point.
+
+    Parameters
+    ----------
+    field : Field
+    origins, dirs : (n, 3) float
+        The rays, field frame, unit directions.
+    tiles : (n,) int
+        Each ray's tile, 0 to m - 1; a tile whose rays do not share an origin is not marched.
+    config : SphereTracerConfig
+        ``near`` and ``far`` in metres, as for :func:`trace`.
+
+    Returns
+    -------
+    t_min : (n,) float
+        Field units: the ray's march may start here (``-inf`` where its tile was not marched).
+    evals : (m,) int
+        Field evaluations each tile's cone took (composite costs included).
+    """
+    near, far = config.near / field.world_scale, config.far / field.world_scale
+    dev = field.device
+    o, d, tiles = origins.to(dev), dirs.to(dev), tiles.to(device=dev, dtype=torch.long)
+    m = int(tiles.max()) + 1 if tiles.numel() else 0
+    t_start, _ = _clip(field, o, d, near, far, config)
+    axis = torch.zeros(m, 3, dtype=d.dtype, device=dev).index_add_(0, tiles, d)
+    axis = axis / torch.linalg.vector_norm(axis, dim=-1, keepdim=True).clamp(min=1e-30)
+    cos = (d * axis[tiles]).sum(-1).clamp(-1.0, 1.0)
+    cos_min = torch.ones(m, dtype=d.dtype, device=dev).scatter_reduce(0, tiles, cos, "amin")
+    chord = torch.sqrt(2.0 * (1.0 - cos_min)) + 1e-6  # 2 sin(theta / 2), and a margin for rounding
+    apex = torch.zeros(m, 3, dtype=o.dtype, device=dev).index_copy_(0, tiles, o)
+    spread = torch.zeros(m, dtype=o.dtype, device=dev).scatter_reduce(
+        0, tiles, torch.linalg.vector_norm(o - apex[tiles], dim=-1), "amax")
+    t = torch.full((m,), math.inf, dtype=o.dtype, device=dev).scatter_reduce(0, tiles, t_start, "amin")
+    _, a_out = _clip(field, apex, axis, -math.inf, far, config)
+    marched = (spread == 0) & (cos_min > 0) & torch.isfinite(t)
+    lo, hi = field.bounds[0].to(o.dtype), field.bounds[1].to(o.dtype)
+    evals = torch.zeros(m, dtype=torch.long, device=dev)
+    trust = min(1.0, config.omega)
+    act = marched.nonzero().squeeze(1)
+    for _ in range(config.max_steps):
+        if act.numel() == 0:
+            break
+        ta, ca = t[act], chord[act]
+        p = apex[act] + ta[:, None] * axis[act]
+        # Every surface lies in the bounds, a convex box: from a point p outside them, with q
+        # its nearest point of the box, every surface point s has |p - s|^2 >= |p - q|^2 +
+        # |q - s|^2. So the cone of a camera outside the bounds enters them without stopping
+        # at their face.
+        q = torch.maximum(torch.minimum(p, hi), lo)
+        out = torch.linalg.vector_norm(p - q, dim=-1)
+        sample = _sample_checked(field, q)
+        evals[act] += sample.evals
+        r = torch.hypot(out, trust * sample.sdf.to(out.dtype).clamp(min=0.0))
+        step = CONE_MARGIN * (r - ta * ca) / (1.0 + ca)
+        t[act] = ta + step.clamp(min=0.0)
+        act = act[(step > ta * ca) & (t[act] <= a_out[act])]
+    t = torch.where(marched, t, torch.full_like(t, -math.inf))
+    return t[tiles], evals
+
+
+def pixel_tiles(width: int, height: int, tile: int, device: torch.device | str | None = None) -> torch.Tensor:
+    """(height width,) int64: the tile of each pixel (row-major) in square tiles of ``tile``
+    pixels a side, numbered row-major from 0 (the last row and column of tiles may be smaller)."""
+    columns = -(-int(width) // tile)
+    v = torch.arange(int(height), device=device) // tile
+    u = torch.arange(int(width), device=device) // tile
+    return (v[:, None] * columns + u[None, :]).reshape(-1)
+
+
 @torch.no_grad()
 def render(
     field: Field,
@@ -567,6 +682,7 @@ def render_many(
     cameras: Sequence[Camera],
     config: SphereTracerConfig = SphereTracerConfig(),
     grid: DistanceGrid | None = None,
+    normals: bool = True,
 ) -> list[Render]:
     """Sphere-trace several views of ``field`` in one wavefront: :func:`render` of each camera.
 
@@ -586,6 +702,10 @@ def render_many(
     config : SphereTracerConfig
     grid : DistanceGrid, optional
         Prebuilt for ``field``; see :func:`trace`.
+    normals : bool
+        Compute the normals (an SDF gradient at every hit); False leaves ``Render.normals``
+        None, for callers that keep colour, depth and ids only (a tenth of a baked variant's
+        time, the gradient of the composite at every hit).
 
     Returns
     -------
@@ -599,13 +719,28 @@ def render_many(
         for r in rays:
             check_camera_outside(field, r.origin)
     angles = torch.cat([torch.full_like(r.z_scale, r.pixel_angle) for r in rays])
-    hits = trace(field, torch.cat([r.origins for r in rays]), torch.cat([r.dirs for r in rays]), config,
-                 grid, angles)
+    origins, dirs = torch.cat([r.origins for r in rays]), torch.cat([r.dirs for r in rays])
+    t_min, cone_evals = None, None
+    if config.cone_tile > 1:
+        tiles, first = [], 0
+        for camera in cameras:
+            tiles.append(first + pixel_tiles(camera.width, camera.height, config.cone_tile, field.device))
+            first = int(tiles[-1].max()) + 1
+        tiles = torch.cat(tiles)
+        t_min, tile_evals = cone_starts(field, origins, dirs, tiles, config)
+        # Each tile's cone counted on its first ray, so that sums and means over pixels hold them.
+        cone_evals = torch.zeros_like(tiles).index_put_(
+            (torch.zeros_like(tile_evals).scatter_reduce(
+                0, tiles, torch.arange(len(tiles), device=tiles.device), "amin", include_self=False),),
+            tile_evals)
+    hits = trace(field, origins, dirs, config, grid, angles, t_min)
+    if cone_evals is not None:
+        hits = hits._replace(evals=hits.evals + cone_evals)
     renders, start = [], 0
     for camera, r in zip(cameras, rays, strict=True):
         end = start + r.z_scale.shape[0]
         view = TraceHits(*(x[start:end] for x in hits))
-        renders.append(_to_render(field, camera, r, view, config.background, config.chunk))
+        renders.append(_to_render(field, camera, r, view, config.background, config.chunk, normals))
         start = end
     return renders
 
@@ -617,16 +752,17 @@ def _to_render(
     hits: TraceHits,
     background: Sequence[float],
     chunk: int,
+    normals: bool,
 ) -> Render:
     h, w = camera.height, camera.width
-    shaded = shade_hits(field, hits.points, rays.dirs, hits.hit, background, chunk)
+    shaded = shade_hits(field, hits.points, rays.dirs, hits.hit, background, chunk, normals)
     depth = torch.where(
         hits.hit, hits.t.nan_to_num(posinf=0.0) * rays.z_scale * field.world_scale, 0.0
     )
     return Render(
         rgb=shaded.rgb.reshape(h, w, 3),
         depth=depth.reshape(h, w),
-        normals=shaded.normals.reshape(h, w, 3),
+        normals=None if shaded.normals is None else shaded.normals.reshape(h, w, 3),
         instance_id=hits.winner.reshape(h, w),
         mask=hits.hit.reshape(h, w),
         evals_per_pixel=hits.evals.reshape(h, w),

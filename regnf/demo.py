@@ -284,7 +284,7 @@ def _completion(stage: Path, room: Room, config: DemoConfig, out: Path) -> dict[
     cams = [cam for _, cam, _ in views]
     jobs = [(m, batch) for m in modes for batch in view_batches(cams, RenderConfig().views_per_trace)]
     batches = map_one_thread_each(lambda job: [r.rgb.detach().cpu().numpy() for r in render_many(
-        fields[job[0]], [cams[j] for j in job[1]], sphere, grid=grids[job[0]])], jobs)
+        fields[job[0]], [cams[j] for j in job[1]], sphere, grid=grids[job[0]], normals=False)], jobs)
     rendered = {(m, j): rgb for (m, idx), imgs in zip(jobs, batches) for j, rgb in zip(idx, imgs)}
     rows, per_object = [], []
     for j, (k, _, gt) in enumerate(views):

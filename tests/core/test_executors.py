@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from regnf.core.executors import ExecutorConfig, run_tasks
+from regnf.core.executors import ExecutorConfig, local_pool, run_tasks
 
 
 def square_or_fail(x: int) -> tuple[int, int]:
@@ -33,6 +33,19 @@ def test_local_pool_returns_every_outcome_and_the_errors() -> None:
 def test_threads_per_task_are_pinned() -> None:
     outcomes = list(run_tasks(square_or_fail, [2, 3], ExecutorConfig(workers=1, threads_per_task=2)))
     assert {o.value[1] for o in outcomes} == {2}
+
+
+def test_tasks_run_in_a_given_pool_that_stays_open() -> None:
+    # A caller's pool (started early) runs one batch of tasks after another, and is its to close.
+    config = ExecutorConfig(workers=2, threads_per_task=1)
+    with local_pool(2, 1) as pool:
+        for batch in ([3, -1], [4, 5]):
+            outcomes = {o.index: o for o in run_tasks(square_or_fail, batch, config, pool)}
+            for i, x in enumerate(batch):
+                assert outcomes[i].value == (None if x < 0 else (x * x, 1))
+        assert pool.submit(abs, -2).result() == 2
+    with pytest.raises(ValueError, match="ray"):
+        list(run_tasks(square_or_fail, [1], ExecutorConfig(kind="ray"), pool))
 
 
 def test_no_task_runs_nothing() -> None:

@@ -12,12 +12,14 @@ import pytest
 import torch
 
 from regnf.core.cameras import pinhole_rays
-from regnf.neural_fields.analytic import Box, Sphere
+from regnf.neural_fields.analytic import Box, Sphere, Union
 from regnf.neural_fields.camera import Camera
 from regnf.neural_fields.field import Field
 from regnf.neural_fields.sphere_tracer import (
     SphereTracerConfig,
     TraceHits,
+    cone_starts,
+    pixel_tiles,
     render,
     render_many,
     trace,
@@ -265,3 +267,102 @@ def test_render_sphere_area(config: SphereTracerConfig) -> None:
     np.testing.assert_allclose(out.normals[c, c].numpy(), [0.0, -1.0, 0.0], atol=0.02)
     assert float(out.depth[0, 0]) == 0.0 and not bool(out.mask[0, 0])
     assert int(out.instance_id[0, 0]) == -1
+
+
+def plate_before_wall(back_wall: bool = False) -> tuple[Union, list[tuple[np.ndarray, np.ndarray]]]:
+    """A plate 1 cm thick, in front of a wall, and the boxes (lo, hi) of each; with
+    ``back_wall``, a wall behind the camera of :func:`test_cone_starts_never_pass_a_surface`
+    too, so that the camera is inside the field's bounds."""
+    boxes = [(np.array([-0.3, -1.005, -0.2]), np.array([0.3, -0.995, 0.2])),
+             (np.array([-2.0, 1.0, -2.0]), np.array([2.0, 1.2, 2.0]))]
+    if back_wall:
+        boxes.append((np.array([-2.0, -3.6, -2.0]), np.array([2.0, -3.5, 2.0])))
+    colours = [(0.9, 0.2, 0.1), (0.2, 0.3, 0.9), (0.5, 0.5, 0.5)]
+    fields = [Box(tuple((hi - lo) / 2), tuple((hi + lo) / 2), color=c) for (lo, hi), c in zip(boxes, colours)]
+    return Union(*fields), boxes
+
+
+@pytest.mark.parametrize("tile", [2, 3, 8])
+@pytest.mark.parametrize("camera_inside", [False, True])
+def test_cone_starts_never_pass_a_surface(tile: int, camera_inside: bool) -> None:
+    # Tiles cut by the plate's edges: some of their rays hit the plate, 2 m before the wall
+    # that their axis may see. No ray may start past its first surface (closed form), and
+    # the cones must still save most of the way (a cone that never moved passes trivially).
+    field, boxes = plate_before_wall(camera_inside)
+    assert bool((field.bounds[0] < torch.tensor([0.1, -3.0, 0.05])).all()) == camera_inside
+    n, f = 96, 70.0
+    o, d, _ = pinhole_rays(intrinsics(f, n, n), look_at(np.array([0.1, -3.0, 0.05]), np.array([0.0, 0.0, 0.0])),
+                           n, n, device=CPU)
+    t_min, evals = cone_starts(field, o, d, pixel_tiles(n, n, tile), SphereTracerConfig())
+    on, dn = o.double().numpy(), d.double().numpy()
+    first = np.full(len(on), np.inf)
+    for lo, hi in boxes:
+        hit, t_in, _ = ray_box(on, dn, lo, hi)
+        first = np.where(hit, np.minimum(first, t_in), first)
+    plate = ray_box(on, dn, *boxes[0])[0]
+    wall = np.isfinite(first) & ~plate
+    assert 0 < plate.sum() < wall.sum() < len(on)
+    start = t_min.double().numpy()
+    assert (start[plate | wall] <= first[plate | wall] + 1e-6).all()
+    # The plate's rays start in front of it, the wall's most of their way there.
+    assert np.median(start[plate] / first[plate]) > 0.5
+    assert np.median(start[wall] / first[wall]) > 0.5
+    assert evals.shape == (math.ceil(n / tile) ** 2,) and int(evals.min()) >= 1
+
+
+def test_cone_starts_need_one_apex() -> None:
+    # A tile whose rays leave different points is not a cone: its rays start where they would.
+    field, _ = plate_before_wall()
+    o = torch.tensor([[0.0, -3.0, 0.0], [0.0, -3.0, 0.0], [0.5, -3.0, 0.0], [0.5, -3.0, 0.0]])
+    d = torch.tensor([[0.0, 1.0, 0.0]] * 4)
+    t_min, evals = cone_starts(field, o, d, torch.tensor([0, 0, 1, 1]))
+    assert torch.isfinite(t_min).all() and bool((t_min > 1.0).all())
+    t_min, evals = cone_starts(field, o, d, torch.tensor([0, 1, 0, 1]))
+    assert bool(torch.isneginf(t_min).all()) and int(evals.sum()) == 0
+
+
+def test_pixel_tiles() -> None:
+    np.testing.assert_array_equal(pixel_tiles(5, 3, 2).numpy(),
+                                  [0, 0, 1, 1, 2, 0, 0, 1, 1, 2, 3, 3, 4, 4, 5])
+    with pytest.raises(ValueError, match="cone_tile"):
+        SphereTracerConfig(cone_tile=-1)
+
+
+@pytest.mark.parametrize("config", CONFIGS.values(), ids=CONFIGS.keys())
+def test_render_with_cones_is_render_without(config: SphereTracerConfig) -> None:
+    # The cones change where rays start, not what they hit: the same pixels, surfaces and
+    # colours, depths within the tolerance, and fewer evaluations, the cones' own included.
+    field, _ = plate_before_wall()
+    cam = Camera(intrinsics(70.0, 96, 72), 96, 72, look_at(np.array([0.1, -3.0, 0.05]), np.zeros(3)))
+    off = render(field, cam, dataclasses.replace(config, cone_tile=0))
+    on = render(field, cam, dataclasses.replace(config, cone_tile=3))
+    assert torch.equal(off.mask, on.mask) and torch.equal(off.instance_id, on.instance_id)
+    torch.testing.assert_close(on.depth, off.depth, atol=1e-4, rtol=0)
+    torch.testing.assert_close(on.rgb, off.rgb, atol=1e-6, rtol=0)
+    assert int(on.evals_per_pixel.sum()) < 0.95 * int(off.evals_per_pixel.sum())
+
+
+def test_cone_starts_from_outside_the_bounds() -> None:
+    # A camera outside the bounds, aimed at a ball off to the side of the bounds' nearest
+    # face: the bound there is hypot(way to the face, field's bound at the face), not their
+    # sum (that would jump 0.3 past the ball). Rays of one small tile, first hits in closed form.
+    field = Union(Sphere(0.1, (0.6, 0.0, 0.0)), Sphere(0.02, (-0.6, 0.5, 0.0)))
+    eye = np.array([0.0, -1.0, 0.0])
+    o, d, _ = pinhole_rays(intrinsics(400.0, 4, 4), look_at(eye, np.array([0.6, 0.0, 0.0])), 4, 4, device=CPU)
+    assert float(field.bounds[0, 1]) > -0.2 and float(field.bounds[0, 0]) < -0.5
+    t_min, evals = cone_starts(field, o, d, torch.zeros(16, dtype=torch.long))
+    hit, t_hit, _ = ray_sphere(o.double().numpy(), d.double().numpy(), np.array([0.6, 0.0, 0.0]), 0.1)
+    assert hit.all()
+    start = t_min.double().numpy()
+    assert (start <= t_hit).all() and (start > 0.9 * t_hit).all()
+    assert int(evals.sum()) >= 2
+
+
+def test_render_many_without_normals() -> None:
+    # Callers that keep no normals skip their gradients: the same colour, depth and ids.
+    field, _ = plate_before_wall()
+    cam = Camera(intrinsics(70.0, 48, 36), 48, 36, look_at(np.array([0.1, -3.0, 0.05]), np.zeros(3)))
+    (with_n,), (without,) = render_many(field, [cam]), render_many(field, [cam], normals=False)
+    assert without.normals is None and with_n.normals is not None
+    for name in ("rgb", "depth", "instance_id", "mask", "evals_per_pixel"):
+        assert torch.equal(getattr(with_n, name), getattr(without, name))
