@@ -76,8 +76,8 @@ STAGING_LABEL = "render"
 """Label of the staging folders (``.regnf-tmp-render-*``), so that only a render's own leftovers are removed."""
 MAX_PIXELS = 4096 * 4096
 """Most pixels one view may have (4096 x 4096, 16.8 megapixels). A view is rendered and kept
-whole in memory (colour, depth, normals, instance ids, per-pixel counters: about 60 bytes a
-pixel, 1 GB at this size, before the renderer's own working memory), so a larger size fails
+whole in memory (colour, depth, instance ids, per-pixel counters: about 40 bytes a pixel,
+0.7 GB at this size, before the renderer's own working memory), so a larger size fails
 only after minutes of work, or takes the machine's memory; it is refused before anything is
 rendered."""
 TRACE_PIXELS = 1 << 20

@@ -32,6 +32,14 @@ active):
    above), which removes most of the ``tol / cos(incidence)`` depth error. A sign change (a relaxed or minimum step crossed the surface) is bracketed
    and refined by Illinois false position (or plain bisection) to ``|sdf| < tol(t)``.
 
+Before that, :func:`render_many` marches the rays of
+each square tile of pixels (``cone_tile``) as one cone, one evaluation a step for the tile
+(:func:`cone_starts`): the tile's rays then start where its cone came near a surface, at a
+point proven free, instead of at the camera. The free space before the first surface is
+crossed once a tile, not once a ray (8 baked views of a generated variant: 29.2 -> 14.4
+evaluations a pixel, the cones' own included; 4.1 -> 2.4 s). A ray's result is still its own
+trace's, from a later start: the same surfaces to the tracer's tolerance, not the same bits.
+
 A ray whose first sample is inside matter (the bounds or ``near`` cut through an object)
 is a hit at its start; a ray that leaves the bounds (or ``far``) or runs out of
 ``max_steps`` is a miss. Non-finite SDF values are an error, not a miss.
@@ -122,7 +130,10 @@ class SphereTracerConfig:
     cone_tile: int = 3
     """Pixels per side of the square tiles whose rays :func:`render_many` first marches as one
     cone (:func:`cone_starts`): each pixel's ray then starts where its tile's cone came near a
-    surface, not at the camera. 0 or 1: every ray marches from the camera."""
+    surface, not at the camera. 0 or 1: every ray marches from the camera. Measured on 8 baked
+    views of a generated variant (256 x 192, one thread): 4.1 s without cones; tiles of 2, 3,
+    4, 5, 6 pixels 2.6, 2.4, 2.6-2.8, 2.7, 2.9 s (the cones of small tiles cost more, those of
+    large tiles stop sooner); tiles of 16 then 4, or 8 then 2, 5 % faster than 3 alone."""
 
     def __post_init__(self) -> None:
         if self.max_steps < 1 or self.max_refine < 0 or self.chunk < 1:
@@ -599,7 +610,7 @@ def cone_starts(
     dev = field.device
     o, d, tiles = origins.to(dev), dirs.to(dev), tiles.to(device=dev, dtype=torch.long)
     m = int(tiles.max()) + 1 if tiles.numel() else 0
-    t_start, _ = _clip(field, o, d, near, far, config)
+    start, _ = _clip(field, o, d, near, far, config)
     axis = torch.zeros(m, 3, dtype=d.dtype, device=dev).index_add_(0, tiles, d)
     axis = axis / torch.linalg.vector_norm(axis, dim=-1, keepdim=True).clamp(min=1e-30)
     cos = (d * axis[tiles]).sum(-1).clamp(-1.0, 1.0)
@@ -608,7 +619,7 @@ def cone_starts(
     apex = torch.zeros(m, 3, dtype=o.dtype, device=dev).index_copy_(0, tiles, o)
     spread = torch.zeros(m, dtype=o.dtype, device=dev).scatter_reduce(
         0, tiles, torch.linalg.vector_norm(o - apex[tiles], dim=-1), "amax")
-    t = torch.full((m,), math.inf, dtype=o.dtype, device=dev).scatter_reduce(0, tiles, t_start, "amin")
+    t = torch.full((m,), math.inf, dtype=o.dtype, device=dev).scatter_reduce(0, tiles, start, "amin")
     _, a_out = _clip(field, apex, axis, -math.inf, far, config)
     marched = (spread == 0) & (cos_min > 0) & torch.isfinite(t)
     lo, hi = field.bounds[0].to(o.dtype), field.bounds[1].to(o.dtype)
