@@ -344,8 +344,8 @@ def test_render_with_cones_is_render_without(config: SphereTracerConfig) -> None
 
 def test_cone_starts_from_outside_the_bounds() -> None:
     # A camera outside the bounds, aimed at a ball off to the side of the bounds' nearest
-    # face, so that the rays' axis starts outside them: the cone must still end in front of
-    # the ball, and most of the way to it. Rays of one small tile, first hits in closed form.
+    # face: the cone must end in front of the ball, and most of the way to it. Rays of one
+    # small tile, first hits in closed form.
     field = Union(Sphere(0.1, (0.6, 0.0, 0.0)), Sphere(0.02, (-0.6, 0.5, 0.0)))
     eye = np.array([0.0, -1.0, 0.0])
     o, d, _ = pinhole_rays(intrinsics(400.0, 4, 4), look_at(eye, np.array([0.6, 0.0, 0.0])), 4, 4, device=CPU)
