@@ -69,6 +69,9 @@ def map_one_thread_each(fn: Callable[[T], R], items: Sequence[T], workers: int |
     thread: :mod:`regnf.registration.discovery_workers`; docs/benchmarks.md, "The demo end to
     end").
 
+    Each call runs in the caller's grad mode (torch keeps it per thread: a call made under
+    ``torch.no_grad()`` builds no graph on its worker thread either).
+
     Parameters
     ----------
     fn : callable
@@ -96,9 +99,12 @@ def map_one_thread_each(fn: Callable[[T], R], items: Sequence[T], workers: int |
                     on_done()
             return out
 
+        grad = torch.is_grad_enabled()  # thread-local in torch: the caller's no_grad carries over
+
         def call(x: T) -> R:
             torch.set_num_threads(1)  # this thread's OpenMP setting, in case it ran torch before
-            return fn(x)
+            with torch.set_grad_enabled(grad):
+                return fn(x)
 
         with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="one-thread-each") as pool:
             futures = [pool.submit(call, x) for x in items]

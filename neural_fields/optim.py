@@ -8,6 +8,7 @@ from collections.abc import Callable
 import torch
 from tqdm import tqdm
 
+from regnf.core.denormals import pool_denormals_flushed
 from regnf.neural_fields.neural_sdf import NeuralSDF
 
 
@@ -93,16 +94,19 @@ def optimise(
     base_lrs = [g["lr"] for g in opt.param_groups]
     log: list[dict[str, float]] = []
     bar = tqdm(range(steps), desc=desc, disable=not progress, leave=False)
-    for step in bar:
-        for g, lr in zip(opt.param_groups, base_lrs):
-            g["lr"] = lr * lr_factor(step, steps)
-        loss, parts = loss_at(step)
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
-        if step % LOG_EVERY == 0 or step == steps - 1:
-            entry = {"step": step, "loss": float(loss.detach()), **{k: float(v.detach()) for k, v in parts.items()}}
-            log.append(entry)
-            if postfix:
-                bar.set_postfix({label: f"{entry[key]:.3f}" for label, key in postfix.items()})
+    # Denormals flushed on every torch thread: the softplus's backward and the kernels on torch's
+    # second thread included, which the evaluations' own flushing does not reach (core.denormals).
+    with pool_denormals_flushed():
+        for step in bar:
+            for g, lr in zip(opt.param_groups, base_lrs):
+                g["lr"] = lr * lr_factor(step, steps)
+            loss, parts = loss_at(step)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            if step % LOG_EVERY == 0 or step == steps - 1:
+                entry = {"step": step, "loss": float(loss.detach()), **{k: float(v.detach()) for k, v in parts.items()}}
+                log.append(entry)
+                if postfix:
+                    bar.set_postfix({label: f"{entry[key]:.3f}" for label, key in postfix.items()})
     return log

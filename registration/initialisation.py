@@ -289,15 +289,19 @@ def _prepare(scene: SurfaceSamples, library: SurfaceSamples, config: InitConfig)
     return _Prepared(src, tgt, downs[0], downs[1], feats[0], feats[1], scn_n, lib_n, scale0)
 
 
-def _feature_matches(prep: _Prepared, mutual: bool) -> np.ndarray:
-    """(m, 2) int32: each scene point's nearest library point in FPFH space."""
+def _feature_matches(prep: _Prepared, mutual: bool, workers: int = 1) -> np.ndarray:
+    """(m, 2) int32: each scene point's nearest library point in FPFH space.
+
+    The queries are split over ``workers`` threads (SciPy's): each point's nearest neighbour is
+    exact, so the matches are the same on any count (in 33 dimensions the k-d tree is slow:
+    0.05 s a direction for 4 700 points on one core, 0.03 on two)."""
     from scipy.spatial import cKDTree
 
     Fs, Fl = np.asarray(prep.src_fpfh.data).T, np.asarray(prep.tgt_fpfh.data).T
-    j = cKDTree(Fl).query(Fs, k=1)[1]
+    j = cKDTree(Fl).query(Fs, k=1, workers=workers)[1]
     i = np.arange(len(Fs))
     if mutual:
-        back = cKDTree(Fs).query(Fl, k=1)[1]
+        back = cKDTree(Fs).query(Fl, k=1, workers=workers)[1]
         keep = back[j] == i
         i, j = i[keep], j[keep]
     return np.stack([i, j], axis=1).astype(np.int32)
@@ -351,7 +355,7 @@ def _similarity_or_none(M: np.ndarray) -> np.ndarray | None:
     return out
 
 
-def _ransac_runs(prep: _Prepared, config: InitConfig) -> list[np.ndarray]:
+def _ransac_runs(prep: _Prepared, config: InitConfig, workers: int = 1) -> list[np.ndarray]:
     """Normalised-frame 4x4 results of the sequential RANSAC runs (before ICP)."""
     v = config.voxel_size
     dist = config.ransac_distance_voxels * v
@@ -364,7 +368,7 @@ def _ransac_runs(prep: _Prepared, config: InitConfig) -> list[np.ndarray]:
         for n in (config.ransac_max_iteration, config.ransac_followup_iteration)
     ]
     est = reg.TransformationEstimationPointToPoint(with_scaling=True)
-    corr = _feature_matches(prep, config.mutual_filter)
+    corr = _feature_matches(prep, config.mutual_filter, workers)
     Ps = np.asarray(prep.src_down.points)
     Pl = np.asarray(prep.tgt_down.points)
     out = []
@@ -444,7 +448,7 @@ def _select(cands: list[Hypothesis], config: InitConfig,
 def initial_hypotheses(
     scene: SurfaceSamples, library: SurfaceSamples, config: InitConfig = InitConfig(),
     symmetry: ObjectSymmetry | None = None, upright: UprightPrior | None = None,
-    limit: int | None = None,
+    limit: int | None = None, workers: int = 1,
 ) -> list[Hypothesis]:
     """Up to ``top_k`` initial transforms scene field -> library field, best first.
 
@@ -462,6 +466,9 @@ def initial_hypotheses(
         RANSAC's (:func:`regnf.registration.upright.yaw_starts`).
     limit : int, optional
         Hypotheses returned at most (default ``config.top_k``).
+    workers : int
+        Threads of the FPFH feature matching (exact: the same matches on any count; Open3D's
+        RANSAC and ICP always run on one).
 
     Returns
     -------
@@ -474,9 +481,9 @@ def initial_hypotheses(
         For malformed or too small sample sets, or when no run produced a usable transform.
     """
     prep = _prepare(scene, library, config)
-    runs = _ransac_runs(prep, config)
+    runs = _ransac_runs(prep, config, workers)
     if not runs and config.mutual_filter:
-        runs = _ransac_runs(prep, dataclasses.replace(config, mutual_filter=False))
+        runs = _ransac_runs(prep, dataclasses.replace(config, mutual_filter=False), workers)
     if upright is not None and config.upright_yaws > 0:
         starts = yaw_starts(scene.points, library.points, upright, config.upright_yaws,
                             _yaw_period(symmetry, upright))

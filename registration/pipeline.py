@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from regnf.core.threads import one_thread
+from regnf.core.threads import map_one_thread_each, one_thread, worker_count
 from regnf.neural_fields.field import Field
 from regnf.neural_fields.oriented_box import OrientedBox
 from regnf.registration.containment import containment
@@ -93,11 +93,18 @@ def check_fields(scene: Field, library: Field) -> None:
 
 
 def sample_pair(
-    scene_field: Field, library_field: Field, proposal: OrientedBox, config: RegistrationConfig
+    scene_field: Field, library_field: Field, proposal: OrientedBox, config: RegistrationConfig,
+    workers: int | None = None,
 ) -> tuple[SurfaceSamples, SurfaceSamples]:
-    """Stage 1: the scene's surface inside the proposal and the whole library object's."""
-    scene = sample_surface(scene_field, proposal, config.scene_sampling, side="scene")
-    library = sample_surface(library_field, None, config.library_sampling, side="library")
+    """Stage 1: the scene's surface inside the proposal and the whole library object's.
+
+    The two are independent torch work, so they run side by side, each on one CPU thread
+    (:func:`~regnf.core.threads.map_one_thread_each`, ``workers`` threads: default one per
+    core the caller's torch may use): the same bits as one after the other, on any machine.
+    """
+    jobs = [(scene_field, proposal, config.scene_sampling, "scene"),
+            (library_field, None, config.library_sampling, "library")]
+    scene, library = map_one_thread_each(lambda job: sample_surface(*job[:3], side=job[3]), jobs, workers)
     return scene, library
 
 
@@ -120,28 +127,29 @@ def upright_prior(scene_field: Field, library_field: Field, proposal: OrientedBo
 def hypotheses_or_fallback(
     scene: SurfaceSamples, library: SurfaceSamples, config: InitConfig,
     symmetry: ObjectSymmetry | None = None, upright: UprightPrior | None = None,
-    limit: int | None = None,
+    limit: int | None = None, workers: int = 1,
 ) -> list[Hypothesis]:
     """Stage 2, or the centroid start when RANSAC finds nothing, so that the refinement
     runs and a low confidence (not an exception) reports the failed registration."""
     try:
-        return initial_hypotheses(scene, library, config, symmetry, upright, limit)
+        return initial_hypotheses(scene, library, config, symmetry, upright, limit, workers)
     except NoHypothesisError:
         return [centroid_hypothesis(scene, library, config)]
 
 
 def initialise(scene_field: Field, library_field: Field, proposal: OrientedBox, scene: SurfaceSamples,
-               library: SurfaceSamples, config: RegistrationConfig) -> list[Hypothesis]:
+               library: SurfaceSamples, config: RegistrationConfig, workers: int | None = None) -> list[Hypothesis]:
     """Stage 2: up to ``config.init.top_k`` hypotheses, best first.
 
     RANSAC's and the upright sweep's ICP results (``config.init.candidates`` distinct ones at
-    most), screened by their SDF evidence at the pose (:func:`screen_hypotheses`).
+    most), screened by their SDF evidence at the pose (:func:`screen_hypotheses`, its field
+    queries on ``workers`` threads).
     """
     hyps = hypotheses_or_fallback(scene, library, config.init, library_symmetry(library_field),
                                   upright_prior(scene_field, library_field, proposal, config),
-                                  limit=config.init.candidates)
+                                  limit=config.init.candidates, workers=worker_count(workers))
     A, B = sample_tensors(scene, library, library_field.device)
-    return screen_hypotheses(scene_field, library_field, A, B, hyps, config.refine, config.init.top_k)
+    return screen_hypotheses(scene_field, library_field, A, B, hyps, config.refine, config.init.top_k, workers)
 
 
 def object_region(proposal: OrientedBox, config: RegistrationConfig) -> OrientedBox:
@@ -209,20 +217,21 @@ def register(
     cfg = config or RegistrationConfig()
     check_fields(scene_field, library_field)
     timings: dict[str, float] = {}
+    workers = worker_count()  # before one_thread() below sets torch's count to 1
     t0 = time.perf_counter()
     # One thread for sampling and initialisation too (the refinement runs on one): their float
     # sums and Open3D's parallel RANSAC come out differently on other thread counts, and the
     # screening's ranking turns such last bits into other hypotheses (regnf.core.threads).
     with one_thread():
         if library_samples is None:
-            scene_samples, lib_samples = sample_pair(scene_field, library_field, proposal, cfg)
+            scene_samples, lib_samples = sample_pair(scene_field, library_field, proposal, cfg, workers)
         else:
             scene_samples = sample_surface(scene_field, proposal, cfg.scene_sampling, side="scene")
             lib_samples = library_samples
         timings["sampling"] = time.perf_counter() - t0
         t1 = time.perf_counter()
         if initial is None:
-            hyps = initialise(scene_field, library_field, proposal, scene_samples, lib_samples, cfg)
+            hyps = initialise(scene_field, library_field, proposal, scene_samples, lib_samples, cfg, workers)
         else:
             hyps = [Hypothesis(initial, float("nan"), float("nan"))]
         timings["initialisation"] = time.perf_counter() - t1

@@ -62,12 +62,12 @@ import math
 import time
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
-from typing import Literal, NamedTuple
+from typing import Literal, NamedTuple, TypeVar
 
 import numpy as np
 import torch
 
-from regnf.core.threads import one_thread
+from regnf.core.threads import map_one_thread_each, one_thread, worker_count
 from regnf.neural_fields.field import Field
 from regnf.registration.irls import (
     barron_curvature,
@@ -80,6 +80,9 @@ from regnf.registration.irls import (
 from regnf.registration.metrics import ObjectSymmetry, same_pose, symmetric_angle
 from regnf.registration.robust_loss import AdaptiveRobustLoss, general_rho, log_partition
 from regnf.registration.transform import SimilarityTransform
+
+T = TypeVar("T")
+U = TypeVar("U")
 
 
 @dataclass(frozen=True)
@@ -511,8 +514,10 @@ class _Batch:
         B: torch.Tensor | None,
         inits: Sequence[SimilarityTransform],
         cfg: RefineConfig,
+        workers: int = 1,
     ) -> None:
         self.scene, self.library, self.cfg = scene, library, cfg
+        self.workers = workers
         # Where the scene's training views observed space (None: everywhere, e.g. analytic or
         # mesh-distilled scenes). Samples in unobserved space are no evidence either way.
         self.visibility = getattr(scene, "visibility", None) if cfg.use_visibility else None
@@ -591,15 +596,26 @@ class _Batch:
             self.normal_B = torch.cat([self.fixed_B[k][2] for k in act]) if self.lookahead > 0 else None
             self.nearest = [self.fixed_B[k][3] for k in act] if self.cfg.regulariser_weight > 0 else []
 
+    def _both(self, scene_side: Callable[[], T], library_side: Callable[[], U]) -> tuple[T, U]:
+        """``(scene_side(), library_side())``: the two directions' field queries are independent,
+        so with ``workers`` > 1 they run side by side, each on one CPU thread
+        (:func:`~regnf.core.threads.map_one_thread_each`): the bits of one after the other."""
+        if self.workers < 2:
+            return scene_side(), library_side()
+        a, b = map_one_thread_each(lambda call: call(), [scene_side, library_side], 2)
+        return a, b
+
     def _fixed_values(self) -> None:
         """Evaluate, for the active hypotheses whose samples changed, what does not move with the
         pose: S_scene and the visibility at A; S_lib, the library normals and the nearest-sample
         lookup at B. Once per distinct sample tensor, in one field query per side (the fields
         are the cost: measured, re-evaluating them whenever a hypothesis stopped took a third of
         the refinement)."""
-        self._cache_per_tensor(self.A, self.fixed_A, self._fixed_at_A)
-        if self.bidirectional:
-            self._cache_per_tensor(self.B, self.fixed_B, self._fixed_at_B)
+        if not self.bidirectional:
+            self._cache_per_tensor(self.A, self.fixed_A, self._fixed_at_A)
+            return
+        self._both(lambda: self._cache_per_tensor(self.A, self.fixed_A, self._fixed_at_A),
+                   lambda: self._cache_per_tensor(self.B, self.fixed_B, self._fixed_at_B))
 
     def _cache_per_tensor(self, sets: list[torch.Tensor], cache: dict,
                           evaluate: Callable[[list[torch.Tensor]], list[tuple]]) -> None:
@@ -711,7 +727,13 @@ class _Batch:
         gA = self.gA
         yA = s[gA, None] * torch.einsum("nij,nj->ni", R[gA], self.xA) + t[gA]
         d = (self.offset()[idx] * L).to(self.dtype)
-        rA = (self.library.sdf(yA) - s[gA] * self.sA - d[gA]).abs()
+        if self.bidirectional:
+            gB = self.gB
+            xB = torch.einsum("nji,nj->ni", R[gB], self.yB - t[gB]) / s[gB, None]
+            scene_at_xB, lib_at_yA = self._both(lambda: self.scene.sdf(xB), lambda: self.library.sdf(yA))
+        else:
+            lib_at_yA = self.library.sdf(yA)
+        rA = (lib_at_yA - s[gA] * self.sA - d[gA]).abs()
         k = len(self.active)
         if self.wA is None:
             loss = _segment_mean(self.kernel(rA / L, idx[gA]), gA, self.nA)
@@ -728,9 +750,7 @@ class _Batch:
         reg = torch.zeros_like(meanA)
         inl_A, count_A = inl.detach().clone(), count.detach().clone()
         if self.bidirectional:
-            gB = self.gB
-            xB = torch.einsum("nji,nj->ni", R[gB], self.yB - t[gB]) / s[gB, None]
-            rB = (s[gB] * self.scene.sdf(xB) + d[gB] - self.sB).abs()
+            rB = (s[gB] * scene_at_xB + d[gB] - self.sB).abs()
             # In front of where the library sample lands in the scene, at this pose.
             wB = self._observed(xB, self._normals_B(R))
             if wB is None:
@@ -781,7 +801,15 @@ class _Batch:
         thr = cfg.inlier_threshold * L
         gA = self.gA
         yA = s[gA, None] * torch.einsum("nij,nj->ni", R[gA], self.xA.double()) + t[gA]
-        slib, glib = (v.double() for v in self.library.sdf_and_gradient(yA.to(self.dtype)))
+        if self.bidirectional:
+            gB = self.gB
+            yB = self.yB.double()
+            xB = torch.einsum("nji,nj->ni", R[gB], yB - t[gB]) / s[gB, None]
+            at_xB, at_yA = self._both(lambda: self.scene.sdf_and_gradient(xB.to(self.dtype)),
+                                      lambda: self.library.sdf_and_gradient(yA.to(self.dtype)))
+        else:
+            at_yA = self.library.sdf_and_gradient(yA.to(self.dtype))
+        slib, glib = (v.double() for v in at_yA)
         _check_finite(slib, "the library field (at the mapped scene samples)")
         ssA = s[gA] * self.sA.double()
         eA = slib - ssA - d[gA]
@@ -798,10 +826,7 @@ class _Batch:
         stats[:, 3] = stats[:, 6] = cntA
         q = Jq = aq = gq = None
         if self.bidirectional:
-            gB = self.gB
-            yB = self.yB.double()
-            xB = torch.einsum("nji,nj->ni", R[gB], yB - t[gB]) / s[gB, None]
-            ssc, gsc = (v.double() for v in self.scene.sdf_and_gradient(xB.to(self.dtype)))
+            ssc, gsc = (v.double() for v in at_xB)
             _check_finite(ssc, "the scene field (at the mapped library samples)")
             eB = s[gB] * ssc + d[gB] - self.sB.double()
             u = yB - c[gB]
@@ -1006,6 +1031,7 @@ def refine_many(
     config: RefineConfig | None = None,
     device: torch.device | str | None = None,
     symmetry: ObjectSymmetry | None = None,
+    workers: int | None = None,
 ) -> list[RefineResult]:
     """Refine K initial hypotheses at once (one batched pair of field queries per iteration).
 
@@ -1026,6 +1052,10 @@ def refine_many(
     symmetry : ObjectSymmetry, optional
         The library object's symmetry: Levenberg-Marquardt stops a hypothesis that reaches a
         better one's pose modulo it (``RefineConfig.lm_merge_rotation_deg``).
+    workers : int, optional
+        CPU threads for the pair of field queries, the scene's and the library's side by side
+        (each on one thread, so the results are the same bits on any count); default: one per
+        core torch may use here (:func:`~regnf.core.threads.worker_count`).
 
     Returns
     -------
@@ -1050,9 +1080,10 @@ def refine_many(
     for k, T in enumerate(inits):
         _check_transform(T, k)
 
+    workers = worker_count(workers)  # before one_thread() sets torch's count to 1
     start = time.perf_counter()
     with _frozen(scene_field, library_field), one_thread():
-        batch = _Batch(scene_field, library_field, A, B if cfg.bidirectional else None, inits, cfg)
+        batch = _Batch(scene_field, library_field, A, B if cfg.bidirectional else None, inits, cfg, workers)
         K = len(inits)
         histories: list[list[dict]] = [[] for _ in range(K)]
         steps = [0] * K

@@ -29,6 +29,7 @@ def screen_hypotheses(
     hypotheses: list[Hypothesis],
     config: RefineConfig,
     keep: int,
+    workers: int | None = None,
 ) -> list[Hypothesis]:
     """The ``keep`` hypotheses with the highest SDF confidence at their pose, best first.
 
@@ -46,6 +47,8 @@ def screen_hypotheses(
         The refinement's settings (inlier threshold, visibility weighting); no step is taken.
     keep : int
         Hypotheses returned at most.
+    workers : int, optional
+        CPU threads of the two field queries (:func:`~regnf.registration.refinement.refine_many`).
 
     Returns
     -------
@@ -55,7 +58,7 @@ def screen_hypotheses(
     if len(hypotheses) <= 1:
         return list(hypotheses[:keep])
     scores = refine_many(scene_field, library_field, A, B, [h.transform for h in hypotheses],
-                         without_steps(config))
+                         without_steps(config), workers=workers)
     order = sorted(range(len(hypotheses)),
                    key=lambda i: (-round(scores[i].inlier_fraction, 6), -hypotheses[i].fitness, i))
     return [hypotheses[i] for i in order[:keep]]

@@ -1,5 +1,6 @@
 """Denormals flushed to zero around a network's evaluation: the mode comes and goes with the
-block, and a field whose softplus meets denormals gives the same bits with it as without."""
+block, and a field whose softplus meets denormals gives the same bits with it as without; in
+training, on every thread of torch's pool, with the same bits."""
 
 from __future__ import annotations
 
@@ -8,11 +9,13 @@ import threading
 
 import torch
 import torch.nn.functional as F
+import trimesh
 
 import regnf.neural_fields.field as field_module
-from regnf.core.denormals import denormals_flushed, flushing
+from regnf.core.denormals import denormals_flushed, flushing, pool_denormals_flushed
 from regnf.core.threads import one_thread
-from regnf.neural_fields import neural_sdf
+from regnf.neural_fields import neural_sdf, optim
+from regnf.neural_fields.distill import DistillConfig, distill_mesh
 from regnf.neural_fields.field import FieldInfo
 from regnf.neural_fields.neural_sdf import NeuralSDF
 from tests.scene_graph.helpers import TINY
@@ -67,3 +70,45 @@ def test_a_field_is_the_same_bits_with_denormals_flushed(monkeypatch) -> None:
         plain = evaluate(field, x)
     for a, b in zip(plain, flushed, strict=True):
         assert torch.equal(a, b)
+
+
+@contextlib.contextmanager
+def torch_threads(n: int):
+    before = torch.get_num_threads()
+    torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
+def test_the_pool_block_flushes_every_torch_thread_and_restores_them() -> None:
+    # exp(-100) is denormal; a million of them are computed by torch's threads in parallel,
+    # each its share: all of them come out zero only if every one of those threads flushes.
+    x = torch.full((1 << 20,), -100.0)
+    with torch_threads(2):
+        with pool_denormals_flushed():
+            assert flushing() and bool((torch.exp(x) == 0).all())
+        # The default mode after it on every thread, whatever a thread had before (a pool thread
+        # started inside a flushed evaluation copies its mode).
+        assert not flushing() and bool((torch.exp(x) > 0).all())
+        with denormals_flushed():  # an outer block's mode is left as it was
+            with pool_denormals_flushed():
+                pass
+            assert flushing()
+        assert not flushing()
+
+
+def test_training_gives_the_same_bits_with_the_pool_flushed(monkeypatch) -> None:
+    # The distillation's loop runs in pool_denormals_flushed: the same field as without it.
+    mesh = trimesh.creation.box(extents=(0.4, 0.3, 0.5))
+    config = DistillConfig(steps=12, batch=512, pool_surface=4000, architecture=TINY)
+    fields = []
+    with torch_threads(2):
+        for block in (optim.pool_denormals_flushed, contextlib.nullcontext):
+            monkeypatch.setattr(optim, "pool_denormals_flushed", block)
+            field, _ = distill_mesh(mesh, config, info=FieldInfo("box", "b"), progress=False)
+            fields.append(field.state_dict())
+    flushed, plain = fields
+    assert flushed.keys() == plain.keys()
+    assert all(torch.equal(flushed[k], plain[k]) for k in flushed)

@@ -63,3 +63,13 @@ def test_same_bits_as_one_thread() -> None:
     with one_thread():
         ref = [x.sum() for x in xs]
     assert all(torch.equal(a, b) for a, b in zip(map_one_thread_each(torch.sum, xs, workers=2), ref))
+
+
+def test_the_callers_grad_mode_carries_over() -> None:
+    # Torch's grad mode is per thread: a call made under the caller's no_grad must not build
+    # graphs on its worker thread (nor lose them under enable_grad).
+    x = torch.ones(3, requires_grad=True)
+    with torch.no_grad():
+        off = map_one_thread_each(lambda _: (x * 2).requires_grad, [0, 1], workers=2)
+    on = map_one_thread_each(lambda _: (x * 2).requires_grad, [0, 1], workers=2)
+    assert off == [False, False] and on == [True, True]

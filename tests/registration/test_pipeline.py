@@ -67,6 +67,27 @@ def test_register_recovers_a_known_similarity_at_any_library_scale(factor: float
     assert result.confidence == result.losses["inlier_fraction"]
 
 
+def test_same_registration_on_one_thread_or_two() -> None:
+    # On two threads the scene and library sampling, and each pair of field queries of the
+    # screening and the refinement, run side by side, each on one thread: the same bits.
+    scene, proposal, _ = scene_and_truth(2.3, 1.0)
+    library = library_at_scale(1.0)
+    before = torch.get_num_threads()
+    try:
+        runs = []
+        for n in (1, 2):
+            torch.set_num_threads(n)
+            runs.append(register(scene, library, proposal))
+            assert torch.get_num_threads() == n
+    finally:
+        torch.set_num_threads(before)
+    one, two = runs
+    assert np.array_equal(one.transform.matrix(), two.transform.matrix())
+    assert one.confidence == two.confidence
+    assert [h.initial.matrix().tolist() for h in one.hypotheses] == [h.initial.matrix().tolist() for h in two.hypotheses]
+    assert np.array_equal(one.samples[0], two.samples[0]) and np.array_equal(one.samples[1], two.samples[1])
+
+
 def test_wrong_object_is_detected() -> None:
     # A table-like object (slab on one pillar) in the proposal, the chair-like object as library.
     table = Union(Box(half_extents=(0.4, 0.4, 0.03), center=(0.0, 0.0, 0.72)),
