@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
+import os
 import threading
 from collections.abc import Callable, Iterator
 
@@ -65,7 +66,8 @@ def _openmp_runtime() -> ctypes.CDLL | None:
             paths = {line.split()[-1] for line in maps if "libgomp" in line.rsplit("/", 1)[-1]}
     except OSError:
         return None
-    for path in sorted(paths):
+    torch_dir = os.path.dirname(torch.__file__)
+    for path in sorted(paths, key=lambda p: (not p.startswith(torch_dir), p)):  # torch's own first
         try:
             lib = ctypes.CDLL(path)  # already loaded: the same handle, not a second runtime
             lib.GOMP_parallel.argtypes = [_GOMP_BODY, ctypes.c_void_p, ctypes.c_uint, ctypes.c_uint]
