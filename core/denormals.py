@@ -107,7 +107,8 @@ def pool_denormals_flushed() -> Iterator[None]:
     evaluation copies its mode) and this thread in its earlier one.
 
     For training loops, which run nothing but torch: the same bits as without (the softplus's
-    denormals only ever round away), a step about a tenth faster. Where torch's OpenMP runtime
+    denormals only ever round away; tested), a distillation about 5 % faster on 2 cores (fc
+    11.2-11.6 -> 10.6-10.9 s in one hour). Where torch's OpenMP runtime
     cannot be reached (not GNU OpenMP, not Linux), only this thread's mode is set.
     """
     with denormals_flushed():

@@ -18,6 +18,7 @@ from regnf.neural_fields import neural_sdf, optim
 from regnf.neural_fields.distill import DistillConfig, distill_mesh
 from regnf.neural_fields.field import FieldInfo
 from regnf.neural_fields.neural_sdf import NeuralSDF
+from tests.core.helpers import torch_threads
 from tests.scene_graph.helpers import TINY
 
 EXP_DENORMAL = -87.3
@@ -70,16 +71,6 @@ def test_a_field_is_the_same_bits_with_denormals_flushed(monkeypatch) -> None:
         plain = evaluate(field, x)
     for a, b in zip(plain, flushed, strict=True):
         assert torch.equal(a, b)
-
-
-@contextlib.contextmanager
-def torch_threads(n: int):
-    before = torch.get_num_threads()
-    torch.set_num_threads(n)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(before)
 
 
 def test_the_pool_block_flushes_every_torch_thread_and_restores_them() -> None:

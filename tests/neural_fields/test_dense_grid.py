@@ -2,22 +2,10 @@
 
 from __future__ import annotations
 
-import contextlib
-from collections.abc import Iterator
-
 import torch
 
 from regnf.neural_fields.dense_grid import DenseGridEncoding
-
-
-@contextlib.contextmanager
-def threads(n: int) -> Iterator[None]:
-    before = torch.get_num_threads()
-    torch.set_num_threads(n)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(before)
+from tests.core.helpers import torch_threads
 
 
 def encoding() -> DenseGridEncoding:
@@ -37,9 +25,9 @@ def features_and_grads(enc: DenseGridEncoding, u: torch.Tensor) -> tuple[torch.T
 def test_parallel_levels_match_the_sequential_path_bit_for_bit() -> None:
     enc = encoding()
     u = torch.rand(5000, 3, generator=torch.Generator().manual_seed(1)) * 2.2 - 1.1  # some outside
-    with threads(1):  # one thread: the sequential path
+    with torch_threads(1):  # one thread: the sequential path
         y1, g1 = features_and_grads(enc, u)
-    with threads(2):  # two threads: one level per thread
+    with torch_threads(2):  # two threads: one level per thread
         y2, g2 = features_and_grads(enc, u)
     assert torch.equal(y1, y2)
     assert all(torch.equal(a, b) for a, b in zip(g1, g2))
@@ -54,7 +42,7 @@ def test_positions_needing_a_gradient_get_it_on_either_thread_count() -> None:
     u0 = torch.rand(300, 3, generator=torch.Generator().manual_seed(2)) * 1.6 - 0.8
     out = []
     for n in (1, 2):
-        with threads(n):
+        with torch_threads(n):
             u = u0.clone().requires_grad_(True)
             (gu,) = torch.autograd.grad(enc(u).sum(), u)
             out.append(gu)

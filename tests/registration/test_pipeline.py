@@ -20,6 +20,7 @@ from regnf.registration.baselines import (
 from regnf.registration.metrics import geodesic_angle
 from regnf.registration.pipeline import RegistrationConfig, register
 from regnf.registration.transform import SimilarityTransform
+from tests.core.helpers import torch_threads
 
 from .fixtures import OBJECT_HI, OBJECT_LO, make_object, make_scene, placement, rot
 
@@ -72,15 +73,11 @@ def test_same_registration_on_one_thread_or_two() -> None:
     # screening and the refinement, run side by side, each on one thread: the same bits.
     scene, proposal, _ = scene_and_truth(2.3, 1.0)
     library = library_at_scale(1.0)
-    before = torch.get_num_threads()
-    try:
-        runs = []
-        for n in (1, 2):
-            torch.set_num_threads(n)
+    runs = []
+    for n in (1, 2):
+        with torch_threads(n):
             runs.append(register(scene, library, proposal))
             assert torch.get_num_threads() == n
-    finally:
-        torch.set_num_threads(before)
     one, two = runs
     assert np.array_equal(one.transform.matrix(), two.transform.matrix())
     assert one.confidence == two.confidence
