@@ -733,17 +733,17 @@ def render_many(
     origins, dirs = torch.cat([r.origins for r in rays]), torch.cat([r.dirs for r in rays])
     t_min, cone_evals = None, None
     if config.cone_tile > 1:
-        tiles, first = [], 0
-        for camera in cameras:
-            tiles.append(first + pixel_tiles(camera.width, camera.height, config.cone_tile, field.device))
-            first = int(tiles[-1].max()) + 1
+        k, tiles, first = config.cone_tile, [], 0
+        for camera in cameras:  # every camera's tiles numbered after the previous camera's
+            tiles.append(first + pixel_tiles(camera.width, camera.height, k, field.device))
+            first += -(-camera.width // k) * -(-camera.height // k)
         tiles = torch.cat(tiles)
         t_min, tile_evals = cone_starts(field, origins, dirs, tiles, config)
         # Each tile's cone counted on its first ray, so that sums and means over pixels hold them.
-        cone_evals = torch.zeros_like(tiles).index_put_(
-            (torch.zeros_like(tile_evals).scatter_reduce(
-                0, tiles, torch.arange(len(tiles), device=tiles.device), "amin", include_self=False),),
-            tile_evals)
+        ray_ids = torch.arange(len(tiles), device=tiles.device)
+        first_ray = torch.full_like(tile_evals, len(tiles)).scatter_reduce(0, tiles, ray_ids, "amin")
+        cone_evals = torch.zeros_like(tiles)
+        cone_evals[first_ray] = tile_evals
     hits = trace(field, origins, dirs, config, grid, angles, t_min)
     if cone_evals is not None:
         hits = hits._replace(evals=hits.evals + cone_evals)
