@@ -599,8 +599,13 @@ class _Batch:
     def _both(self, scene_side: Callable[[], T], library_side: Callable[[], U]) -> tuple[T, U]:
         """``(scene_side(), library_side())``: the two directions' field queries are independent,
         so with ``workers`` > 1 they run side by side, each on one CPU thread
-        (:func:`~regnf.core.threads.map_one_thread_each`): the bits of one after the other."""
-        if self.workers < 2:
+        (:func:`~regnf.core.threads.map_one_thread_each`): the bits of one after the other.
+
+        Not under autograd (Adam's loss): the backward pass orders its nodes by a creation
+        counter that torch keeps per thread, so a graph built on two threads sums the pose's
+        gradient contributions in an order that depends on the scheduling (seen: one run in six
+        differed in the last bits)."""
+        if self.workers < 2 or torch.is_grad_enabled():
             return scene_side(), library_side()
         a, b = map_one_thread_each(lambda call: call(), [scene_side, library_side], 2)
         return a, b
