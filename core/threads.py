@@ -1,10 +1,12 @@
-"""Torch (and the OpenMP runtime it shares with Open3D) on one CPU thread, for repeatable results;
-independent calls side by side, each on one thread (:func:`map_one_thread_each`)."""
+"""Torch and Open3D on one CPU thread, for repeatable results; independent calls side by side,
+each on one thread (:func:`map_one_thread_each`)."""
 
 from __future__ import annotations
 
 import contextlib
 import os
+import sys
+import threading
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from typing import TypeVar
@@ -15,12 +17,45 @@ T = TypeVar("T")
 R = TypeVar("R")
 
 
+_open3d_lock = threading.Lock()
+_open3d_holders = 0  # blocks, on any thread, inside _open3d_one_thread
+_open3d_before = 0  # Open3D's thread limit when the first of them entered
+
+
+@contextlib.contextmanager
+def _open3d_one_thread() -> Iterator[None]:
+    """Open3D on one thread for the block, when this process has loaded it.
+
+    Open3D (0.20) parallelises with oneTBB, whose thread limit is one for the whole process
+    (``open3d.utility.set_max_threads``), not torch's OpenMP setting: the first block to enter,
+    on any thread, sets it to one, and the last to leave sets it back. A module that calls
+    Open3D imports it first, so a block entered before that import has no Open3D call to
+    limit; checking ``sys.modules`` spares the half second of importing it in processes that
+    never use it (the renderer's workers).
+    """
+    global _open3d_holders, _open3d_before
+    o3d = sys.modules.get("open3d")
+    if o3d is None:
+        yield
+        return
+    with _open3d_lock:
+        if _open3d_holders == 0:
+            _open3d_before = o3d.utility.get_max_threads()
+            o3d.utility.set_max_threads(1)
+        _open3d_holders += 1
+    try:
+        yield
+    finally:
+        with _open3d_lock:
+            _open3d_holders -= 1
+            if _open3d_holders == 0:
+                o3d.utility.set_max_threads(_open3d_before)
+
+
 @contextlib.contextmanager
 def one_thread() -> Iterator[None]:
-    """Run the block on one CPU thread (the thread count is restored after).
-
-    Torch's ``set_num_threads`` sets the OpenMP runtime that Open3D shares in this process, so
-    this also makes Open3D's parallel RANSAC and ICP single-threaded.
+    """Run the block on one CPU thread (torch's thread count on this thread, and Open3D's
+    limit for the process while any such block runs; both restored after).
 
     Why (measured):
 
@@ -30,12 +65,15 @@ def one_thread() -> Iterator[None]:
       batch sizes (5.6 s against 5.7-6.4 s).
     - Open3D's RANSAC: with two threads its hypotheses depend on the scheduling. The chair c
       in the low-coverage atbl-room's wt box (mesh library) scored 0.2241 run alone and 0.2184
-      in a pooled benchmark worker, and 0.2769 with one thread.
+      in a pooled benchmark worker, and 0.2769 with one thread. Its threads draw from one
+      random generator, in the order they reach it, and stop early on a shared count: the
+      test registration gave other RANSAC results in 2 of 20 processes on two threads.
     """
     n = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
-        yield
+        with _open3d_one_thread():
+            yield
     finally:
         torch.set_num_threads(n)
 

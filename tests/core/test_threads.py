@@ -73,3 +73,43 @@ def test_the_callers_grad_mode_carries_over() -> None:
         off = map_one_thread_each(lambda _: (x * 2).requires_grad, [0, 1], workers=2)
     on = map_one_thread_each(lambda _: (x * 2).requires_grad, [0, 1], workers=2)
     assert off == [False, False] and on == [True, True]
+
+
+def test_open3d_runs_on_one_thread_in_the_block_and_gets_its_limit_back() -> None:
+    # Open3D's RANSAC draws from one random generator on as many TBB threads as it may use:
+    # its hypotheses depend on the scheduling unless the block limits it to one.
+    import open3d as o3d
+
+    before = o3d.utility.get_max_threads()
+    with one_thread():
+        assert o3d.utility.get_max_threads() == 1
+        with one_thread():
+            assert o3d.utility.get_max_threads() == 1
+        assert o3d.utility.get_max_threads() == 1  # the inner block leaves the outer's limit
+    assert o3d.utility.get_max_threads() == before
+
+
+def test_open3d_stays_on_one_thread_while_a_block_on_another_thread_runs() -> None:
+    # The limit is the process's: a block that leaves on one thread must not lift it under a
+    # block still running on another.
+    import open3d as o3d
+
+    before = o3d.utility.get_max_threads()
+    entered, release = threading.Event(), threading.Event()
+
+    def hold() -> None:
+        with one_thread():
+            entered.set()
+            release.wait(10)
+
+    other = threading.Thread(target=hold)
+    other.start()
+    try:
+        assert entered.wait(10)
+        with one_thread():
+            pass
+        assert o3d.utility.get_max_threads() == 1
+    finally:
+        release.set()
+        other.join()
+    assert o3d.utility.get_max_threads() == before
