@@ -33,21 +33,24 @@ Procedure:
    (:mod:`regnf.registration.screening`).
 
 Determinism: every RANSAC run seeds Open3D's global generator (``o3d.utility.random.seed``),
-and the whole initialisation runs on one OpenMP thread (:func:`regnf.core.threads.one_thread`):
-Open3D's parallel RANSAC gives other hypotheses on other thread counts.
+and the whole initialisation runs with torch and Open3D on one thread
+(:func:`regnf.core.threads.one_thread`): Open3D's parallel RANSAC gives other hypotheses on
+other thread counts, and from run to run on more than one.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Literal, NamedTuple
 
 import numpy as np
 import open3d as o3d
 
-from regnf.core.threads import one_thread
+from regnf.core.threads import map_one_thread_each, one_thread
 
 from .metrics import ObjectSymmetry, same_pose
 from .sampling import SurfaceSamples
@@ -240,7 +243,11 @@ def _centre_and_radius(points: np.ndarray, config: InitConfig) -> tuple[np.ndarr
     return c, r
 
 
-def _prepare(scene: SurfaceSamples, library: SurfaceSamples, config: InitConfig) -> _Prepared:
+def _prepare(scene: SurfaceSamples, library: SurfaceSamples, config: InitConfig,
+             workers: int = 1) -> _Prepared:
+    """Both clouds in the normalised frame, thinned to the voxel, with normals and FPFH
+    features; the two clouds side by side on ``workers`` threads (Open3D's calls let go of the
+    interpreter lock, and each runs on its calling thread under ``one_thread``)."""
     _check_samples(scene, "scene")
     _check_samples(library, "library")
     Ps, Pl = np.asarray(scene.points, np.float64), np.asarray(library.points, np.float64)
@@ -255,8 +262,8 @@ def _prepare(scene: SurfaceSamples, library: SurfaceSamples, config: InitConfig)
     use_n = config.use_field_normals
     src = _cloud(scn_n.apply(Ps), np.asarray(scene.normals) if use_n else None)
     tgt = _cloud(lib_n.apply(Pl), np.asarray(library.normals) if use_n else None)
-    downs, feats = [], []
-    for pc in (src, tgt):
+
+    def features(pc: o3d.geometry.PointCloud) -> tuple[o3d.geometry.PointCloud, o3d.pipelines.registration.Feature]:
         down = pc.voxel_down_sample(v)
         if use_n:
             down.normalize_normals()  # voxel averaging shortens them
@@ -271,22 +278,21 @@ def _prepare(scene: SurfaceSamples, library: SurfaceSamples, config: InitConfig)
                 f"only {len(down.points)} points left after the {v} voxel downsampling; "
                 "the sample clouds are too small to register"
             )
-        feats.append(
-            reg.compute_fpfh_feature(
-                down,
-                o3d.geometry.KDTreeSearchParamHybrid(
-                    radius=config.feature_radius_voxels * v, max_nn=config.feature_max_nn
-                ),
-            )
+        return down, reg.compute_fpfh_feature(
+            down,
+            o3d.geometry.KDTreeSearchParamHybrid(
+                radius=config.feature_radius_voxels * v, max_nn=config.feature_max_nn
+            ),
         )
-        downs.append(down)
+
+    (src_down, src_feat), (tgt_down, tgt_feat) = map_one_thread_each(features, [src, tgt], workers)
     if not use_n:
         tgt.estimate_normals(
             o3d.geometry.KDTreeSearchParamHybrid(
                 radius=config.normal_radius_voxels * v, max_nn=config.normal_max_nn
             )
         )
-    return _Prepared(src, tgt, downs[0], downs[1], feats[0], feats[1], scn_n, lib_n, scale0)
+    return _Prepared(src, tgt, src_down, tgt_down, src_feat, tgt_feat, scn_n, lib_n, scale0)
 
 
 def _feature_matches(prep: _Prepared, mutual: bool, workers: int = 1) -> np.ndarray:
@@ -467,8 +473,9 @@ def initial_hypotheses(
     limit : int, optional
         Hypotheses returned at most (default ``config.top_k``).
     workers : int
-        Threads of the FPFH feature matching (exact: the same matches on any count; Open3D's
-        RANSAC and ICP always run on one).
+        Threads for the two clouds' features, the FPFH matching and the ICP starts, side by
+        side (the same hypotheses on any count: each Open3D call runs on one thread, RANSAC's
+        runs one after another on this one).
 
     Returns
     -------
@@ -480,28 +487,47 @@ def initial_hypotheses(
     ValueError
         For malformed or too small sample sets, or when no run produced a usable transform.
     """
-    prep = _prepare(scene, library, config)
-    runs = _ransac_runs(prep, config, workers)
-    if not runs and config.mutual_filter:
-        runs = _ransac_runs(prep, dataclasses.replace(config, mutual_filter=False), workers)
+    prep = _prepare(scene, library, config, workers)
+    yaws: list[np.ndarray] = []
     if upright is not None and config.upright_yaws > 0:
         starts = yaw_starts(scene.points, library.points, upright, config.upright_yaws,
                             _yaw_period(symmetry, upright))
-        runs += [_to_norm(prep, T) for T in starts]
+        yaws = [_to_norm(prep, T) for T in starts]
     lib = np.asarray(library.points, dtype=np.float64)
     lo, hi = lib.min(axis=0), lib.max(axis=0)
     centre, size = 0.5 * (lo + hi), float((hi - lo).max())
     v = config.voxel_size
+    fine_distance = config.icp_distance_voxels * v
+
+    def fine(M0: np.ndarray) -> np.ndarray:
+        return _icp(prep.src, prep.tgt, M0, fine_distance, config.icp_relative_change, config)
+
+    first = fine
     if config.icp_coarse_voxels > 0:
         cv = config.icp_coarse_voxels * v
         src, tgt = prep.src.voxel_down_sample(cv), prep.tgt.voxel_down_sample(cv)
-        coarse = _refined(prep, runs, config, lambda M0: _icp(
-            src, tgt, M0, cv, config.icp_coarse_relative_change, config))
+
+        def first(M0: np.ndarray) -> np.ndarray:
+            return _icp(src, tgt, M0, cv, config.icp_coarse_relative_change, config)
+
+    # The yaw starts need no RANSAC: with two workers their first ICP runs on another thread
+    # while RANSAC runs on this one (Open3D lets go of the interpreter lock; each call on its
+    # own thread, so the same bits as one after the other).
+    with contextlib.ExitStack() as stack:
+        if workers > 1 and yaws:
+            pool = stack.enter_context(ThreadPoolExecutor(1, thread_name_prefix="yaw-starts"))
+            from_yaws = pool.submit(_refined, prep, yaws, config, first)
+        runs = _ransac_runs(prep, config, workers)
+        if not runs and config.mutual_filter:
+            runs = _ransac_runs(prep, dataclasses.replace(config, mutual_filter=False), workers)
+        firsts = _refined(prep, runs, config, first, workers)
+        firsts += from_yaws.result() if workers > 1 and yaws else _refined(prep, yaws, config, first)
+    cands = firsts
+    if first is not fine:
         # The distinct coarse results, refined again on every sample (from close by: few steps).
         runs = [_to_norm(prep, h.transform)
-                for h in _select(coarse, config, symmetry, config.candidates, centre, size)]
-    cands = _refined(prep, runs, config, lambda M0: _icp(
-        prep.src, prep.tgt, M0, config.icp_distance_voxels * v, config.icp_relative_change, config))
+                for h in _select(firsts, config, symmetry, config.candidates, centre, size)]
+        cands = _refined(prep, runs, config, fine, workers)
     if not cands:
         raise NoHypothesisError(
             "initial registration failed: RANSAC found no transform consistent with the FPFH "
@@ -511,25 +537,28 @@ def initial_hypotheses(
 
 
 def _refined(prep: _Prepared, starts: list[np.ndarray], config: InitConfig,
-             icp: Callable[[np.ndarray], np.ndarray]) -> list[Hypothesis]:
+             icp: Callable[[np.ndarray], np.ndarray], workers: int = 1) -> list[Hypothesis]:
     """``icp`` from each normalised-frame start (4, 4), scored on every sample; degenerate
     results and those whose scale strays from the pre-estimate by more than
-    ``max_scale_ratio`` are dropped."""
-    out = []
-    for M0 in starts:
+    ``max_scale_ratio`` are dropped. The starts are independent: side by side on ``workers``
+    threads, each ICP on its own thread (the same bits as one after another: no random draws,
+    and Open3D on one thread under ``one_thread``)."""
+
+    def one(M0: np.ndarray) -> Hypothesis | None:
         M = _similarity_or_none(icp(M0))
         if M is None:
             M = _similarity_or_none(M0)
         if M is None:
-            continue
+            return None
         T = _to_field(prep, M)
         # ICP with scaling can collapse the scene onto part of the library: reject that.
         ratio = T.s / prep.scale0
         if not 1.0 / config.max_scale_ratio <= ratio <= config.max_scale_ratio:
-            continue
+            return None
         fit, rmse = _evaluate(prep, M, config)
-        out.append(Hypothesis(T, fit, rmse))
-    return out
+        return Hypothesis(T, fit, rmse)
+
+    return [h for h in map_one_thread_each(one, starts, workers) if h is not None]
 
 
 class NoHypothesisError(ValueError):
