@@ -101,11 +101,11 @@ def map_one_thread_each(fn: Callable[[T], R], items: Sequence[T], workers: int |
     interpreter lock, so two such calls overlap on two cores, where one call on two threads
     leaves a core idle much of the time: the 3-D ``grid_sample`` runs on one thread whatever the
     setting, and the small batches of a sphere tracer's last steps do not split. Open3D's
-    calls hold the interpreter lock, share one random generator, and its RANSAC on a thread
-    other than the main one gave hypotheses that varied from run to run: not for them (so
-    discovery examines its candidates side by side in worker processes, each on its main
-    thread: :mod:`regnf.registration.discovery_workers`; docs/benchmarks.md, "The demo end to
-    end").
+    ICP and features let go of the lock too and, limited to one thread by :func:`one_thread`,
+    give the same bits side by side (:mod:`regnf.registration.initialisation`); its RANSAC
+    draws from one random generator for the whole process, so RANSAC runs stay one after
+    another on one thread (discovery examines its candidates side by side in worker
+    processes: :mod:`regnf.registration.discovery_workers`).
 
     Each call runs in the caller's grad mode (torch keeps it per thread: a call made under
     ``torch.no_grad()`` builds no graph on its worker thread either).
