@@ -102,10 +102,9 @@ def map_one_thread_each(fn: Callable[[T], R], items: Sequence[T], workers: int |
     leaves a core idle much of the time: the 3-D ``grid_sample`` runs on one thread whatever the
     setting, and the small batches of a sphere tracer's last steps do not split. Open3D's
     ICP and features let go of the lock too and, limited to one thread by :func:`one_thread`,
-    give the same bits side by side (:mod:`regnf.registration.initialisation`); its RANSAC
-    draws from one random generator for the whole process, so RANSAC runs stay one after
-    another on one thread (discovery examines its candidates side by side in worker
-    processes: :mod:`regnf.registration.discovery_workers`).
+    give the same bits side by side (:mod:`regnf.registration.initialisation`). Discovery
+    examines its candidates side by side in worker processes instead
+    (:mod:`regnf.registration.discovery_workers`).
 
     Each call runs in the caller's grad mode (torch keeps it per thread: a call made under
     ``torch.no_grad()`` builds no graph on its worker thread either).

@@ -33,6 +33,7 @@ from regnf.registration.pipeline import (
     sample_tensors,
     scored,
 )
+from regnf.registration.ransac import fit_similarities
 from regnf.registration.refinement import RefineResult, refine, without_steps
 from regnf.registration.result import HypothesisReport, RegistrationResult
 from regnf.registration.sampling import SurfaceSamples
@@ -112,13 +113,12 @@ def spread_keypoints(points: np.ndarray, n: int) -> np.ndarray:
 
 
 def kabsch(src: np.ndarray, dst: np.ndarray) -> SimilarityTransform:
-    """The rigid transform (s = 1) that best maps ``src`` (n, 3) onto ``dst`` (n, 3)."""
-    cs, cd = src.mean(0), dst.mean(0)
-    H = (src - cs).T @ (dst - cd)
-    U, _, Vt = np.linalg.svd(H)
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
-    R = Vt.T @ D @ U.T
-    return SimilarityTransform(R, cd - R @ cs, 1.0)
+    """The rigid transform (s = 1) that best maps ``src`` (n, 3) onto ``dst`` (n, 3): the
+    rotation of the best similarity (its scale does not change it), the translation of the
+    centroids."""
+    src, dst = np.asarray(src, np.float64), np.asarray(dst, np.float64)
+    R = fit_similarities(src[None], dst[None])[0][0]
+    return SimilarityTransform(R, dst.mean(0) - R @ src.mean(0), 1.0)
 
 
 def register_nerf2nerf(scene: Field, library: Field, proposal: OrientedBox,

@@ -14,11 +14,12 @@ Procedure:
 2. Voxel-downsample (*paper*: 0.025 of a unit-size object), FPFH (normal radius 2 voxels,
    feature radius 5 voxels, 100 neighbours). The fields' own (outward, consistent) normals
    are used by default instead of re-estimated (sign-ambiguous) ones.
-3. RANSAC on nearest-neighbour feature matches, point-to-point estimation WITH scaling,
-   ``ransac_n`` 4, edge-length and distance checkers, and explicit criteria (100 000
-   iterations, confidence 0.999; the authors' (4 000 000, 500) is read by Open3D as
-   confidence 1, so all 4 million iterations always ran). Run 0 uses all matches, exactly as
-   ``registration_ransac_based_on_feature_matching``; each later run drops the matches that
+3. RANSAC on nearest-neighbour feature matches (:mod:`regnf.registration.ransac`, the
+   estimator of Open3D's ``registration_ransac_based_on_correspondence``, vectorised):
+   point-to-point estimation WITH scaling, ``ransac_n`` 4, edge-length and distance checkers,
+   and explicit criteria (100 000 iterations, confidence 0.999; the authors' (4 000 000, 500)
+   is read by Open3D as confidence 1, so all 4 million iterations always ran). Run 0 uses all
+   matches; each later run drops the matches that
    an earlier hypothesis explains, so that it finds the next-best mode (a symmetric object's
    other poses), with its own seed.
 4. With an upright prior (:mod:`regnf.registration.upright`), evenly spaced yaw starts over one
@@ -32,10 +33,9 @@ Procedure:
    :func:`regnf.registration.pipeline.initialise` then screens them by SDF evidence
    (:mod:`regnf.registration.screening`).
 
-Determinism: every RANSAC run seeds Open3D's global generator (``o3d.utility.random.seed``),
-and the whole initialisation runs with torch and Open3D on one thread
-(:func:`regnf.core.threads.one_thread`): Open3D's parallel RANSAC gives other hypotheses on
-other thread counts, and from run to run on more than one.
+Determinism: every RANSAC run draws from its own seeded NumPy generator, and the
+initialisation runs with torch and Open3D on one thread a call
+(:func:`regnf.core.threads.one_thread`): the same hypotheses on any machine.
 """
 
 from __future__ import annotations
@@ -49,10 +49,12 @@ from typing import Literal, NamedTuple
 
 import numpy as np
 import open3d as o3d
+from scipy.spatial import cKDTree
 
 from regnf.core.threads import map_one_thread_each, one_thread
 
 from .metrics import ObjectSymmetry, same_pose
+from .ransac import ransac_similarity
 from .sampling import SurfaceSamples
 from .transform import SimilarityTransform
 from .upright import UprightPrior, yaw_starts
@@ -301,7 +303,6 @@ def _feature_matches(prep: _Prepared, mutual: bool, workers: int = 1) -> np.ndar
     The queries are split over ``workers`` threads (SciPy's): each point's nearest neighbour is
     exact, so the matches are the same on any count (in 33 dimensions the k-d tree is slow:
     0.05 s a direction for 4 700 points on one core, 0.03 on two)."""
-    from scipy.spatial import cKDTree
 
     Fs, Fl = np.asarray(prep.src_fpfh.data).T, np.asarray(prep.tgt_fpfh.data).T
     j = cKDTree(Fl).query(Fs, k=1, workers=workers)[1]
@@ -363,38 +364,23 @@ def _similarity_or_none(M: np.ndarray) -> np.ndarray | None:
 
 def _ransac_runs(prep: _Prepared, config: InitConfig, workers: int = 1) -> list[np.ndarray]:
     """Normalised-frame 4x4 results of the sequential RANSAC runs (before ICP)."""
-    v = config.voxel_size
-    dist = config.ransac_distance_voxels * v
-    checkers = [
-        reg.CorrespondenceCheckerBasedOnEdgeLength(config.edge_length_ratio),
-        reg.CorrespondenceCheckerBasedOnDistance(dist),
-    ]
-    criteria = [
-        reg.RANSACConvergenceCriteria(n, config.ransac_confidence)
-        for n in (config.ransac_max_iteration, config.ransac_followup_iteration)
-    ]
-    est = reg.TransformationEstimationPointToPoint(with_scaling=True)
+    dist = config.ransac_distance_voxels * config.voxel_size
     corr = _feature_matches(prep, config.mutual_filter, workers)
     Ps = np.asarray(prep.src_down.points)
     Pl = np.asarray(prep.tgt_down.points)
+    tree = cKDTree(Pl)
     out = []
     for r in range(config.ransac_runs):
         if len(corr) < max(config.min_matches, config.ransac_n):
             break
-        o3d.utility.random.seed(config.seed + r)
-        res = reg.registration_ransac_based_on_correspondence(
-            prep.src_down,
-            prep.tgt_down,
-            o3d.utility.Vector2iVector(corr),
-            dist,
-            est,
-            config.ransac_n,
-            checkers,
-            criteria[min(r, 1)],
+        res = ransac_similarity(
+            Ps, Pl, corr, dist, config.ransac_n, config.edge_length_ratio,
+            config.ransac_max_iteration if r == 0 else config.ransac_followup_iteration,
+            config.ransac_confidence, seed=config.seed + r, target_tree=tree, workers=workers,
         )
-        M = np.asarray(res.transformation)
-        if res.fitness == 0 or np.allclose(M, np.eye(4)):
+        if res is None:
             break  # RANSAC found nothing valid in the remaining matches
+        M = res.matrix
         out.append(M)
         # Drop the matches this hypothesis explains, so that the next run finds another mode.
         mapped = Ps[corr[:, 0]] @ M[:3, :3].T + M[:3, 3]
@@ -448,7 +434,7 @@ def _select(cands: list[Hypothesis], config: InitConfig,
     return kept
 
 
-# One thread: Open3D's parallel RANSAC and ICP give other hypotheses on other thread counts
+# One thread: Open3D's parallel ICP gives other last bits on other thread counts
 # (see regnf.core.threads.one_thread), and a registration must not depend on the machine.
 @one_thread()
 def initial_hypotheses(
@@ -474,8 +460,8 @@ def initial_hypotheses(
         Hypotheses returned at most (default ``config.top_k``).
     workers : int
         Threads for the two clouds' features, the FPFH matching and the ICP starts, side by
-        side (the same hypotheses on any count: each Open3D call runs on one thread, RANSAC's
-        runs one after another on this one).
+        side, and RANSAC's scoring queries (the same hypotheses on any count: each Open3D call
+        runs on one thread, RANSAC's draws come from one seeded generator).
 
     Returns
     -------
