@@ -14,7 +14,6 @@ import shutil
 import subprocess
 import sys
 import tempfile
-import threading
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -38,6 +37,7 @@ from regnf.scene_graph import (
     stage_lock,
 )
 from tests.adversarial.disk import changes, snapshot
+from tests.core.helpers import held_on_another_thread
 from tests.scene_graph.helpers import make_stage, registration_json, similarity
 
 WRITERS = 2
@@ -98,24 +98,11 @@ def test_concurrent_writers_lose_nothing(tmp_path: Path) -> None:
 
 def test_a_held_lock_makes_a_writer_wait_then_give_up(stage: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(locking, "STAGE_LOCK_TIMEOUT_S", 0.3)
-    held, release = threading.Event(), threading.Event()
-
-    def holder() -> None:
-        with stage_lock(stage):
-            held.set()
-            release.wait(10)
-
-    t = threading.Thread(target=holder)
-    t.start()
-    try:
-        assert held.wait(10)
+    with held_on_another_thread(lambda: stage_lock(stage)):
         before = snapshot(stage.parent)
         with pytest.raises(LockBusy, match="in use"):
             add_instance(stage, "dc", similarity(0.0, (0.0, 0.0, 0.0), 1.0))
         assert changes(before, snapshot(stage.parent)) == []
-    finally:
-        release.set()
-        t.join()
     add_instance(stage, "dc", similarity(0.0, (0.0, 0.0, 0.0), 1.0))  # free again
     assert "dc_1" in read_stage(stage).instances
 

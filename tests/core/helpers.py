@@ -1,9 +1,10 @@
-"""Helpers shared by tests that set torch's thread count."""
+"""Helpers shared by tests of threads: torch's thread count, a context held on another thread."""
 
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Iterator
+import threading
+from collections.abc import Callable, Iterator
 
 import torch
 
@@ -17,3 +18,24 @@ def torch_threads(n: int) -> Iterator[None]:
         yield
     finally:
         torch.set_num_threads(before)
+
+
+@contextlib.contextmanager
+def held_on_another_thread(enter: Callable[[], contextlib.AbstractContextManager[object]]) -> Iterator[None]:
+    """Run the block while another thread is inside the context ``enter()`` (a lock, a limit);
+    that thread leaves it after the block."""
+    entered, release = threading.Event(), threading.Event()
+
+    def hold() -> None:
+        with enter():
+            entered.set()
+            release.wait(10)
+
+    other = threading.Thread(target=hold)
+    other.start()
+    try:
+        assert entered.wait(10)
+        yield
+    finally:
+        release.set()
+        other.join()

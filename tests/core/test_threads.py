@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from regnf.core.threads import map_one_thread_each, one_thread
+from tests.core.helpers import held_on_another_thread
 
 
 def test_results_come_in_item_order_and_every_call_runs_on_one_thread() -> None:
@@ -95,21 +96,8 @@ def test_open3d_stays_on_one_thread_while_a_block_on_another_thread_runs() -> No
     import open3d as o3d
 
     before = o3d.utility.get_max_threads()
-    entered, release = threading.Event(), threading.Event()
-
-    def hold() -> None:
-        with one_thread():
-            entered.set()
-            release.wait(10)
-
-    other = threading.Thread(target=hold)
-    other.start()
-    try:
-        assert entered.wait(10)
+    with held_on_another_thread(one_thread):
         with one_thread():
             pass
         assert o3d.utility.get_max_threads() == 1
-    finally:
-        release.set()
-        other.join()
     assert o3d.utility.get_max_threads() == before
