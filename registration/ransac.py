@@ -68,6 +68,18 @@ def fit_similarities(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.n
     return R, t, s
 
 
+def draws_needed(share: float, ransac_n: int, confidence: float) -> float:
+    """Draws after which an all-agreeing sample has come with probability ``confidence``, when
+    a ``share`` of the matches agree (Open3D's stopping rule); ``inf`` for a share of 0."""
+    p = share**ransac_n
+    if p >= 1.0:
+        return 0.0
+    if p <= 0.0:
+        return math.inf
+    # log1p: for a tiny share, 1 - share**n rounds to 1 and the plain log divides by zero.
+    return math.log1p(-confidence) / math.log1p(-p)
+
+
 def ransac_similarity(
     source: np.ndarray,
     target: np.ndarray,
@@ -167,11 +179,9 @@ def ransac_similarity(
         # Stop once an all-inlier draw is likely enough at this hypothesis's share of
         # agreeing correspondences (Open3D's rule).
         share = float((np.linalg.norm(s[i] * cs @ R[i].T + t[i] - ct, axis=1) < distance).mean())
-        if share >= 1.0:
-            limit = drawn
-        elif share > 0:
-            needed = math.log(1.0 - confidence) / math.log(1.0 - share**ransac_n)
-            limit = min(limit, max(drawn, math.ceil(needed)))
+        needed = draws_needed(share, ransac_n, confidence)
+        if needed < limit:
+            limit = max(drawn, math.ceil(needed))
     if best_matrix is None:
         return None
     return RansacResult(best_matrix, best[0], best[1], drawn)

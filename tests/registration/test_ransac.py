@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from regnf.registration.ransac import fit_similarities, ransac_similarity
+from regnf.registration.ransac import draws_needed, fit_similarities, ransac_similarity
 
 
 def known_similarity(seed: int) -> tuple[np.ndarray, np.ndarray, float]:
@@ -74,3 +76,13 @@ def test_nothing_when_no_draw_passes_the_checks_or_there_are_too_few_matches() -
     collapsed[:, 1] = 0  # every match points at one target point: no edge agrees
     assert ransac_similarity(source, target, collapsed, 0.05, max_iterations=2000) is None
     assert ransac_similarity(source, target, corr[:3], 0.05) is None
+
+
+def test_the_stopping_rule_holds_for_tiny_and_whole_shares() -> None:
+    # The textbook count: log(1 - confidence) / log(1 - share**n).
+    assert draws_needed(0.5, 4, 0.999) == pytest.approx(math.log(0.001) / math.log(1 - 0.5**4))
+    # One match in 50 000 agrees: share**4 = 1.6e-19 is below the float's resolution next to
+    # 1, where 1 - share**4 rounds to 1 and the textbook formula divides by zero.
+    tiny = draws_needed(2e-5, 4, 0.999)
+    assert math.isfinite(tiny) and tiny == pytest.approx(-math.log(0.001) / 2e-5**4, rel=1e-6)
+    assert draws_needed(1.0, 4, 0.999) == 0.0 and draws_needed(0.0, 4, 0.999) == math.inf
