@@ -80,6 +80,30 @@ def draws_needed(share: float, ransac_n: int, confidence: float) -> float:
     return math.log1p(-confidence) / math.log1p(-p)
 
 
+SCORE_POINTS = 1 << 20
+"""Source points moved and looked up at once while scoring (hypotheses x points): bounds the
+memory where many hypotheses pass the checks (clean matches), about 100 MB."""
+
+
+def _scores(source: np.ndarray, tree: cKDTree, R: np.ndarray, t: np.ndarray, s: np.ndarray,
+            distance: float, workers: int) -> tuple[np.ndarray, np.ndarray]:
+    """For each hypothesis (R (h, 3, 3), t (h, 3), s (h,)): how many of the ``source`` points
+    (n, 3) land within ``distance`` of a target point (h,) int, and the RMSE of those (h,)
+    (inf where none); the hypotheses a chunk at a time, each chunk in one query."""
+    step = max(1, SCORE_POINTS // len(source))
+    counts, rmses = [], []
+    for k in range(0, len(R), step):
+        moved = s[k:k + step, None, None] * np.einsum("bij,nj->bni", R[k:k + step], source) + t[k:k + step, None]
+        d, _ = tree.query(moved.reshape(-1, 3), k=1, distance_upper_bound=distance, workers=workers)
+        d = d.reshape(len(moved), len(source))
+        inlier = np.isfinite(d)
+        count = inlier.sum(axis=1)
+        rmse = np.sqrt(np.where(inlier, d**2, 0.0).sum(axis=1) / np.maximum(count, 1))
+        counts.append(count)
+        rmses.append(np.where(count > 0, rmse, math.inf))
+    return np.concatenate(counts), np.concatenate(rmses)
+
+
 def ransac_similarity(
     source: np.ndarray,
     target: np.ndarray,
@@ -159,15 +183,8 @@ def ransac_similarity(
         if not agree.any():
             continue
         R, t, s = R[agree], t[agree], s[agree]
-        # Score every surviving hypothesis on every source point, in one query.
-        moved = s[:, None, None] * np.einsum("bij,nj->bni", R, source) + t[:, None]
-        d, _ = tree.query(moved.reshape(-1, 3), k=1, distance_upper_bound=distance, workers=workers)
-        d = d.reshape(len(R), len(source))
-        inlier = np.isfinite(d)
-        count = inlier.sum(axis=1)
+        count, rmse = _scores(source, tree, R, t, s, distance, workers)
         fitness = count / len(source)
-        rmse = np.sqrt(np.where(inlier, d**2, 0.0).sum(axis=1) / np.maximum(count, 1))
-        rmse = np.where(count > 0, rmse, math.inf)
         order = np.lexsort((rmse, -fitness))  # best first; ties keep the draw order
         i = int(order[0])
         if count[i] == 0 or (fitness[i], -rmse[i]) <= (best[0], -best[1]):

@@ -86,3 +86,15 @@ def test_the_stopping_rule_holds_for_tiny_and_whole_shares() -> None:
     tiny = draws_needed(2e-5, 4, 0.999)
     assert math.isfinite(tiny) and tiny == pytest.approx(-math.log(0.001) / 2e-5**4, rel=1e-6)
     assert draws_needed(1.0, 4, 0.999) == 0.0 and draws_needed(0.0, 4, 0.999) == math.inf
+
+
+def test_scoring_a_chunk_at_a_time_gives_the_same_hypothesis(monkeypatch: pytest.MonkeyPatch) -> None:
+    # Clean matches pass the checks by the thousand: the scoring bounds its memory by moving
+    # the source points for a chunk of hypotheses at a time, which must not change the choice.
+    from regnf.registration import ransac
+
+    source, target, corr, (_, _, s) = clouds_with_matches(300, 0.6, 8)
+    whole = ransac_similarity(source, target, corr, 0.02 * s, seed=3)
+    monkeypatch.setattr(ransac, "SCORE_POINTS", 7 * len(source))
+    chunked = ransac_similarity(source, target, corr, 0.02 * s, seed=3)
+    assert np.array_equal(whole.matrix, chunked.matrix) and whole.iterations == chunked.iterations
