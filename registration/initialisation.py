@@ -40,7 +40,6 @@ initialisation runs with torch and Open3D on one thread a call
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
@@ -499,15 +498,13 @@ def initial_hypotheses(
     # The yaw starts need no RANSAC: with two workers their first ICP runs on another thread
     # while RANSAC runs on this one (Open3D lets go of the interpreter lock; each call on its
     # own thread, so the same bits as one after the other).
-    with contextlib.ExitStack() as stack:
-        if workers > 1 and yaws:
-            pool = stack.enter_context(ThreadPoolExecutor(1, thread_name_prefix="yaw-starts"))
-            from_yaws = pool.submit(_refined, prep, yaws, config, first)
+    with ThreadPoolExecutor(1, thread_name_prefix="yaw-starts") as pool:  # no thread until a submit
+        from_yaws = pool.submit(_refined, prep, yaws, config, first) if workers > 1 else None
         runs = _ransac_runs(prep, config, workers)
         if not runs and config.mutual_filter:
             runs = _ransac_runs(prep, dataclasses.replace(config, mutual_filter=False), workers)
         firsts = _refined(prep, runs, config, first, workers)
-        firsts += from_yaws.result() if workers > 1 and yaws else _refined(prep, yaws, config, first)
+        firsts += from_yaws.result() if from_yaws is not None else _refined(prep, yaws, config, first)
     cands = firsts
     if first is not fine:
         # The distinct coarse results, refined again on every sample (from close by: few steps).

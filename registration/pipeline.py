@@ -219,9 +219,10 @@ def register(
     timings: dict[str, float] = {}
     workers = worker_count()  # before one_thread() below sets torch's count to 1
     t0 = time.perf_counter()
-    # One thread for sampling and initialisation too (the refinement runs on one): their float
-    # sums and Open3D's parallel RANSAC come out differently on other thread counts, and the
-    # screening's ranking turns such last bits into other hypotheses (regnf.core.threads).
+    # One thread a computation for sampling and initialisation too (the refinement runs on
+    # one): their float sums and Open3D's parallel ICP come out differently on other thread
+    # counts, and the screening's ranking turns such last bits into other hypotheses
+    # (regnf.core.threads).
     with one_thread():
         if library_samples is None:
             scene_samples, lib_samples = sample_pair(scene_field, library_field, proposal, cfg, workers)
