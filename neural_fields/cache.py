@@ -48,7 +48,12 @@ from regnf.neural_fields.checkpoint import (
 from regnf.neural_fields.distill import DISTILL_VERSION, DistillConfig, distill_mesh
 from regnf.neural_fields.field import FieldInfo, Symmetry
 from regnf.neural_fields.presets import object_mesh_preset, object_rgbd_preset, scene_rgbd_preset
-from regnf.neural_fields.training import RGBDTrainConfig, capture_fingerprint, train_rgbd
+from regnf.neural_fields.training import (
+    TRAIN_VERSION,
+    RGBDTrainConfig,
+    capture_fingerprint,
+    train_rgbd,
+)
 from regnf.synthetic.capture import (
     GENERATOR,
     ObjectCaptureConfig,
@@ -231,7 +236,7 @@ class Cache:
         """
         fingerprint = capture_fingerprint(capture.root, capture_files(capture))
         stem = entry_stem(capture_info(capture).name, "capture")
-        return self.root / "fields" / f"{stem}-rgbd-{config_key(config, fingerprint)}.safetensors", fingerprint
+        return self.root / "fields" / f"{stem}-rgbd-{config_key(config, fingerprint, TRAIN_VERSION)}.safetensors", fingerprint
 
     def rgbd_field(self, capture: Capture, config: RGBDTrainConfig) -> Path:
         """Checkpoint of a field trained on ``capture`` with ``config`` (trained if missing or damaged).

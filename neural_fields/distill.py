@@ -42,10 +42,11 @@ from regnf.neural_fields.neural_sdf import (
 )
 from regnf.neural_fields.optim import finest_voxel, optimise
 
-DISTILL_VERSION = 2
+DISTILL_VERSION = 3
 """Version of what a distilled field is for a given mesh and config (part of cache keys).
 2: repaired meshes, winding-number signs, distances to the solid's surface (1: ray parity on
-watertight meshes only)."""
+watertight meshes only). 3: the learning rates decay to ``lr_final`` = 0.01 of their start,
+not 0.1."""
 
 
 @dataclass
@@ -64,6 +65,9 @@ class DistillConfig:
     """Learning rate of the feature grids."""
     lr_mlp: float = 2e-3
     """Learning rate of the MLPs."""
+    lr_final: float = 0.01
+    """The learning rates at the last step, as a fraction of ``lr_grid`` and ``lr_mlp``; 0.1
+    until 2026-12-05 (see :attr:`regnf.neural_fields.training.RGBDTrainConfig.lr_final`)."""
     w_eikonal: float = 0.1
     """Weight of the eikonal loss."""
     w_normal: float = 0.05
@@ -279,7 +283,7 @@ def distill_mesh(
         loss = loss_sdf + cfg.w_eikonal * loss_eik + cfg.w_normal * loss_normal + cfg.w_color * loss_color
         return loss, {"sdf": loss_sdf, "eikonal": loss_eik, "color": loss_color}
 
-    losses = optimise(model, cfg.steps, loss_at, cfg.lr_grid, cfg.lr_mlp,
+    losses = optimise(model, cfg.steps, loss_at, cfg.lr_grid, cfg.lr_mlp, lr_final=cfg.lr_final,
                       desc=f"distil {info.name or 'mesh'}", progress=progress)
     seconds = time.perf_counter() - t0
     model.info.provenance = {

@@ -62,6 +62,7 @@ def optimise(
     lr_grid: float,
     lr_mlp: float,
     grid_decay: float = 0.0,
+    lr_final: float = 0.1,
     desc: str = "train",
     progress: bool = True,
     postfix: dict[str, str] | None = None,
@@ -80,6 +81,9 @@ def optimise(
         terms to log (scalar tensors).
     lr_grid, lr_mlp, grid_decay : float
         As for :func:`make_optimizer`.
+    lr_final : float
+        The learning rates at the last step, as a fraction of ``lr_grid`` and ``lr_mlp``
+        (:func:`lr_factor`'s ``final``).
     desc, progress : str, bool
         The progress bar's label, and whether it is shown.
     postfix : dict of str to str, optional
@@ -99,7 +103,7 @@ def optimise(
     with pool_denormals_flushed():
         for step in bar:
             for g, lr in zip(opt.param_groups, base_lrs):
-                g["lr"] = lr * lr_factor(step, steps)
+                g["lr"] = lr * lr_factor(step, steps, final=lr_final)
             loss, parts = loss_at(step)
             opt.zero_grad(set_to_none=True)
             loss.backward()

@@ -92,6 +92,17 @@ def test_the_key_covers_every_file_whatever_the_path(two_captures: tuple[Path, P
     assert cache.rgbd_entry(load_capture("b"), CONFIG)[0] != keys["a"]
 
 
+def test_a_new_training_version_keys_the_fields_anew(
+    two_captures: tuple[Path, Path], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # A changed default is not in the key (only non-default settings are): the version is.
+    # (``two_captures`` made the capture ``a`` in the working directory.)
+    cache = Cache(tmp_path / "cache", progress=False)
+    before = cache.rgbd_entry(load_capture("a"), CONFIG)[0]
+    monkeypatch.setattr(cache_module, "TRAIN_VERSION", cache_module.TRAIN_VERSION + 1)
+    assert cache.rgbd_entry(load_capture("a"), CONFIG)[0] != before
+
+
 def test_other_images_under_the_same_metadata_are_trained_anew(
     two_captures: tuple[Path, Path], tmp_path: Path, trainings: list[str]
 ) -> None:
