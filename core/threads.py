@@ -78,6 +78,41 @@ def one_thread() -> Iterator[None]:
         torch.set_num_threads(n)
 
 
+_pools: dict[int, ThreadPoolExecutor] = {}  # by thread count; kept for the process's life
+_pools_lock = threading.Lock()
+_worker = threading.local()  # .active on the pools' threads
+
+
+def _forget_pools() -> None:
+    # A forked child inherits the pools but not their threads (nor a consistent lock).
+    global _pools_lock
+    _pools.clear()
+    _pools_lock = threading.Lock()
+
+
+os.register_at_fork(after_in_child=_forget_pools)
+
+
+def _mark_worker() -> None:
+    _worker.active = True
+
+
+def _pool(workers: int) -> ThreadPoolExecutor:
+    """The process's pool of ``workers`` threads for :func:`map_one_thread_each`.
+
+    Kept, not made per call: a thread's start waits for the interpreter lock, which the other
+    side's Python holds for up to the switch interval (5 ms), and a registration maps some 25
+    times (the LM iterations' two field queries, the ICP starts): 45 thread starts took 0.25 s
+    of a 1.7 s registration (`regnf.registration.register`, the armchair ``fc``, one profile).
+    """
+    with _pools_lock:
+        pool = _pools.get(workers)
+        if pool is None:
+            pool = _pools[workers] = ThreadPoolExecutor(
+                max_workers=workers, thread_name_prefix="one-thread-each", initializer=_mark_worker)
+        return pool
+
+
 def usable_cores() -> int:
     """The CPU cores this process may run on (its affinity mask; the whole machine without one)."""
     try:
@@ -115,8 +150,9 @@ def map_one_thread_each(fn: Callable[[T], R], items: Sequence[T], workers: int |
         Called once per item.
     items : sequence
     workers : int, optional
-        Threads (default: :func:`worker_count`; at most the number of items); 1 runs the map
-        here, on one thread.
+        Threads (default: :func:`worker_count`; at most the number of items), of a pool the
+        process keeps (:func:`_pool`); 1, or a call from one of the pool's threads, runs the
+        map here, on one thread.
     on_done : callable, optional
         Called (on this thread) after each call finishes, for a progress bar.
 
@@ -128,7 +164,9 @@ def map_one_thread_each(fn: Callable[[T], R], items: Sequence[T], workers: int |
     """
     workers = max(1, min(worker_count(workers), len(items)))
     with one_thread():  # new threads take this count when torch first runs on them
-        if workers == 1:
+        # A call made on a pool thread runs its map here: the pool's threads waiting on work
+        # queued behind them could otherwise all wait (the results are the same bits).
+        if workers == 1 or getattr(_worker, "active", False):
             out = []
             for x in items:
                 out.append(fn(x))
@@ -143,9 +181,8 @@ def map_one_thread_each(fn: Callable[[T], R], items: Sequence[T], workers: int |
             with torch.set_grad_enabled(grad):
                 return fn(x)
 
-        with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="one-thread-each") as pool:
-            futures = [pool.submit(call, x) for x in items]
-            for _ in as_completed(futures):
-                if on_done is not None:
-                    on_done()
+        futures = [_pool(workers).submit(call, x) for x in items]
+        for _ in as_completed(futures):
+            if on_done is not None:
+                on_done()
         return [f.result() for f in futures]

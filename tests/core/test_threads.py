@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import multiprocessing
 import threading
 
 import pytest
@@ -55,6 +56,44 @@ def test_one_worker_maps_here_on_one_thread() -> None:
     main = threading.get_ident()
     out = map_one_thread_each(lambda x: (threading.get_ident(), torch.get_num_threads()), [0, 1], workers=1)
     assert out == [(main, 1), (main, 1)]
+
+
+def test_a_map_inside_a_mapped_call_completes_on_that_thread() -> None:
+    # Four outer calls keep both pool threads busy; their inner maps must not wait for them.
+    def outer(x: int) -> tuple[list[int], set[int]]:
+        me = threading.get_ident()
+        inner = map_one_thread_each(lambda y: (10 * x + y, threading.get_ident()), [0, 1, 2], workers=2)
+        return [v for v, _ in inner], {t for _, t in inner} - {me}
+
+    out = map_one_thread_each(outer, [1, 2, 3, 4], workers=2)
+    assert [v for v, _ in out] == [[10 * x + y for y in range(3)] for x in (1, 2, 3, 4)]
+    assert all(not others for _, others in out)
+
+
+def test_the_pool_threads_are_kept_between_maps() -> None:
+    first = {t for t in map_one_thread_each(lambda _: threading.get_ident(), range(8), workers=2)}
+    again = {t for t in map_one_thread_each(lambda _: threading.get_ident(), range(8), workers=2)}
+    assert again <= first and threading.get_ident() not in first
+
+
+def _map_in_child(queue: multiprocessing.Queue) -> None:
+    queue.put(map_one_thread_each(lambda x: x + 1, [1, 2, 3], workers=2))
+
+
+def test_a_forked_child_maps_on_its_own_threads() -> None:
+    # The parent's pool with both its threads started (each call waits for the other), which
+    # a forked child has as objects but not as threads.
+    barrier = threading.Barrier(2, timeout=30)
+    map_one_thread_each(lambda x: barrier.wait(), [0, 1], workers=2)
+    ctx = multiprocessing.get_context("fork")
+    queue = ctx.Queue()
+    child = ctx.Process(target=_map_in_child, args=(queue,))
+    child.start()
+    child.join(timeout=30)
+    if child.exitcode is None:
+        child.kill()
+    assert child.exitcode == 0, "the child hung or failed"
+    assert queue.get(timeout=5) == [2, 3, 4]
 
 
 def test_same_bits_as_one_thread() -> None:
