@@ -94,6 +94,8 @@ def optimise(
     list of dict
         Every :data:`LOG_EVERY` steps and at the last: ``step``, ``loss`` and the terms.
     """
+    if not (math.isfinite(lr_final) and 0.0 <= lr_final <= 1.0):
+        raise ValueError(f"lr_final is a fraction of the learning rates, in [0, 1]; got {lr_final}")
     opt = make_optimizer(field, lr_grid, lr_mlp, grid_decay)
     base_lrs = [g["lr"] for g in opt.param_groups]
     log: list[dict[str, float]] = []

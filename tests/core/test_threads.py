@@ -71,9 +71,12 @@ def test_a_map_inside_a_mapped_call_completes_on_that_thread() -> None:
 
 
 def test_the_pool_threads_are_kept_between_maps() -> None:
-    first = {t for t in map_one_thread_each(lambda _: threading.get_ident(), range(8), workers=2)}
-    again = {t for t in map_one_thread_each(lambda _: threading.get_ident(), range(8), workers=2)}
-    assert again <= first and threading.get_ident() not in first
+    # Both calls wait for each other, so both of the pool's threads run one: its two threads.
+    barrier = threading.Barrier(2, timeout=30)
+    # (Thread objects, not idents: the system reuses a finished thread's ident.)
+    first = set(map_one_thread_each(lambda _: (barrier.wait(), threading.current_thread())[1], [0, 1], workers=2))
+    again = set(map_one_thread_each(lambda _: threading.current_thread(), range(8), workers=2))
+    assert len(first) == 2 and again <= first and threading.current_thread() not in first
 
 
 def _map_in_child(queue: multiprocessing.Queue) -> None:

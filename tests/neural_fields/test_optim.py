@@ -39,3 +39,16 @@ def test_optimise_ends_at_lr_final_of_each_rate(monkeypatch: pytest.MonkeyPatch,
     grid, mlp = made[0].param_groups
     assert grid["lr"] == pytest.approx(0.02 * last) and mlp["lr"] == pytest.approx(0.002 * last)
 
+
+
+@pytest.mark.parametrize("final", [-0.01, 1.5, math.nan])
+def test_a_final_fraction_outside_zero_to_one_is_refused_before_any_step(final: float) -> None:
+    steps: list[int] = []
+
+    def loss_at(step: int) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        steps.append(step)
+        return torch.zeros((), requires_grad=True), {}
+
+    with pytest.raises(ValueError, match="lr_final"):
+        optim.optimise(NeuralSDF(TINY), 5, loss_at, lr_grid=0.02, lr_mlp=0.002, lr_final=final, progress=False)
+    assert steps == []
