@@ -37,7 +37,7 @@ def make_optimizer(
     )
 
 
-def lr_factor(step: int, total: int, warmup: int = 50, final: float = 0.1) -> float:
+def lr_factor(step: int, total: int, warmup: int = 50, final: float = 0.01) -> float:
     """Linear warm-up, then cosine decay from 1 to ``final`` at ``total`` steps."""
     if step < warmup:
         return (step + 1) / warmup
@@ -62,7 +62,7 @@ def optimise(
     lr_grid: float,
     lr_mlp: float,
     grid_decay: float = 0.0,
-    lr_final: float = 0.1,
+    lr_final: float = 0.01,
     desc: str = "train",
     progress: bool = True,
     postfix: dict[str, str] | None = None,
