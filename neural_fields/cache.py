@@ -88,7 +88,9 @@ def non_default(config: object) -> object:
 
     Keying the cache on these only means that adding an option whose default keeps the old
     behaviour does not invalidate every trained field; changing a default's meaning must
-    bump :data:`CACHE_VERSION` instead.
+    bump a version instead: :data:`~regnf.neural_fields.training.TRAIN_VERSION` for what
+    training makes, :data:`~regnf.neural_fields.distill.DISTILL_VERSION` for distillation,
+    :data:`CACHE_VERSION` for everything the cache keeps (captures included).
     """
     if not dataclasses.is_dataclass(config):
         return config
