@@ -59,6 +59,8 @@ class RGBDSamples(NamedTuple):
     """(e,) distance along the ray at which it passes the edge (the occluder's depth)."""
     edge_limit: torch.Tensor
     """(e,) distance along the ray to its own hit; ``inf`` for a ray that hit nothing."""
+    outline: torch.Tensor
+    """(m,) bool: the point is on an occluder's outline (see :func:`outline_pixels`)."""
 
 
 def camera_rays(K: np.ndarray, h: int, w: int) -> np.ndarray:
@@ -131,6 +133,21 @@ def edge_depths(depth: np.ndarray, valid: np.ndarray, K: np.ndarray) -> np.ndarr
     return np.where(edge, nearest, 0.0)
 
 
+def outline_pixels(depth: np.ndarray, valid: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """(h, w) bool: pixels with depth that are an occluder beside an occluding edge.
+
+    The other side of :func:`edge_depths`: a pixel with depth one of whose 4 neighbours has no
+    depth or lies farther by more than :data:`EDGE_STEP_FOOTPRINTS` pixel footprints. Its point
+    lies on the silhouette the neighbour's ray passes, seen at a grazing angle: few pixels see
+    such a surface, and their points hold the outline where the edge samples push it.
+    """
+    z = np.where(valid, depth, np.inf)
+    pad = np.pad(z, 1, constant_values=-np.inf)  # beyond the image: nothing behind
+    farthest = np.stack([pad[1:-1, 2:], pad[1:-1, :-2], pad[2:, 1:-1], pad[:-2, 1:-1]]).max(0)
+    step = EDGE_STEP_FOOTPRINTS * depth / K[0, 0]
+    return valid & (farthest > depth + step)
+
+
 def depth_normals(
     points: np.ndarray, depth: np.ndarray, valid: np.ndarray, K: np.ndarray, dirs: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -184,7 +201,7 @@ def build_samples(capture: CaptureLike, indices: Sequence[int]) -> RGBDSamples:
         (:meth:`regnf.synthetic.sdfstudio_format.Capture.depth` names the file and the frame).
     """
     pts, cols, nrm, nok, org, tt, forg, fdir = [], [], [], [], [], [], [], []
-    eorg, edir, et, elim = [], [], [], []
+    eorg, edir, et, elim, outl = [], [], [], [], []
     for i in indices:
         frame = capture.frames[i]
         depth = capture.depth(i)
@@ -216,6 +233,7 @@ def build_samples(capture: CaptureLike, indices: Sequence[int]) -> RGBDSamples:
         edir.append(d[at_edge])
         et.append((z_edge * ray_len)[at_edge])
         elim.append(own[at_edge])
+        outl.append(outline_pixels(depth, valid, K)[valid])
 
     def cat(a: list, width: int | None = 3) -> torch.Tensor:
         arr = np.concatenate(a, 0) if a else np.zeros((0, width) if width else (0,))
@@ -226,6 +244,7 @@ def build_samples(capture: CaptureLike, indices: Sequence[int]) -> RGBDSamples:
         normal_ok=torch.from_numpy(np.concatenate(nok, 0)) if nok else torch.zeros(0, dtype=torch.bool),
         origins=cat(org), ray_t=cat(tt, None), free_origins=cat(forg), free_dirs=cat(fdir),
         edge_origins=cat(eorg), edge_dirs=cat(edir), edge_t=cat(et, None), edge_limit=cat(elim, None),
+        outline=torch.from_numpy(np.concatenate(outl, 0)) if outl else torch.zeros(0, dtype=torch.bool),
     )
 
 

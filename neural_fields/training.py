@@ -11,6 +11,8 @@ every scale:
   nothing) must be positive too, which carves floaters out of rarely seen corners;
 - occluding edges (``w_edge > 0``): S >= 0 on the rays that pass just beside an observed
   silhouette, near the occluder's depth, which pins the outline of thin parts;
+- outlines (``w_outline > 0``): |S| at the occluders' own points along those silhouettes, the
+  few pixels that see a surface at a grazing angle: the surface's side of the same outline;
 - eikonal: |grad S| = 1 (finite differences: grid_sample has no second derivative), at
   surface samples only. Applied at sparse uniform points it moves fine-grid cells that are
   touched once in a while, and Adam turns any such tiny gradient into a full-size step:
@@ -130,6 +132,23 @@ class RGBDTrainConfig:
     Weight 1 in the room preset since 2026-12-03 (docs/benchmarks.md, "Occluding-edge loss")."""
     batch_edge: int = 2048
     """Samples per step on the rays that pass an occluding edge."""
+    w_outline: float = 0.0
+    """Weight of the outline loss (0: off): |S| at the points on the occluders' side of each
+    occluding edge (``RGBDSamples.outline``, the pixels whose neighbour is an edge ray). Those
+    points see a surface at a grazing angle, so few pixels hold it, and the surface loss, drawn
+    uniformly over pixels, reaches them seldom while the edge loss pushes the same outline
+    inward 2048 times a step: with the short room schedule (400 steps) the sides of the
+    low-coverage rooms' furniture ended 3-6 mm inside the truth (800 steps: 0-2 mm). Measured
+    2026-12-06 on the three low-coverage rooms (room preset, 400 steps; median SDF at each
+    instance's observed true surface whose normal is within 60 degrees of horizontal, as in
+    ``w_edge``): sides +0.4 to +6.3 mm -> -2.3 to +0.3 mm; the 11 pairs registered from their
+    true boxes, 8 of 11 accepted and within the bars with either library -> 11 of 11 (`et`
+    0.54 -> 0.67, the mix-room's `dc` 0.54 -> 0.75 and scale 1.9 -> 0.03 %, `wt` scale
+    1.2-1.3 -> 0.25-0.32 %); the full-coverage rooms' 11 pairs, RGB-D library, scale median
+    0.08 -> 0.03 %. About 2.7 % more time a step (ac-room, full coverage: 69.9 -> 71.8 s).
+    Weight 1 in the room preset since 2026-12-06 (docs/benchmarks.md, "Outlines")."""
+    batch_outline: int = 1024
+    """Outline points per step (all of them, with replacement, when the capture has fewer)."""
     edge_band_m: tuple[float, float] = (0.02, 0.05)
     """Edge samples lie from this many metres before to this many after the occluder's depth
     along the passing ray (and never within ``free_margin_m`` of the ray's own hit)."""
@@ -327,6 +346,8 @@ def train_rgbd(
         raise ValueError("no depth pixel has a reliable normal; is the depth image constant?")
     m, k = s.points.shape[0], s.free_origins.shape[0]
     n_edge = s.edge_t.shape[0] if cfg.w_edge > 0 else 0
+    outline_idx = torch.nonzero(s.outline).squeeze(1) if cfg.w_outline > 0 else s.outline[:0].long()
+    n_outline = cfg.batch_outline if outline_idx.numel() > 0 else 0
     edge_before, edge_after = cfg.edge_band_m[0] / scale, cfg.edge_band_m[1] / scale
     bounds_d = model.bounds
     log = TrainLog()
@@ -379,6 +400,8 @@ def train_rgbd(
             xg = torch.zeros(0, 3, device=device)
             keep_g = torch.zeros(0, device=device)
 
+        xo = s.points[outline_idx[randint(outline_idx.numel(), n_outline)]] if n_outline else xs[:0]
+
         xu = bounds_d[0] + rand(cfg.batch_eikonal * 3).view(-1, 3) * (bounds_d[1] - bounds_d[0])
 
         # -- one batched forward pass over every sample --------------------------------------
@@ -387,10 +410,10 @@ def train_rgbd(
         # 20 % of a room step's points).
         xu_fd = not cfg.eikonal_surface_only
         fd_pts = tetrahedral_points(torch.cat([xs, xu]) if xu_fd else xs, h_fd)
-        direct = torch.cat([xs, xs_all, xn, xf, xe_free, xg] + ([] if xu_fd else [xu]))
+        direct = torch.cat([xs, xs_all, xn, xf, xe_free, xg, xo] + ([] if xu_fd else [xu]))
         sdf_all, feat_all = model.sdf_and_features(torch.cat([direct, fd_pts]))
-        sizes = [ns, ns, ns, xf.shape[0], xe_free.shape[0], xg.shape[0], 0 if xu_fd else xu.shape[0]]
-        f_s, f_sa, f_n, f_f, f_e, f_g, f_u = torch.split(sdf_all[: direct.shape[0]], sizes)
+        sizes = [ns, ns, ns, xf.shape[0], xe_free.shape[0], xg.shape[0], xo.shape[0], 0 if xu_fd else xu.shape[0]]
+        f_s, f_sa, f_n, f_f, f_e, f_g, f_o, f_u = torch.split(sdf_all[: direct.shape[0]], sizes)
         feat_s = feat_all[:ns]
         grads, f_mean = tetrahedral_combine(sdf_all[direct.shape[0]:], h_fd)
         g_s = grads[:ns]
@@ -418,6 +441,9 @@ def train_rgbd(
         )
         if n_edge > 0:
             loss = loss + cfg.w_edge * loss_edge
+        loss_outline = f_o.abs().mean() / ell if n_outline else torch.zeros((), device=device)
+        if n_outline:
+            loss = loss + cfg.w_outline * loss_outline
         loss_volume = torch.zeros((), device=device)
         if cfg.w_volume_color > 0:
             vi = randint(m, cfg.volume_rays)
@@ -431,7 +457,8 @@ def train_rgbd(
             loss_volume = (rendered - s.colors[vi]).abs().mean()
             loss = loss + cfg.w_volume_color * loss_volume
         return loss, {"surface": loss_surface, "near": loss_near, "free": loss_free, "eikonal": loss_eik,
-                      "normal": loss_normal, "color": loss_color, "volume_color": loss_volume, "edge": loss_edge}
+                      "normal": loss_normal, "color": loss_color, "volume_color": loss_volume, "edge": loss_edge,
+                "outline": loss_outline}
 
     log.losses = optimise(model, cfg.steps, loss_at, cfg.lr_grid, cfg.lr_mlp, cfg.grid_decay, cfg.lr_final,
                           desc=f"train {info.name or 'field'}", progress=progress,

@@ -106,6 +106,10 @@ class Train:
     edge_weight: float | None = None
     """Override the preset's weight of the occluding-edge loss (0: off; the room preset uses 1,
     the object preset 0; ``RGBDTrainConfig.w_edge`` gives what it does on the rooms)."""
+    outline_weight: float | None = None
+    """Override the preset's weight of the outline loss, the edge loss's counterpart on the
+    occluders' side (0: off; the room preset uses 1, the object preset 0;
+    ``RGBDTrainConfig.w_outline``)."""
     seed: int = 0
     """Seed of initialisation and sampling (training is deterministic on CPU)."""
     device: str = "cpu"
@@ -119,6 +123,8 @@ class Train:
             raise SystemExit(f"--steps must be at least 1, got {self.steps}")
         if self.edge_weight is not None and not (math.isfinite(self.edge_weight) and self.edge_weight >= 0):
             raise SystemExit(f"--edge-weight must be a finite number >= 0, got {self.edge_weight}")
+        if self.outline_weight is not None and not (math.isfinite(self.outline_weight) and self.outline_weight >= 0):
+            raise SystemExit(f"--outline-weight must be a finite number >= 0, got {self.outline_weight}")
         capture = load_capture(self.capture)
         preset = object_rgbd_preset if self.preset == "object" else scene_rgbd_preset
         cfg = preset(self.device, self.seed)
@@ -126,6 +132,8 @@ class Train:
             cfg = dataclasses.replace(cfg, steps=self.steps)
         if self.edge_weight is not None:
             cfg = dataclasses.replace(cfg, w_edge=self.edge_weight)
+        if self.outline_weight is not None:
+            cfg = dataclasses.replace(cfg, w_outline=self.outline_weight)
         path = Cache(self.cache_dir).rgbd_field(capture, cfg)
         console.print(f"field {capture_info(capture).name!r}: {path}")
         copy_out(path, self.out)

@@ -15,6 +15,7 @@ from regnf.neural_fields.rgbd_samples import (
     build_samples,
     depth_normals,
     edge_depths,
+    outline_pixels,
     ray_box_interval,
 )
 from regnf.synthetic.sdfstudio_format import Capture
@@ -261,6 +262,39 @@ def test_edge_depths_of_a_step_a_slant_and_a_hole() -> None:
     # A pixel without depth is beside an edge: the nearest of its neighbours with depth.
     expect[0, 0] = min(depth[0, 1], depth[1, 0])
     np.testing.assert_allclose(z, expect)
+
+
+def test_outline_pixels_of_a_step_a_slant_and_a_hole() -> None:
+    K = np.array([[100.0, 0.0, 5.0], [0.0, 100.0, 4.0], [0.0, 0.0, 1.0]])
+    h, w = 8, 10
+    depth = 3.0 + 0.01 * np.arange(w)[None, :].repeat(h, 0)
+    depth[3:5, 4:6] = 1.0
+    depth[0, 0] = 0.0
+    valid = depth > 0
+    got = outline_pixels(depth, valid, K)
+    expect = np.zeros((h, w), dtype=bool)
+    # Every pixel of the 2 x 2 box has a farther neighbour; the slant's steps are no edge; the
+    # two background pixels beside the hole have a neighbour with no depth; the image's border
+    # is no outline (nothing is known beyond it), and a pixel without depth never is one.
+    expect[3:5, 4:6] = True
+    expect[0, 1] = expect[1, 0] = True
+    np.testing.assert_array_equal(got, expect)
+
+
+def test_outline_points_lie_on_the_analytic_surface_at_grazing_angles(capture: Capture) -> None:
+    s = build_samples(capture, capture.train_indices())
+    o = s.outline.numpy()
+    assert o.dtype == bool and o.shape == (s.points.shape[0],)
+    assert 100 < o.sum() < 0.2 * len(o)
+    x = s.points.double().numpy()
+    assert np.abs(analytic_sdf(x[o])).max() < 1e-3
+    # The analytic normal there is far nearer perpendicular to the ray that saw the point than
+    # elsewhere (the sphere turns away at its silhouette; a box face's edge may be seen head-on).
+    eps = 1e-5
+    grad = np.stack([(analytic_sdf(x + eps * e) - analytic_sdf(x - eps * e)) / (2 * eps) for e in np.eye(3)], -1)
+    rays = x - s.origins.double().numpy()
+    cos = np.abs((grad * rays).sum(-1)) / (np.linalg.norm(grad, axis=-1) * np.linalg.norm(rays, axis=-1))
+    assert np.median(cos[o]) < 0.6 * np.median(cos[~o])
 
 
 def test_edge_rays_pass_just_outside_the_analytic_silhouette(capture: Capture) -> None:

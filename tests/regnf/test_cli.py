@@ -76,13 +76,18 @@ def test_train_from_a_capture_folder(tmp_path: Path) -> None:
     assert main([*args, "--edge-weight", "1", "--out", str(tmp_path / "e.safetensors")]) == 0
     assert len(list((cache / "fields").glob("*.safetensors"))) == 2
     assert load_field(tmp_path / "e.safetensors").info.provenance["train_config"]["w_edge"] == 1.0
+    assert main([*args, "--outline-weight", "1", "--out", str(tmp_path / "o.safetensors")]) == 0
+    assert len(list((cache / "fields").glob("*.safetensors"))) == 3
+    assert load_field(tmp_path / "o.safetensors").info.provenance["train_config"]["w_outline"] == 1.0
 
 
+@pytest.mark.parametrize("option", ["--edge-weight", "--outline-weight"])
 @pytest.mark.parametrize("weight", ["-1", "nan", "inf"])
-def test_train_rejects_a_bad_edge_weight(tmp_path: Path, capsys: pytest.CaptureFixture[str], weight: str) -> None:
+def test_train_rejects_a_bad_loss_weight(tmp_path: Path, capsys: pytest.CaptureFixture[str], option: str,
+                                         weight: str) -> None:
     capture = write_analytic_capture(tmp_path / "cap")
-    assert_fails(capsys, ["train", "--capture", str(capture.root), "--edge-weight", weight,
-                          "--cache-dir", str(tmp_path / "cache")], "--edge-weight must be")
+    assert_fails(capsys, ["train", "--capture", str(capture.root), option, weight,
+                          "--cache-dir", str(tmp_path / "cache")], f"{option} must be")
 
 
 def test_cache_keys_ignore_new_options_left_at_their_default() -> None:
