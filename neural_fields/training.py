@@ -132,26 +132,30 @@ class RGBDTrainConfig:
     Weight 1 in the room preset since 2026-12-03 (docs/benchmarks.md, "Occluding-edge loss")."""
     batch_edge: int = 2048
     """Samples per step on the rays that pass an occluding edge."""
+    edge_band_m: tuple[float, float] = (0.02, 0.05)
+    """Edge samples lie from this many metres before to this many after the occluder's depth
+    along the passing ray (and never within ``free_margin_m`` of the ray's own hit)."""
     w_outline: float = 0.0
     """Weight of the outline loss (0: off): |S| at the points on the occluders' side of each
     occluding edge (``RGBDSamples.outline``, the pixels whose neighbour is an edge ray). Those
     points see a surface at a grazing angle, so few pixels hold it, and the surface loss, drawn
     uniformly over pixels, reaches them seldom while the edge loss pushes the same outline
     inward 2048 times a step: with the short room schedule (400 steps) the sides of the
-    low-coverage rooms' furniture ended 3-6 mm inside the truth (800 steps: 0-2 mm). Measured
-    2026-12-06 on the three low-coverage rooms (room preset, 400 steps; median SDF at each
-    instance's observed true surface whose normal is within 60 degrees of horizontal, as in
-    ``w_edge``): sides +0.4 to +6.3 mm -> -2.3 to +0.3 mm; the 11 pairs registered from their
-    true boxes, 8 of 11 accepted and within the bars with either library -> 11 of 11 (`et`
-    0.54 -> 0.67, the mix-room's `dc` 0.54 -> 0.75 and scale 1.9 -> 0.03 %, `wt` scale
-    1.2-1.3 -> 0.25-0.32 %); the full-coverage rooms' 11 pairs, RGB-D library, scale median
-    0.08 -> 0.03 %. About 2.7 % more time a step (ac-room, full coverage: 69.9 -> 71.8 s).
-    Weight 1 in the room preset since 2026-12-06 (docs/benchmarks.md, "Outlines")."""
+    low-coverage rooms' furniture end 3-6 mm inside the truth (800 steps: 0-2 mm). Measured
+    2026-12-06 on the three low-coverage rooms (room preset with weight 1, 400 steps; median
+    SDF at each instance's observed true surface, as in ``w_edge``, where its normal is within
+    30 degrees of horizontal): sides +0.4 to +6.3 mm -> -2.3 to +0.3 mm; the registration
+    benchmark at low coverage, 8 of 11 pairs accepted and within the bars with either library
+    -> 11 of 11, and at full coverage the RGB-D library's medians 0.0011 rad, 0.06 %, 0.08 %
+    -> 0.0005 rad, 0.04 %, 0.04 %; 2.7 % more time a step. Off in every preset because of
+    what it also did: floaters in observed free space (points of a 2 cm grid that the room's
+    visibility grid counts as observed, away from every instance's box, with SDF < -3 mm): 0
+    -> 149 in the low-coverage ac-room, 17 -> 75 at full coverage, 220 -> 365 in the
+    low-coverage mix-room (23 -> 0 in the atbl-room), visible as specks in the demo's renders,
+    and the render benchmark's replacement remnants 102 -> 560 pixels (docs/benchmarks.md,
+    "Outlines")."""
     batch_outline: int = 1024
-    """Outline points per step (all of them, with replacement, when the capture has fewer)."""
-    edge_band_m: tuple[float, float] = (0.02, 0.05)
-    """Edge samples lie from this many metres before to this many after the occluder's depth
-    along the passing ray (and never within ``free_margin_m`` of the ray's own hit)."""
+    """Outline points per step (drawn with replacement)."""
     w_eikonal: float = 0.1
     """Weight of the eikonal loss."""
     eikonal_surface_only: bool = True
@@ -458,7 +462,7 @@ def train_rgbd(
             loss = loss + cfg.w_volume_color * loss_volume
         return loss, {"surface": loss_surface, "near": loss_near, "free": loss_free, "eikonal": loss_eik,
                       "normal": loss_normal, "color": loss_color, "volume_color": loss_volume, "edge": loss_edge,
-                "outline": loss_outline}
+                      "outline": loss_outline}
 
     log.losses = optimise(model, cfg.steps, loss_at, cfg.lr_grid, cfg.lr_mlp, cfg.grid_decay, cfg.lr_final,
                           desc=f"train {info.name or 'field'}", progress=progress,

@@ -10,7 +10,8 @@
    Scale-free: the library need not share the scene's units.
 3. The full registration (every sample, initialisation and refinement, exactly as
    :func:`~regnf.registration.pipeline.register` in the candidate's box) of the ``shortlist``
-   best-scored objects (those after the best only within ``shortlist_gap`` of it) and any other
+   best-scored objects (those after the best only within ``shortlist_gap`` of it; all of those
+   when the best scores below ``shortlist_uncertain``) and any other
    scored within ``shortlist_margin`` of the best
    (:meth:`Ranking.shortlisted`); the candidate is the accepted object of highest confidence, or
    unmatched: none was accepted, or the two best accepted ones differ only where the views did
@@ -110,6 +111,15 @@ class DiscoveryConfig:
     object never ranked behind another by more than 0.012. Each full registration spared is
     1.6-4.7 s of one core: the demo's discovery registers 7 objects instead of 10. inf: the
     count alone."""
+    shortlist_uncertain: float = 0.6
+    """When the best short-registration score of a candidate is below this, every object within
+    :attr:`shortlist_gap` of the best is fully registered, whatever :attr:`shortlist` says: a
+    best score that low means the short registration found no object's pose there, and the
+    order behind it is noise. Measured on the demo's low-coverage ac-room trained with the
+    outline loss (2026-12-06): in the box of the armchair without the pillow the short
+    registration scored ``mc`` 0.338, ``fc`` 0.303 and ``fc-nop`` 0.218 (the other boxes' right
+    objects 0.74-0.81); with two shortlisted ``fc-nop`` was never registered and ``fc`` was
+    written in its place. 0 keeps the count alone."""
     shortlist_margin: float = 0.05
     """Objects whose short-registration score is within this of the best one's are fully
     registered too, however many: their order is noise. Measured on the fields of
@@ -167,6 +177,8 @@ class DiscoveryConfig:
             raise ValueError(f"shortlist must be >= 1, got {self.shortlist}")
         if not (np.isfinite(self.shortlist_margin) and self.shortlist_margin >= 0):
             raise ValueError(f"shortlist_margin must be finite and >= 0, got {self.shortlist_margin}")
+        if not (np.isfinite(self.shortlist_uncertain) and 0 <= self.shortlist_uncertain <= 1):
+            raise ValueError(f"shortlist_uncertain must be in [0, 1], got {self.shortlist_uncertain}")
         if not self.shortlist_gap >= 0:
             raise ValueError(f"shortlist_gap must be >= 0, got {self.shortlist_gap}")
         for name in ("join_overlap", "half_explained"):
@@ -393,12 +405,14 @@ class Ranking(NamedTuple):
 
     def shortlisted(self, config: DiscoveryConfig) -> list[str]:
         """The objects to register fully: the best; the next best up to ``config.shortlist``
-        that score within ``config.shortlist_gap`` of it; and every other one within
+        (every one, when the best scores below ``config.shortlist_uncertain``) that score
+        within ``config.shortlist_gap`` of it; and every other one within
         ``config.shortlist_margin`` of it (in :meth:`order`)."""
         order = self.order()
         best = round(self.screened[order[0]], 6)
+        count = len(order) if best < config.shortlist_uncertain else config.shortlist
         return [n for i, n in enumerate(order)
-                if i == 0 or (i < config.shortlist and round(self.screened[n], 6) >= best - config.shortlist_gap)
+                if i == 0 or (i < count and round(self.screened[n], 6) >= best - config.shortlist_gap)
                 or round(self.screened[n], 6) >= best - config.shortlist_margin]
 
 

@@ -108,8 +108,8 @@ class Train:
     the object preset 0; ``RGBDTrainConfig.w_edge`` gives what it does on the rooms)."""
     outline_weight: float | None = None
     """Override the preset's weight of the outline loss, the edge loss's counterpart on the
-    occluders' side (0: off; the room preset uses 1, the object preset 0;
-    ``RGBDTrainConfig.w_outline``)."""
+    occluders' side (0: off, as in both presets; ``RGBDTrainConfig.w_outline`` gives what it
+    does on the rooms: the low-coverage registration back to 11 of 11, and floaters)."""
     seed: int = 0
     """Seed of initialisation and sampling (training is deterministic on CPU)."""
     device: str = "cpu"

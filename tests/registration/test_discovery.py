@@ -227,7 +227,9 @@ def test_objects_scoring_near_the_best_are_shortlisted_whatever_the_count() -> N
     # The low-coverage mix-room's fc box (2026-12-05): three armchairs within 0.012.
     tie = Ranking(box, empty, {"fc-nop": 0.583, "mc": 0.580, "fc": 0.571, "wt": 0.257, "dc": 0.216}, 0.0)
     assert tie.shortlisted(DiscoveryConfig()) == ["fc-nop", "mc", "fc"]
-    assert tie.shortlisted(DiscoveryConfig(shortlist_margin=0.0)) == ["fc-nop", "mc"]
+    # (The best, 0.583, is under shortlist_uncertain as well: either rule registers all three.)
+    assert tie.shortlisted(DiscoveryConfig(shortlist_margin=0.0)) == ["fc-nop", "mc", "fc"]
+    assert tie.shortlisted(DiscoveryConfig(shortlist_margin=0.0, shortlist_uncertain=0.0)) == ["fc-nop", "mc"]
     # A clear best: it alone, the runner-up being further behind than shortlist_gap; with the
     # gap open, the count alone, even when the runner-up and the third are close.
     clear = Ranking(box, empty, {"t": 0.729, "dc": 0.176, "et": 0.166, "c": 0.155}, 0.0)
@@ -239,6 +241,16 @@ def test_objects_scoring_near_the_best_are_shortlisted_whatever_the_count() -> N
     far = Ranking(box, empty, {"dc": 0.639, "c": 0.377, "mc": 0.004}, 0.0)
     assert near.shortlisted(DiscoveryConfig()) == ["fc", "fc-nop"]
     assert far.shortlisted(DiscoveryConfig()) == ["dc"]
+    # No object's pose found (the best scores under 0.6: the demo's fc-nop box, 2026-12-06):
+    # everything within the gap, here the right object third; a confident best keeps the count.
+    lost = Ranking(box, empty, {"mc": 0.338, "fc": 0.303, "fc-nop": 0.218, "dc": 0.158, "c": 0.110}, 0.0)
+    assert lost.shortlisted(DiscoveryConfig()) == ["mc", "fc", "fc-nop"]
+    assert lost.shortlisted(DiscoveryConfig(shortlist_uncertain=0.0)) == ["mc", "fc"]
+    sure = Ranking(box, empty, {"dc": 0.771, "c": 0.70, "fc": 0.65}, 0.0)
+    assert sure.shortlisted(DiscoveryConfig()) == ["dc", "c"]
+    for bad in (-0.1, 1.5, math.nan):
+        with pytest.raises(ValueError, match="shortlist_uncertain"):
+            DiscoveryConfig(shortlist_uncertain=bad)
     with pytest.raises(ValueError, match="shortlist_margin"):
         DiscoveryConfig(shortlist_margin=-0.1)
     with pytest.raises(ValueError, match="shortlist_gap"):
