@@ -4,7 +4,7 @@ They are measured defaults (docs/benchmarks.md, "Fields" and "Training steps aga
 accuracy"). The step counts are where the surface error has converged: a fifth of the steps an
 earlier preset took for an RGB-D object (1000), half for a mesh (400), about a quarter for a
 room (1500), at the same or a lower surface error. On 2 CPU cores an RGB-D object then trains
-in 13-36 s, a mesh at 64 cells with 3072 samples a step in 7-9 s (the bar is 10) and a full-coverage room in 53-79 s,
+in 13-36 s, a mesh at 64 cells with 3072 samples a step in 5.5-8 s (the bar is 10) and a full-coverage room in 53-83 s,
 depending on the hour (this machine's speed drifts). The held-out PSNR is what
 a short schedule gives up (the colour converges more slowly than the geometry); every preset
 therefore feeds the grid features to the colour head as well
@@ -38,8 +38,9 @@ def object_mesh_preset(device: str = "cpu", seed: int = 0) -> DistillConfig:
     library the same (10 of 11 accepted, 9 within the bars, with either grid). The smaller batch
     ("A smaller batch for the meshes"): fc 11.2 -> 8.7 s, mc 9.6 -> 7.9 s and t 8.3 -> 6.6 s in
     one slow hour, mean surface error 0.021 -> 0.023 %, 0.019 -> 0.022 % and 0.028 -> 0.031 %
-    (the bar is 0.3 %); 160 steps instead saved as much and lost twice the accuracy."""
-    return DistillConfig(steps=200, batch=3072, device=device, seed=seed,
+    (the bar is 0.3 %); 160 steps instead saved as much and lost twice the accuracy. The
+    eikonal term at the surface samples only (:attr:`DistillConfig.eikonal_uniform`)."""
+    return DistillConfig(steps=200, batch=3072, eikonal_uniform=False, device=device, seed=seed,
                          architecture=NeuralSDFConfig(finest_resolution=64, color_grid_features=True))
 
 

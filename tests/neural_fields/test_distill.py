@@ -192,3 +192,26 @@ def test_distillation_on_the_device_matches_the_box(device: str) -> None:
     pred = field.sdf_chunked(world_to_field(field, near)).double().cpu().numpy()
     err = np.abs(pred * field.world_scale - box_sdf_metres(near))
     assert err.mean() < 0.005 * DIAG, f"mean error {err.mean() * 1000:.2f} mm"
+
+
+def test_the_eikonal_term_at_the_surface_samples_only_keeps_a_distance(distilled: NeuralSDF) -> None:
+    # The mesh preset's setting: the uniform samples keep their exact signed-distance targets
+    # but not the eikonal term (a third of a step's points were its finite differences). The
+    # field still matches the box near its surface and is a distance away from it.
+    config = DistillConfig(steps=STEPS, batch=2048, pool_surface=20000, architecture=TINY, eikonal_uniform=False)
+    field, _ = distill_mesh(coloured_box(unmerged=True), config, info=FieldInfo(label="crate", name="c1"),
+                            progress=False)
+    rng = np.random.default_rng(0)
+    pts, _ = trimesh.sample.sample_surface(coloured_box(unmerged=False), 4000, seed=1)
+    near = pts + rng.normal(0.0, 0.03, pts.shape)
+    err = np.abs(field.sdf_chunked(world_to_field(field, near)).double().numpy() * field.world_scale
+                 - box_sdf_metres(near))
+    assert err.mean() < 0.005 * DIAG and np.percentile(err, 95) < 0.01 * DIAG
+    lo, hi = field.bounds.numpy()
+    uniform = rng.uniform(lo, hi, (4000, 3))
+    metres = uniform * field.world_scale + CENTER
+    far = np.abs(field.sdf_chunked(torch.as_tensor(uniform, dtype=torch.float32)).double().numpy()
+                 * field.world_scale - box_sdf_metres(metres))
+    assert far.mean() < 0.01 * DIAG
+    # The setting is used: the field differs from the default's.
+    assert any(not torch.equal(a, b) for a, b in zip(field.state_dict().values(), distilled.state_dict().values()))
