@@ -41,6 +41,8 @@ initialisation runs with torch and Open3D on one thread a call
 from __future__ import annotations
 
 import dataclasses
+import functools
+import threading
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -495,16 +497,23 @@ def initial_hypotheses(
         def first(M0: np.ndarray) -> np.ndarray:
             return _icp(src, tgt, M0, cv, config.icp_coarse_relative_change, config)
 
-    # The yaw starts need no RANSAC: with two workers their first ICP runs on another thread
-    # while RANSAC runs on this one (Open3D lets go of the interpreter lock; each call on its
-    # own thread, so the same bits as one after the other).
+    # The yaw starts need no RANSAC: with two workers their first ICP begins on another thread
+    # while RANSAC runs on this one, and this one joins in on the starts left when RANSAC's
+    # own are done (Open3D lets go of the interpreter lock; each call on its own thread, so
+    # the same bits as one after the other).
+    from_yaws = _SharedStarts([functools.partial(_refine_start, prep, M0, config, first) for M0 in yaws])
     with ThreadPoolExecutor(1, thread_name_prefix="yaw-starts") as pool:  # no thread until a submit
-        from_yaws = pool.submit(_refined, prep, yaws, config, first) if workers > 1 else None
-        runs = _ransac_runs(prep, config, workers)
+        helper = pool.submit(from_yaws.work) if workers > 1 and yaws else None
+        # With the helper busy, this thread's queries keep to one core (two would compete).
+        here = 1 if helper is not None else workers
+        runs = _ransac_runs(prep, config, here)
         if not runs and config.mutual_filter:
-            runs = _ransac_runs(prep, dataclasses.replace(config, mutual_filter=False), workers)
-        firsts = _refined(prep, runs, config, first, workers)
-        firsts += from_yaws.result() if from_yaws is not None else _refined(prep, yaws, config, first)
+            runs = _ransac_runs(prep, dataclasses.replace(config, mutual_filter=False), here)
+        firsts = _refined(prep, runs, config, first, here)
+        from_yaws.work()
+        if helper is not None:
+            helper.result()
+    firsts += from_yaws.results()
     cands = firsts
     if first is not fine:
         # The distinct coarse results, refined again on every sample (from close by: few steps).
@@ -528,20 +537,52 @@ def _refined(prep: _Prepared, starts: list[np.ndarray], config: InitConfig,
     and Open3D on one thread under ``one_thread``)."""
 
     def one(M0: np.ndarray) -> Hypothesis | None:
-        M = _similarity_or_none(icp(M0))
-        if M is None:
-            M = _similarity_or_none(M0)
-        if M is None:
-            return None
-        T = _to_field(prep, M)
-        # ICP with scaling can collapse the scene onto part of the library: reject that.
-        ratio = T.s / prep.scale0
-        if not 1.0 / config.max_scale_ratio <= ratio <= config.max_scale_ratio:
-            return None
-        fit, rmse = _evaluate(prep, M, config)
-        return Hypothesis(T, fit, rmse)
+        return _refine_start(prep, M0, config, icp)
 
     return [h for h in map_one_thread_each(one, starts, workers) if h is not None]
+
+
+def _refine_start(prep: _Prepared, M0: np.ndarray, config: InitConfig,
+                  icp: Callable[[np.ndarray], np.ndarray]) -> Hypothesis | None:
+    """``icp`` from the normalised-frame start ``M0`` (4, 4), scored on every sample; None for a
+    degenerate result or one whose scale strays from the pre-estimate (see :func:`_refined`)."""
+    M = _similarity_or_none(icp(M0))
+    if M is None:
+        M = _similarity_or_none(M0)
+    if M is None:
+        return None
+    T = _to_field(prep, M)
+    # ICP with scaling can collapse the scene onto part of the library: reject that.
+    ratio = T.s / prep.scale0
+    if not 1.0 / config.max_scale_ratio <= ratio <= config.max_scale_ratio:
+        return None
+    fit, rmse = _evaluate(prep, M, config)
+    return Hypothesis(T, fit, rmse)
+
+
+class _SharedStarts:
+    """Jobs (each an ICP from one start) taken one at a time by every thread that calls
+    :meth:`work`, so that a thread that joins late takes over the jobs not yet begun; the
+    results in job order, the same whichever thread ran each."""
+
+    def __init__(self, jobs: list[Callable[[], Hypothesis | None]]) -> None:
+        self._jobs = jobs
+        self._out: list[Hypothesis | None] = [None] * len(jobs)
+        self._next = 0
+        self._lock = threading.Lock()
+
+    def work(self) -> None:
+        """Run jobs until none is left to begin."""
+        while True:
+            with self._lock:
+                i, self._next = self._next, self._next + 1
+            if i >= len(self._jobs):
+                return
+            self._out[i] = self._jobs[i]()
+
+    def results(self) -> list[Hypothesis]:
+        """The jobs' hypotheses in job order, the failed ones left out (after every work())."""
+        return [h for h in self._out if h is not None]
 
 
 class NoHypothesisError(ValueError):

@@ -7,6 +7,12 @@ edges and its points agree, score it by the fraction of source points with a tar
 within ``distance`` (then the RMSE of those), and stop once the best hypothesis's share of
 agreeing correspondences says ``confidence`` has been reached.
 
+Scoring is preemptive: every hypothesis of a batch that passes the checks is first scored on a
+fixed, evenly spread subset of the source points (``preempt_points``), and only the
+``preempt_keep`` best of the batch on every point. Most hypotheses that pass the checks are poor,
+and a subset of a few hundred points ranks them as every point does, for a fraction of the
+nearest-neighbour queries.
+
 Why not Open3D's: Open3D 0.20 runs it on its thread pool, whose threads draw from one random
 generator in the order they reach it (other hypotheses from run to run), so it had to run on
 one thread, 0.3-0.5 s of a registration's four runs (docs/benchmarks.md). Here the draws come
@@ -117,6 +123,8 @@ def ransac_similarity(
     batch: int = 5000,
     target_tree: cKDTree | None = None,
     workers: int = 1,
+    preempt_points: int = 256,
+    preempt_keep: int = 4,
 ) -> RansacResult | None:
     """The best similarity of one RANSAC run over ``correspondences``.
 
@@ -148,6 +156,11 @@ def ransac_similarity(
         Of ``target`` (built here if not given).
     workers : int
         Threads of the scoring's nearest-neighbour queries (exact: any count gives the same).
+    preempt_points : int
+        Source points (every k-th) a batch's hypotheses are first scored on; 0: no preemption,
+        every hypothesis is scored on every point.
+    preempt_keep : int
+        Hypotheses of a batch, the best on the subset, then scored on every point (>= 1).
 
     Returns
     -------
@@ -159,7 +172,11 @@ def ransac_similarity(
     corr = np.asarray(correspondences, dtype=np.int64).reshape(-1, 2)
     if ransac_n < 3 or len(corr) < ransac_n or not distance > 0:
         return None
+    if preempt_points < 0 or preempt_keep < 1:
+        raise ValueError(f"need preempt_points >= 0 and preempt_keep >= 1, got {preempt_points}, {preempt_keep}")
     tree = target_tree if target_tree is not None else cKDTree(target)
+    stride = len(source) // preempt_points if preempt_points else 0
+    subset = source[::stride] if stride > 1 else None  # None: the subset would be every point
     rng = np.random.default_rng(seed)
     cs, ct = source[corr[:, 0]], target[corr[:, 1]]
     iu, ju = np.triu_indices(ransac_n, 1)
@@ -183,6 +200,11 @@ def ransac_similarity(
         if not agree.any():
             continue
         R, t, s = R[agree], t[agree], s[agree]
+        if subset is not None and len(R) > preempt_keep:
+            c_sub, r_sub = _scores(subset, tree, R, t, s, distance, workers)
+            # In draw order again, so that ties on every point still go to the earlier draw.
+            top = np.sort(np.lexsort((r_sub, -c_sub))[:preempt_keep])
+            R, t, s = R[top], t[top], s[top]
         count, rmse = _scores(source, tree, R, t, s, distance, workers)
         fitness = count / len(source)
         order = np.lexsort((rmse, -fitness))  # best first; ties keep the draw order

@@ -98,3 +98,30 @@ def test_scoring_a_chunk_at_a_time_gives_the_same_hypothesis(monkeypatch: pytest
     monkeypatch.setattr(ransac, "SCORE_POINTS", 7 * len(source))
     chunked = ransac_similarity(source, target, corr, 0.02 * s, seed=3)
     assert np.array_equal(whole.matrix, chunked.matrix) and whole.iterations == chunked.iterations
+
+
+def test_preemptive_scoring_scores_few_hypotheses_on_every_point(monkeypatch: pytest.MonkeyPatch) -> None:
+    # A batch's hypotheses are ranked on an evenly spread subset and only the best few are
+    # scored on every point; the result is the known similarity, as without preemption.
+    from regnf.registration import ransac
+
+    source, target, corr, (R, t, s) = clouds_with_matches(2000, 0.3, 9)
+    calls: list[tuple[int, int]] = []
+    scores = ransac._scores
+
+    def counting(points, tree, Rs, *args, **kwargs):
+        calls.append((len(points), len(Rs)))
+        return scores(points, tree, Rs, *args, **kwargs)
+
+    monkeypatch.setattr(ransac, "_scores", counting)
+    fast = ransac_similarity(source, target, corr, 0.02 * s, seed=1, preempt_points=256, preempt_keep=3)
+    assert any(n < len(source) for n, _ in calls), "no batch was ranked on the subset"
+    assert all(h <= 3 for n, h in calls if n == len(source))
+    calls.clear()
+    full = ransac_similarity(source, target, corr, 0.02 * s, seed=1, preempt_points=0)
+    assert all(n == len(source) for n, _ in calls)
+    for res in (fast, full):
+        assert res is not None and res.fitness == pytest.approx(1.0)
+        assert np.allclose(res.matrix[:3, :3], s * R, atol=1e-6) and np.allclose(res.matrix[:3, 3], t, atol=1e-6)
+    with pytest.raises(ValueError, match="preempt"):
+        ransac_similarity(source, target, corr, 0.02 * s, preempt_keep=0)

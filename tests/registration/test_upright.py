@@ -82,6 +82,17 @@ def test_half_seen_object_gets_a_start_near_the_truth(pair: dict) -> None:
     assert min(angles) < 0.05
 
 
+def test_the_same_hypotheses_with_the_sweep_shared_between_threads(pair: dict) -> None:
+    """With two workers the sweep's ICP starts are shared by a helper thread and, once RANSAC
+    is done, the calling one: the same hypotheses, bit for bit, as on one thread."""
+    args = (pair["scene_s"], pair["lib_s"], InitConfig())
+    alone = initial_hypotheses(*args, upright=pair["prior"], limit=12, workers=1)
+    shared = initial_hypotheses(*args, upright=pair["prior"], limit=12, workers=2)
+    assert len(alone) == len(shared) > 1
+    for a, b in zip(alone, shared):
+        assert np.array_equal(a.transform.matrix(), b.transform.matrix()) and a.fitness == b.fitness
+
+
 def test_screening_puts_the_true_pose_before_a_half_turn(pair: dict) -> None:
     """Scene seen from -x only: a half turn about the up axis fits the seen half, but puts
     library surface into observed free space; the screening ranks the truth first."""
