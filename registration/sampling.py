@@ -38,7 +38,7 @@ ray, no empty-space grid (one trace per field and box: building a grid would cos
 saves), bisection of a crossing to an absolute tolerance of 1e-5 field units: a surface point,
 not a pixel, is wanted. (Until 2026-12-06: plain steps of 0.9 of the SDF, for neural fields
 that overestimate their distance, and 256 steps. Measured on the preset's fields, full-coverage
-rooms, one thread: a scene box 0.34-0.41 s -> 0.25-0.27 s, a library object 0.21-0.25 s -> 0.15-0.17
+rooms, one thread: a scene box 0.34-0.41 s -> 0.26-0.27 s, a library object 0.21-0.25 s -> 0.15-0.17
 s; of the points, those more than 1 % of the diagonal from every point of the old sampling: at
 most 1 of up to 5 700 (no thin part skipped); those the old sampling had and the new lacks
 (grazing rays out of steps): 0-13, 36 of 3 676 for the end table's scene side.)"""
