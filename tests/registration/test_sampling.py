@@ -89,6 +89,29 @@ def test_floor_removal_follows_the_up_parameter() -> None:
     assert (np.abs(obj.sdf(torch.as_tensor(s.points)).numpy()) < 1e-4).all()
 
 
+def test_undersides_are_dropped_on_the_scene_side_only() -> None:
+    """The lower half of the test object's ball faces down: the side cameras see it, and the
+    scene side drops the hits whose normal lies within ``underside_deg`` of down (``up``
+    turned with the room), the library side keeps them."""
+    down_cos = math.cos(math.radians(60.0))
+    R = rot([1, 0, 0], -math.pi / 2)  # z -> y
+    turn = similarity_matrix(R, np.zeros(3), 1.0)
+    for M, up in ((M_PLACE, (0.0, 0.0, 1.0)), (turn @ M_PLACE, (0.0, 1.0, 0.0))):
+        scene = Transformed(make_scene(M_PLACE), M @ np.linalg.inv(M_PLACE))
+        box = object_box().transformed(M)
+        cfg = SamplingConfig(up=up, rays_per_side=32)
+        kept = sample_surface(scene, box, cfg, "scene")
+        every = sample_surface(scene, box, SamplingConfig(up=up, rays_per_side=32, underside_deg=0.0), "scene")
+        assert (every.normals @ np.asarray(up) < -down_cos).sum() > 10
+        assert (kept.normals @ np.asarray(up) >= -down_cos).all()
+        # What is left of the object: the rest of it, the ball's upper half included.
+        assert (kept.normals @ np.asarray(up) > down_cos).sum() > 10
+    lib = sample_surface(make_object(), None, SamplingConfig(rays_per_side=32), "library")
+    assert (lib.normals[:, 2] < -down_cos).sum() > 5
+    with pytest.raises(ValueError, match="underside_deg"):
+        SamplingConfig(underside_deg=90.0)
+
+
 def test_library_covers_the_whole_object() -> None:
     lib = make_object()
     s = sample_surface(lib, None, SamplingConfig(), side="library")
