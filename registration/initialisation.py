@@ -536,9 +536,7 @@ def _refined(prep: _Prepared, starts: list[np.ndarray], config: InitConfig,
     threads, each ICP on its own thread (the same bits as one after another: no random draws,
     and Open3D on one thread under ``one_thread``)."""
 
-    def one(M0: np.ndarray) -> Hypothesis | None:
-        return _refine_start(prep, M0, config, icp)
-
+    one = functools.partial(_refine_start, prep, config=config, icp=icp)
     return [h for h in map_one_thread_each(one, starts, workers) if h is not None]
 
 
