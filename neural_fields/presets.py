@@ -46,14 +46,17 @@ def object_mesh_preset(device: str = "cpu", seed: int = 0) -> DistillConfig:
 
 def scene_rgbd_preset(device: str = "cpu", seed: int = 0) -> RGBDTrainConfig:
     """A room seen from inside: 7 levels up to 256 cells, inside-out init, 400 steps, the
-    occluding-edge loss at weight 1 (``RGBDTrainConfig.w_edge``: measured there; the outline
-    loss, ``w_outline``, stays off: it brought the low-coverage registration back to 11 of 11
-    but left floaters in observed free space)."""
+    occluding-edge loss at weight 1 (``RGBDTrainConfig.w_edge``: measured there), the outline
+    loss at weight 1 (``w_outline``: it brings the low-coverage registration back to 11 of 11)
+    and the floater pool from the 200th step, a mining pass every 50 (``carve_every``: without
+    it the outline loss leaves floaters in free space the views saw)."""
     return RGBDTrainConfig(
         steps=400,
         device=device,
         seed=seed,
         w_edge=1.0,
+        w_outline=1.0,
+        carve_every=50,
         architecture=NeuralSDFConfig(
             levels=7, finest_resolution=256, inside_out=True, init_radius=0.9, color_grid_features=True
         ),

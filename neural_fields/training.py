@@ -13,6 +13,9 @@ every scale:
   silhouette, near the occluder's depth, which pins the outline of thin parts;
 - outlines (``w_outline > 0``): |S| at the occluders' own points along those silhouettes, the
   few pixels that see a surface at a grazing angle: the surface's side of the same outline;
+- floater pool (``carve_every > 0``): S >= 0 at points found inside the field where a training
+  view saw free space, kept until training has carved them
+  (:mod:`regnf.neural_fields.floater_pool`);
 - eikonal: |grad S| = 1 (finite differences: grid_sample has no second derivative), at
   surface samples only. Applied at sparse uniform points it moves fine-grid cells that are
   touched once in a while, and Adam turns any such tiny gradient into a full-size step:
@@ -42,6 +45,7 @@ import torch
 import torch.nn.functional as F
 
 from regnf.neural_fields.field import FieldInfo
+from regnf.neural_fields.floater_pool import FloaterPool
 from regnf.neural_fields.neural_sdf import (
     NeuralSDF,
     NeuralSDFConfig,
@@ -147,15 +151,39 @@ class RGBDTrainConfig:
     30 degrees of horizontal): sides +0.4 to +6.3 mm -> -2.3 to +0.3 mm; the registration
     benchmark at low coverage, 8 of 11 pairs accepted and within the bars with either library
     -> 11 of 11, and at full coverage the RGB-D library's medians 0.0011 rad, 0.06 %, 0.08 %
-    -> 0.0005 rad, 0.04 %, 0.04 %; 2.7 % more time a step. Off in every preset because of
-    what it also did: floaters in observed free space (points of a 2 cm grid that the room's
-    visibility grid counts as observed, away from every instance's box, with SDF < -3 mm): 0
-    -> 149 in the low-coverage ac-room, 17 -> 75 at full coverage, 220 -> 365 in the
-    low-coverage mix-room (23 -> 0 in the atbl-room), visible as specks in the demo's renders,
-    and the render benchmark's replacement remnants 102 -> 560 pixels (docs/benchmarks.md,
-    "Outlines")."""
+    -> 0.0005 rad, 0.04 %, 0.04 %; 2.7 % more time a step. Alone it also left floaters in
+    observed free space (points of a 2 cm grid that the room's visibility grid counts as
+    observed, away from every instance's box, with SDF < -3 mm): 0 -> 149 in the low-coverage
+    ac-room, 17 -> 75 at full coverage, 220 -> 365 in the low-coverage mix-room (23 -> 0 in
+    the atbl-room), visible as specks in the demo's renders, and the render benchmark's
+    replacement remnants 102 -> 560 pixels (docs/benchmarks.md, "Outlines"); so it was off in
+    every preset until the floater pool (``carve_every``) carved them. Weight 1 in the room
+    preset, with the pool, since 2026-12-06."""
     batch_outline: int = 1024
     """Outline points per step (drawn with replacement)."""
+    carve_every: int = 0
+    """Steps between the floater pool's mining passes (0: no pool;
+    :class:`regnf.neural_fields.floater_pool.FloaterPool`): matter the field holds where a
+    training view saw free space is found on a grid and kept, and every later step asks it to
+    be positive again, until it is gone. Measured 2026-12-06 with the outline loss at weight 1
+    (room preset, 400 steps, a pass every 50 from step 200; floaters counted as in
+    ``w_outline``): the low-coverage ac-room 149 -> 5 (0 without either), the atbl-room 0 ->
+    0, the mix-room 365 -> 253 (220 without either; of those 253 only 14 lie where a training
+    view saw free space, the rest just behind observed surfaces, inside the visibility grid's
+    margin), the full-coverage ac-room 75 -> 15 (17 without either). The 11 low-coverage pairs,
+    registered from their true boxes, all accepted and within the bars with either library
+    (8 of 11 without either). Training time: 58-60 s a low-coverage room, 77.5 s the
+    full-coverage ac-room (77.9 s without either; a pass evaluates the field at the observed
+    points of a 4 cm grid, about a second). Every 50 steps in the room preset
+    (docs/benchmarks.md, "Floaters, mined")."""
+    carve_from: float = 0.5
+    """The first mining pass, as a fraction of ``steps``; from it on the pool also keeps the
+    uniform free-space points found negative, and each step draws ``batch_carve`` points."""
+    carve_spacing_m: float = 0.04
+    """Grid spacing of a mining pass, metres (a random offset each pass); pool points are
+    drawn moved by up to half of it."""
+    batch_carve: int = 512
+    """Pool points per step."""
     w_eikonal: float = 0.1
     """Weight of the eikonal loss."""
     eikonal_surface_only: bool = True
@@ -236,6 +264,9 @@ class _ViewStack:
         free = inside & ((d <= 0) | (z < d - margin))
         return free.float()
 
+
+_POOL_CAPACITY = 1 << 16
+"""Points the floater pool keeps (a mining pass over a room adds a few thousand)."""
 
 FINGERPRINT_VERSION = b"regnf.capture-fingerprint/2\n"
 """Prefix of every capture fingerprint; changing how it is computed changes this."""
@@ -355,6 +386,15 @@ def train_rgbd(
     edge_before, edge_after = cfg.edge_band_m[0] / scale, cfg.edge_band_m[1] / scale
     bounds_d = model.bounds
     log = TrainLog()
+    # The grid of what the training views observed: attached to the field, and where the
+    # floater pool's mining passes look (nothing is asked of space no view saw).
+    visibility = build_visibility(
+        capture, model.bounds, resolution=cfg.visibility_resolution,
+        margin=cfg.visibility_margin, device=device, indices=indices,
+    ) if cfg.visibility_resolution > 0 else None
+    pool = FloaterPool(_POOL_CAPACITY, device) if cfg.carve_every > 0 else None
+    carve_start = int(cfg.carve_from * cfg.steps)
+    carve_spacing = cfg.carve_spacing_m / scale
 
     def rand(n: int) -> torch.Tensor:
         return torch.rand(n, generator=gen).to(device)
@@ -362,7 +402,14 @@ def train_rgbd(
     def randint(high: int, n: int) -> torch.Tensor:
         return torch.randint(high, (n,), generator=gen).to(device)
 
+    def seen_free(x: torch.Tensor, view: torch.Tensor) -> torch.Tensor:
+        return views.seen_free(x, margin, view)
+
     def loss_at(step: int) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        carving = pool is not None and step >= carve_start
+        if carving and (step - carve_start) % cfg.carve_every == 0:
+            pool.mine(model.sdf, bounds_d, carve_spacing, rand(3) * carve_spacing, seen_free,
+                      views.count, visibility.observed if visibility is not None else None)
         # -- draw the batch -----------------------------------------------------------------
         ns = cfg.batch_surface
         si = ok_idx[randint(ok_idx.numel(), ns)]
@@ -407,6 +454,10 @@ def train_rgbd(
         xo = s.points[outline_idx[randint(outline_idx.numel(), n_outline)]] if n_outline else xs[:0]
 
         xu = bounds_d[0] + rand(cfg.batch_eikonal * 3).view(-1, 3) * (bounds_d[1] - bounds_d[0])
+        if carving and len(pool) > 0:
+            xc, vc = pool.draw(cfg.batch_carve, 0.5 * carve_spacing, rand, randint)
+        else:
+            xc, vc = xs[:0], ok_idx[:0]
 
         # -- one batched forward pass over every sample --------------------------------------
         # The uniform points need a gradient only for the eikonal loss on every point; for
@@ -414,10 +465,11 @@ def train_rgbd(
         # 20 % of a room step's points).
         xu_fd = not cfg.eikonal_surface_only
         fd_pts = tetrahedral_points(torch.cat([xs, xu]) if xu_fd else xs, h_fd)
-        direct = torch.cat([xs, xs_all, xn, xf, xe_free, xg, xo] + ([] if xu_fd else [xu]))
+        direct = torch.cat([xs, xs_all, xn, xf, xe_free, xg, xo, xc] + ([] if xu_fd else [xu]))
         sdf_all, feat_all = model.sdf_and_features(torch.cat([direct, fd_pts]))
-        sizes = [ns, ns, ns, xf.shape[0], xe_free.shape[0], xg.shape[0], xo.shape[0], 0 if xu_fd else xu.shape[0]]
-        f_s, f_sa, f_n, f_f, f_e, f_g, f_o, f_u = torch.split(sdf_all[: direct.shape[0]], sizes)
+        sizes = [ns, ns, ns, xf.shape[0], xe_free.shape[0], xg.shape[0], xo.shape[0], xc.shape[0],
+                 0 if xu_fd else xu.shape[0]]
+        f_s, f_sa, f_n, f_f, f_e, f_g, f_o, f_c, f_u = torch.split(sdf_all[: direct.shape[0]], sizes)
         feat_s = feat_all[:ns]
         grads, f_mean = tetrahedral_combine(sdf_all[direct.shape[0]:], h_fd)
         g_s = grads[:ns]
@@ -433,8 +485,14 @@ def train_rgbd(
         gnorm = grads.norm(dim=-1)
         loss_eik = ((gnorm[: (ns if cfg.eikonal_surface_only else None)] - 1.0) ** 2).mean()
         # Uniform points seen as empty by a random view must not be inside anything.
-        seen_free = views.seen_free(xu, margin, randint(views.count, xu.shape[0]))
-        loss_free = loss_free + (F.relu(-f_u) * seen_free).mean() / ell
+        view_u = randint(views.count, xu.shape[0])
+        free_u = views.seen_free(xu, margin, view_u)
+        loss_free = loss_free + (F.relu(-f_u) * free_u).mean() / ell
+        if carving:
+            found = (f_u.detach().reshape(-1) < 0) & (free_u > 0)
+            pool.add(xu[found], view_u[found])
+        if xc.shape[0]:
+            loss_free = loss_free + (F.relu(-f_c) * views.seen_free(xc, margin, vc)).mean() / ell
         loss_edge = (F.relu(-f_g) * keep_g).mean() / ell if n_edge > 0 else torch.zeros((), device=device)
         loss_normal = (1.0 - F.cosine_similarity(g_s, nrm, dim=-1)).mean()
         rgb = model.color_from(feat_s, F.normalize(g_s.detach(), dim=-1), None)
@@ -467,13 +525,10 @@ def train_rgbd(
     log.losses = optimise(model, cfg.steps, loss_at, cfg.lr_grid, cfg.lr_mlp, cfg.grid_decay, cfg.lr_final,
                           desc=f"train {info.name or 'field'}", progress=progress,
                           postfix={"surf": "surface", "col": "color"})
-    if cfg.visibility_resolution > 0:
+    if visibility is not None:
         # Built by the same function as for a checkpoint that lacks it (Cache, attach_visibility),
         # so a field trained now and one given its grid later carry the same counts.
-        model.visibility = build_visibility(
-            capture, model.bounds, resolution=cfg.visibility_resolution,
-            margin=cfg.visibility_margin, device=device, indices=indices,
-        )
+        model.visibility = visibility
     log.seconds = time.perf_counter() - t_start
     log.steps = cfg.steps
     model.info.provenance = {

@@ -108,8 +108,12 @@ class Train:
     the object preset 0; ``RGBDTrainConfig.w_edge`` gives what it does on the rooms)."""
     outline_weight: float | None = None
     """Override the preset's weight of the outline loss, the edge loss's counterpart on the
-    occluders' side (0: off, as in both presets; ``RGBDTrainConfig.w_outline`` gives what it
-    does on the rooms: the low-coverage registration back to 11 of 11, and floaters)."""
+    occluders' side (0: off; the room preset uses 1, the object preset 0;
+    ``RGBDTrainConfig.w_outline`` gives what it does on the rooms: the low-coverage
+    registration back to 11 of 11, and floaters)."""
+    carve_every: int | None = None
+    """Override the preset's steps between the floater pool's mining passes (0: no pool; the
+    room preset uses 50, the object preset 0; ``RGBDTrainConfig.carve_every``)."""
     seed: int = 0
     """Seed of initialisation and sampling (training is deterministic on CPU)."""
     device: str = "cpu"
@@ -125,6 +129,8 @@ class Train:
             raise SystemExit(f"--edge-weight must be a finite number >= 0, got {self.edge_weight}")
         if self.outline_weight is not None and not (math.isfinite(self.outline_weight) and self.outline_weight >= 0):
             raise SystemExit(f"--outline-weight must be a finite number >= 0, got {self.outline_weight}")
+        if self.carve_every is not None and self.carve_every < 0:
+            raise SystemExit(f"--carve-every must be at least 0, got {self.carve_every}")
         capture = load_capture(self.capture)
         preset = object_rgbd_preset if self.preset == "object" else scene_rgbd_preset
         cfg = preset(self.device, self.seed)
@@ -134,6 +140,8 @@ class Train:
             cfg = dataclasses.replace(cfg, w_edge=self.edge_weight)
         if self.outline_weight is not None:
             cfg = dataclasses.replace(cfg, w_outline=self.outline_weight)
+        if self.carve_every is not None:
+            cfg = dataclasses.replace(cfg, carve_every=self.carve_every)
         path = Cache(self.cache_dir).rgbd_field(capture, cfg)
         console.print(f"field {capture_info(capture).name!r}: {path}")
         copy_out(path, self.out)

@@ -258,6 +258,47 @@ def test_the_outline_loss_holds_the_outline_points_on_the_zero_set(capture: Capt
     assert log.losses[-1]["outline"] < log.losses[0]["outline"]
 
 
+FLOATER_CLEARANCE = 0.1
+"""Normalised units from the true surface beyond which matter counts as a floater (a few of
+the finest grid's cells)."""
+
+
+def free_space_matter(field: NeuralSDF, capture: Capture) -> int:
+    """Points of a grid over the field's bounds inside the field where a training view sees
+    free space (in front of its depth by the free-space margin)."""
+    from regnf.neural_fields.training import _ViewStack
+
+    cfg = tiny_config()
+    views = _ViewStack.build(capture, capture.train_indices(), torch.device("cpu"))
+    lo, hi = field.bounds[0], field.bounds[1]
+    axes = [torch.linspace(float(lo[i]), float(hi[i]), 40) for i in range(3)]
+    grid = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    # Away from the true surface: floaters, not an outline a grid cell too wide.
+    grid = grid[torch.as_tensor(analytic_sdf(grid.double().numpy())) > FLOATER_CLEARANCE]
+    with torch.no_grad():
+        inside = grid[field.sdf(grid).reshape(-1) < 0]
+    margin = cfg.free_margin_m / field.world_scale
+    seen = torch.zeros(inside.shape[0], dtype=torch.bool)
+    for view in range(views.count):
+        seen |= views.seen_free(inside, margin, torch.full((inside.shape[0],), view)) > 0
+    return int(seen.sum())
+
+
+def test_the_floater_pool_carves_matter_in_free_space_the_views_saw(capture: Capture) -> None:
+    # A short schedule leaves part of the initial sphere's matter in free space that the
+    # training views saw through; the pool finds it on its grids and carves it.
+    base = tiny_config(steps=40)
+    without, _ = train_rgbd(capture, base, progress=False)
+    carved, _ = train_rgbd(capture, dataclasses.replace(base, carve_every=5, carve_from=0.25,
+                                                        carve_spacing_m=0.05), progress=False)
+    before, after = free_space_matter(without, capture), free_space_matter(carved, capture)
+    assert before > 50 and after < 0.25 * before
+    # The surface is not given up for it.
+    pts = as_tensor(surface_samples(2000, seed=2)[0])
+    err = [float(f.sdf_chunked(pts).abs().mean()) for f in (without, carved)]
+    assert err[1] <= 1.5 * err[0] + 1e-3
+
+
 def test_the_edge_loss_off_draws_no_edge_samples(capture: Capture) -> None:
     # Off (the default), training is what it was before the loss existed: the same batches,
     # whatever the edge and outline settings say.

@@ -79,6 +79,15 @@ def test_train_from_a_capture_folder(tmp_path: Path) -> None:
     assert main([*args, "--outline-weight", "1", "--out", str(tmp_path / "o.safetensors")]) == 0
     assert len(list((cache / "fields").glob("*.safetensors"))) == 3
     assert load_field(tmp_path / "o.safetensors").info.provenance["train_config"]["w_outline"] == 1.0
+    assert main([*args, "--carve-every", "1", "--out", str(tmp_path / "p.safetensors")]) == 0
+    assert len(list((cache / "fields").glob("*.safetensors"))) == 4
+    assert load_field(tmp_path / "p.safetensors").info.provenance["train_config"]["carve_every"] == 1
+
+
+def test_train_rejects_a_negative_carve_interval(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    capture = write_analytic_capture(tmp_path / "cap")
+    assert_fails(capsys, ["train", "--capture", str(capture.root), "--carve-every", "-1",
+                          "--cache-dir", str(tmp_path / "cache")], "--carve-every must be")
 
 
 @pytest.mark.parametrize("option", ["--edge-weight", "--outline-weight"])
