@@ -153,7 +153,8 @@ def run_pair(scene_name: str, obj: str, scene: Field, library: Field, capture, m
             "seconds": seconds, "confidence": res.confidence, "accepted": res.accepted,
             # The confidence's factors (null where a method does not report one).
             **{k: (float(res.losses[k]) if k in res.losses else None)
-               for k in ("inlier_fraction", "inlier_fraction_scene", "inlier_fraction_library", "containment")},
+               for k in ("inlier_fraction", "inlier_fraction_scene", "inlier_fraction_library", "containment",
+                         "seen_free")},
             "iterations": float(res.losses["iterations"]) if "iterations" in res.losses else None,
             # Where the time goes (null for a stage the method does not have).
             **{f"seconds_{stage}": (float(res.timings[stage]) if stage in res.timings else None)

@@ -11,7 +11,8 @@
 
 Each returns a :class:`RegistrationResult` whose confidence is measured the same way as
 Reg-NF's: the fraction of SDF residuals under the inlier threshold at the returned transform,
-times the fraction of the library object inside the proposal (:func:`regnf.registration.pipeline.scored`).
+times the fraction of the library object inside the proposal, times one less the fraction of its
+observed part in seen free space (:func:`regnf.registration.pipeline.scored`).
 """
 
 from __future__ import annotations
@@ -41,9 +42,9 @@ from regnf.registration.transform import SimilarityTransform
 
 
 def _result(method: str, T: SimilarityTransform, evaluated: RefineResult, cfg: RegistrationConfig,
-            proposal: OrientedBox, timings: dict, *, samples: tuple[np.ndarray, np.ndarray],
+            proposal: OrientedBox, timings: dict, *, scene: Field, samples: tuple[np.ndarray, np.ndarray],
             fitness: float = float("nan"), initial: SimilarityTransform | None = None) -> RegistrationResult:
-    confidence, inside = scored(evaluated, samples[1], proposal, cfg)
+    confidence, inside, free = scored(evaluated, samples[1], proposal, cfg, scene)
     return RegistrationResult(
         samples=samples,
         transform=T,
@@ -53,7 +54,8 @@ def _result(method: str, T: SimilarityTransform, evaluated: RefineResult, cfg: R
         losses={"loss": float(evaluated.loss), "mean_residual_scene": float(evaluated.mean_residual_A),
                 "mean_residual_library": float(evaluated.mean_residual_B),
                 "iterations": float(evaluated.iterations),
-                "inlier_fraction": float(evaluated.inlier_fraction), "containment": float(inside)},
+                "inlier_fraction": float(evaluated.inlier_fraction), "containment": float(inside),
+                "seen_free": float(free)},
         timings=timings,
         hypotheses=[HypothesisReport(initial or T, T, fitness, float(evaluated.loss), float(confidence))],
         proposal=proposal,
@@ -81,7 +83,8 @@ def _one_hypothesis(method: str, scene: Field, library: Field, proposal: Oriente
     A, B = sample_tensors(ss, ls, library.device)
     timings = {"sampling": t1 - t0, "initialisation": t2 - t1, "total": t2 - t0}
     return _result(method, hyp.transform, _score(scene, library, A, B, hyp.transform, cfg),
-                   cfg, proposal, timings, fitness=float(hyp.fitness), samples=(ss.points, ls.points))
+                   cfg, proposal, timings, fitness=float(hyp.fitness), scene=scene,
+                   samples=(ss.points, ls.points))
 
 
 def register_init_only(scene: Field, library: Field, proposal: OrientedBox,
@@ -153,5 +156,5 @@ def register_nerf2nerf(scene: Field, library: Field, proposal: OrientedBox,
     res = refine(scene, library, A, None, T0, n2n)
     t2 = time.perf_counter()
     timings = {"sampling": t1 - t0, "initialisation": 0.0, "refinement": t2 - t1, "total": t2 - t0}
-    return _result("nerf2nerf", res.transform, res, cfg, proposal, timings, initial=T0,
+    return _result("nerf2nerf", res.transform, res, cfg, proposal, timings, initial=T0, scene=scene,
                    samples=(ss.points, ls.points))

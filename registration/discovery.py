@@ -6,7 +6,8 @@
    sampled once per candidate and each library object once; on a subset of those samples,
    each object's initial hypotheses (features, RANSAC and the upright starts, screened by
    their SDF evidence) are found and the best one scored, without any refinement step, by the
-   confidence the full registration would report (SDF evidence times containment).
+   confidence the full registration would report (SDF evidence times containment times one less
+   the share in seen free space).
    Scale-free: the library need not share the scene's units.
 3. The full registration (every sample, initialisation and refinement, exactly as
    :func:`~regnf.registration.pipeline.register` in the candidate's box) of the ``shortlist``
@@ -301,11 +302,12 @@ def screened_score(scene_field: Field, library_field: Field, proposal: OrientedB
                    config: RegistrationConfig) -> float:
     """The confidence :func:`~regnf.registration.pipeline.register` would report for
     ``hypothesis`` with no refinement step: SDF evidence both ways, weighted by what the scene's
-    views observed, times the library's containment in the proposal."""
+    views observed, times the library's containment in the proposal, times one less the share
+    of its observed samples in seen free space."""
     A, B = sample_tensors(scene, library, library_field.device)
     at_start = refine_many(scene_field, library_field, A, B, [hypothesis.transform],
                            without_steps(config.refine))[0]
-    return float(scored(at_start, library.points, proposal, config)[0])
+    return float(scored(at_start, library.points, proposal, config, scene_field)[0])
 
 
 def discover(scene_field: Field, library: Mapping[str, Field],

@@ -64,7 +64,7 @@ def test_register_recovers_a_known_similarity_at_any_library_scale(factor: float
     assert set(result.timings) >= {"sampling", "initialisation", "refinement", "total"}
     assert result.hypotheses and result.hypotheses[0].confidence == result.confidence
     # The whole object lies in its box at the right pose: the confidence is the SDF evidence.
-    assert result.losses["containment"] == 1.0
+    assert result.losses["containment"] == 1.0 and result.losses["seen_free"] == 0.0
     assert result.confidence == result.losses["inlier_fraction"]
 
 
