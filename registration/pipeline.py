@@ -76,8 +76,9 @@ class RegistrationConfig:
     space the scene's views observed, stands in seen free space; the confidence is multiplied
     by one less the fraction of observed samples that do (:mod:`regnf.registration.free_space`;
     inf: never). 2 cm, the training's own free-space margin. Measured 2026-12-06 on the
-    low-coverage rooms: the armchair ``fc`` upside down in the round table ``wt``'s box, accepted
-    at 0.680 before, has 0.18 of its observed samples there; right pairs 0.000-0.009."""
+    low-coverage rooms: the armchair ``fc`` tipped over in the round table ``wt``'s box, accepted
+    at 0.680 before, has 0.23 of its observed samples there (0.523, rejected); right pairs
+    lost at most 0.029 of their confidence (docs/benchmarks.md, "Twentieth run")."""
     confident_score: float = 0.85
     """The best screened hypothesis is refined first, alone; when its confidence reaches this,
     the others are not refined (:func:`refine_hypotheses`). Above 1: every hypothesis is
@@ -87,6 +88,11 @@ class RegistrationConfig:
     low-coverage result stayed the same to the printed digit: docs/benchmarks.md.)"""
     device: str | None = None
     """Torch device of the fields; None: the scene field's device."""
+
+    def __post_init__(self) -> None:
+        if not self.free_space_margin_m > 0:  # NaN fails too
+            raise ValueError(f"free_space_margin_m must be > 0 metres (inf: never charged), "
+                             f"got {self.free_space_margin_m}")
 
 
 def check_fields(scene: Field, library: Field) -> None:
@@ -281,7 +287,8 @@ def refine_hypotheses(
     inits = [h.transform for h in hypotheses]
     # The adaptive NLL is not comparable across hypotheses (each learns its own alpha and c),
     # so rank by what is: the SDF evidence (the fraction of inlier residuals) times the fraction
-    # of the library object that lies in the proposal, then the mean residual.
+    # of the library object that lies in the proposal times one less its share in seen free
+    # space, then the mean residual.
     refined = refine_many(scene_field, library_field, A, B, inits[:1], config.refine, symmetry=symmetry)
     ranked = [scored(refined[0], lib_samples.points, proposal, config, scene_field)]
     if len(inits) > 1 and ranked[0][0] < config.confident_score:

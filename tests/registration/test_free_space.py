@@ -114,3 +114,11 @@ def test_the_confidence_is_charged_for_the_share_in_seen_free_space() -> None:
     assert confidence == pytest.approx(0.9 * (1.0 - free), abs=1e-12)
     off = dataclasses.replace(config, free_space_margin_m=math.inf)
     assert scored(refined, points, box, off, scene) == (0.9, 1.0, 0.0)
+
+
+@pytest.mark.parametrize("margin", [0.0, -0.02, math.nan])
+def test_a_margin_that_is_not_positive_is_refused(margin: float) -> None:
+    from regnf.registration.pipeline import RegistrationConfig
+
+    with pytest.raises(ValueError, match="free_space_margin_m must be > 0"):
+        RegistrationConfig(free_space_margin_m=margin)
