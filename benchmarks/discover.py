@@ -64,6 +64,7 @@ def score_room(scene_name: str, coverage: str, library_source: str, result: Disc
         "within_bars": sum(r["within_bars"] for r in per_instance),
         "false_instances": len(false),
         "unmatched_candidates": len(result.unmatched),
+        "skipped_candidates": [d.skipped for d in result.skipped],
         "left_out": left,
         "seconds": float(result.seconds["total"]),
         "seconds_candidates": float(result.seconds["candidates"]),
@@ -72,6 +73,7 @@ def score_room(scene_name: str, coverage: str, library_source: str, result: Disc
         "candidate_boxes": [{"size": (2 * d.candidate.box.half_extents).tolist(),
                              "chosen": None if d.chosen is None else d.chosen.library_name,
                              "ambiguous": list(d.ambiguous),
+                             "skipped": d.skipped,
                              "tried": [[t.library_name, round(t.screened, 4),
                                         None if t.result is None else round(t.result.confidence, 4)]
                                        for t in d.tried]}

@@ -139,7 +139,7 @@ def run_viewer_benchmark(stage: Path, instances: list[Instance], images: Path,
         for prefix in ("", "reopened_"):  # then opened again in the same browser (its cache warm)
             viewer.shown_at.clear()
             t0 = time.monotonic()
-            browser.get(f"http://127.0.0.1:{viewer.port}")
+            browser.get(viewer.url)
             listed = listed_seconds(browser, config.timeout)
             out[f"{prefix}instances_listed_s"] = listed
             # An image is on screen once it was sent and the page is up (the panel shows): the

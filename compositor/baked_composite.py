@@ -17,7 +17,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -72,7 +72,7 @@ def placed_to_world(composite: CompositeField) -> list[np.ndarray]:
 
 def bake_grids(scene: Field, objects: Mapping[str, tuple[Field, Sequence[np.ndarray]]],
                cameras: Sequence[Camera], config: BakeConfig | None = None, progress: bool = False,
-               workers: int | None = None) -> BakedGrids:
+               workers: int | None = None, check_nodes: Callable[[int], None] | None = None) -> BakedGrids:
     """Bake a masked scene and library objects for ``cameras``.
 
     Parameters
@@ -91,6 +91,9 @@ def bake_grids(scene: Field, objects: Mapping[str, tuple[Field, Sequence[np.ndar
     workers : int, optional
         Fields baked at once, each on one CPU thread (:func:`regnf.core.threads.map_one_thread_each`);
         None: one per usable core. One thread per field makes the grids the same on any machine.
+    check_nodes : callable, optional
+        Called with the grid nodes of all the fields before any baking (a caller's disk check);
+        what it raises stops the bake.
 
     Raises
     ------
@@ -110,6 +113,8 @@ def bake_grids(scene: Field, objects: Mapping[str, tuple[Field, Sequence[np.ndar
         cells.append(min(bake_cell(field, cameras, config, to_world=W) for W in places))
     total = sum(math.prod(grid_nodes(f.bounds, c, config.coarse_stride)) for f, c in zip(fields, cells))
     _check_nodes(total, f"these {len(fields)} fields", config)  # before any baking
+    if check_nodes is not None:
+        check_nodes(total)
     # The largest first, so that the others fill the remaining workers around it.
     order = sorted(range(len(fields)), key=lambda i: -math.prod(grid_nodes(fields[i].bounds, cells[i])))
     baked_in_order = map_one_thread_each(lambda i: bake(fields[i], cells[i], config, progress=progress),

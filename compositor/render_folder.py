@@ -28,7 +28,6 @@ staging folders a killed render left behind are removed (nothing else is).
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import os
 import re
@@ -46,6 +45,7 @@ from regnf.core.atomic_io import write_json
 from regnf.core.file_lock import folder_lock
 from regnf.core.image_io import rgb_to_uint8, write_depth_png, write_instance_png, write_rgb_png
 from regnf.core.output_dir import remove_leftovers, staging_dir, staging_prefix
+from regnf.core.preflight import JsonInputError, read_json_input
 from regnf.core.render_result import Render
 from regnf.core.threads import map_one_thread_each, worker_count
 from regnf.neural_fields.baked_field import BakeConfig
@@ -480,6 +480,6 @@ def read_render_json(out: str | os.PathLike) -> dict:
     """The ``render.json`` of a render folder."""
     path = Path(out) / RENDER_JSON
     try:
-        return json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        raise ValueError(f"{path}: cannot read the render report ({exc})") from exc
+        return read_json_input(path, None, "render report")
+    except JsonInputError as exc:
+        raise ValueError(f"{path}: cannot read the render report ({exc.problem})") from exc

@@ -40,6 +40,7 @@ from .baked_composite import BakedGrids, with_object_grids
 from .from_stage import composite_from_scene, composite_from_stage
 from .nerfstudio import transforms_json
 from .render_folder import RenderConfig, RenderReport, check_cameras, check_sequence, render_views
+from .size_change import check_swap_sizes
 from .stage_config import StageCompositeConfig
 
 LAYER_NAME = "replacement.usda"
@@ -58,6 +59,10 @@ class ReplaceConfig:
     """Renderer and output settings."""
     device: str = "cpu"
     """Torch device the fields are loaded on."""
+    allow_size_change: bool = False
+    """Swap in objects whose size differs from the instance's by more than
+    :data:`~regnf.compositor.size_change.SIZE_CHANGE_LIMIT` (refused by default: a library in
+    other units)."""
 
 
 class ReplacementResult(NamedTuple):
@@ -174,7 +179,10 @@ def replace_and_render(
         The stage cannot be read or the layer cannot be written (the message names the file).
     ValueError
         No camera, a camera inside matter, an existing layer in ``out`` (unless overwriting),
-        a sequence of views of different sizes, grids without an object the seed picks.
+        a sequence of views of different sizes, grids without an object the seed picks, a
+        swap that changes an instance's size too much
+        (:class:`~regnf.compositor.size_change.SizeChangeError`, unless
+        ``config.allow_size_change``).
     regnf.compositor.sequence_io.SequenceBackendError
         An MP4 sequence without its package (an ``ImportError``); nothing is written then.
     """
@@ -192,6 +200,8 @@ def replace_and_render(
     device = torch.device(config.device)
     scene = read_stage(src, allow_outside=allow_outside)
     selections = pick_replacements(scene, seed)
+    if not config.allow_size_change:
+        check_swap_sizes(scene, {iid: [name] for iid, name in selections.items()}, src)
     if grids is not None and set(selections.values()) - set(grids.objects):
         raise ValueError(f"the baked grids hold no {sorted(set(selections.values()) - set(grids.objects))}, "
                          f"which seed {seed} shows: bake them for every object a seed may pick")

@@ -50,14 +50,36 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
     from the file name (imageio, trimesh) still do.
     """
     dest = Path(path)
-    dest.parent.mkdir(parents=True, exist_ok=True)
-    tmp_path = temp_beside(dest, suffix)
+    try:
+        dest.parent.mkdir(parents=True, exist_ok=True)
+        tmp_path = temp_beside(dest, suffix)
+    except OSError as exc:
+        named = naming(exc, dest)
+        if named is exc:
+            raise
+        raise named from exc
     try:
         yield tmp_path
         os.replace(tmp_path, dest)
+    except OSError as exc:
+        tmp_path.unlink(missing_ok=True)
+        named = naming(exc, dest)
+        if named is exc:
+            raise
+        raise named from exc
     except BaseException:
         tmp_path.unlink(missing_ok=True)
         raise
+
+
+def naming(exc: OSError, dest: Path) -> OSError:
+    """``exc`` naming ``dest`` when it names no file or our temporary one (a full disk, a refused
+    write, a failed rename), so that the one-line message says which file could not be written;
+    ``exc`` itself when it names only other files (a folder that could not be made)."""
+    names = [Path(str(n)).name for n in (exc.filename, exc.filename2) if n is not None]
+    if exc.errno is None or (names and not any(n.startswith(TEMP_PREFIX) for n in names)):
+        return exc
+    return type(exc)(exc.errno, exc.strerror or os.strerror(exc.errno), str(dest))
 
 
 def write_bytes(path: str | os.PathLike, data: bytes) -> None:

@@ -24,7 +24,6 @@ one. :func:`owned_output_dir` does all of it: claim, lock, clean, yield.
 from __future__ import annotations
 
 import contextlib
-import json
 import os
 import shutil
 import tempfile
@@ -35,6 +34,7 @@ from typing import Any
 
 from regnf.core.atomic_io import TEMP_PREFIX, user_mode, write_json
 from regnf.core.file_lock import LOCK_NAME, folder_lock
+from regnf.core.preflight import JsonInputError, read_json_input
 
 MARKER_NAME = ".regnf-output.json"
 """File name of the marker that says which kind of command made a folder, and what it made there."""
@@ -97,9 +97,9 @@ def read_marker(folder: Path) -> dict[str, Any] | None:
     if not path.exists():
         return None
     try:
-        marker = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise OutputFolderError(path, f"unreadable output marker ({exc})",
+        marker = read_json_input(path, None, "output marker")
+    except JsonInputError as exc:
+        raise OutputFolderError(path, f"unreadable output marker ({exc.problem})",
                                 "remove it if the folder is yours, or choose another folder") from exc
     entries = marker.get("entries") if isinstance(marker, dict) else None
     if (not isinstance(marker, dict) or not isinstance(marker.get("kind"), str)

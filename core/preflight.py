@@ -1,16 +1,23 @@
-"""Checks a command makes before it starts work: where it writes, and whether it fits in memory.
+"""Checks a command makes before it starts work: what it reads, where it writes, and whether it
+fits in memory and on the disk.
 
 A command that would fail after minutes of training or rendering (an output path that is a
-folder, a folder it cannot write, an image that cannot fit in memory) fails here at once
-with one line that names the path or the option and the problem. Every check raises
+folder, a folder it cannot write, an image that cannot fit in memory, a data set larger than
+the free disk) fails here at once with one line that names the path or the option and the
+problem; so does one whose input would never finish reading (a FIFO, ``/dev/zero``, a JSON
+file of gigabytes), which is refused without being opened. Every check raises
 :class:`PreflightError` (a ``ValueError``); the command line turns it into that line and
 exit status 1 (see :mod:`regnf.cli`).
 """
 
 from __future__ import annotations
 
+import json
 import os
+import shutil
+import stat
 from pathlib import Path
+from typing import Any
 
 MEMORY_FRACTION = 0.8
 """A job may plan to use at most this fraction of the memory available when it starts."""
@@ -20,10 +27,29 @@ depth, normal, mask, instance id and the tracer's per-ray state (float32 / int64
 MESH_BYTES_PER_NODE = 24
 """Memory per node of the marching-cubes grid: the float32 SDF volume plus what
 ``skimage.measure.marching_cubes`` allocates beside it (measured at about 5x the volume)."""
+MAX_JSON_BYTES = 16 * 2**20
+"""Largest JSON input file (a box, a registration result, a record in an output folder), in bytes."""
 
 
 class PreflightError(ValueError):
     """A command cannot start: the message names the path or option and the problem."""
+
+
+class JsonInputError(PreflightError):
+    """A JSON input that cannot be read (:func:`read_json_input`): ``"<where>: <problem>"``.
+
+    Parameters
+    ----------
+    where : str
+        The option and the file (``--box box.json``), or the file alone.
+    problem : str
+        What is wrong, in words, for a caller that words the message its own way.
+    """
+
+    def __init__(self, where: str, problem: str) -> None:
+        self.where = where
+        self.problem = problem
+        super().__init__(f"{where}: {problem}")
 
 
 def available_memory_bytes() -> int:
@@ -113,16 +139,115 @@ def check_output_dir(path: str | os.PathLike, option: str = "--out") -> Path:
     return path
 
 
-def check_input_file(path: str | os.PathLike, option: str, what: str = "file") -> Path:
-    """``path`` is an existing, readable file."""
-    path = Path(path)
-    if not path.exists():
-        raise PreflightError(f"{option} {path}: no such {what}")
-    if not path.is_file():
-        raise PreflightError(f"{option} {path}: is not a file")
+_KINDS = ((stat.S_ISDIR, "a folder"), (stat.S_ISFIFO, "a FIFO"), (stat.S_ISCHR, "a character device"),
+          (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket"))
+
+
+def input_file_problem(path: str | os.PathLike, missing: str = "no such file") -> str | None:
+    """Why ``path`` cannot be read as a regular file, or None when it can.
+
+    Found with ``os.stat`` alone: a folder, a FIFO or a device is refused without being opened
+    (opening a FIFO waits for a writer; ``/dev/zero`` never ends).
+
+    Parameters
+    ----------
+    path : str or PathLike
+    missing : str
+        The problem to give when nothing is there.
+
+    Returns
+    -------
+    str or None
+        ``missing``, ``"is not a file (a folder)"`` (or a FIFO, a device...), ``"is not readable"``.
+    """
+    try:
+        st = os.stat(path)
+    except (FileNotFoundError, NotADirectoryError):
+        return missing
+    except OSError as exc:
+        return f"cannot be read ({exc.strerror or exc})"
+    if not stat.S_ISREG(st.st_mode):
+        kind = next((name for test, name in _KINDS if test(st.st_mode)), "not a regular file")
+        return f"is not a file ({kind})"
     if not os.access(path, os.R_OK):
-        raise PreflightError(f"{option} {path}: is not readable")
+        return "is not readable"
+    return None
+
+
+def check_input_file(path: str | os.PathLike, option: str, what: str = "file") -> Path:
+    """``path`` is an existing, readable regular file (:func:`input_file_problem`)."""
+    path = Path(path)
+    problem = input_file_problem(path, f"no such {what}")
+    if problem is not None:
+        raise PreflightError(f"{option} {path}: {problem}")
     return path
+
+
+def read_json_input(path: str | os.PathLike, option: str | None, what: str = "JSON file",
+                    max_bytes: int = MAX_JSON_BYTES) -> Any:
+    """The JSON value of a file the user named, read only if it is a regular file of at most ``max_bytes``.
+
+    Parameters
+    ----------
+    path : str or PathLike
+    option : str or None
+        The option that named it (``--box``), for the message; None for a file found in a folder.
+    what : str
+        What the file holds, for the message (``"box"``, ``"registration result"``).
+    max_bytes : int
+        Largest size read, in bytes.
+
+    Raises
+    ------
+    JsonInputError
+        (a :class:`PreflightError`) One line naming the option and the file: missing, not a
+        regular file (a folder, FIFO or device: refused without being opened), unreadable,
+        larger than ``max_bytes``, or not UTF-8 JSON.
+    """
+    path = Path(path)
+    where = f"{option} {path}" if option else str(path)
+    problem = input_file_problem(path, f"no such {what}")
+    if problem is not None:
+        raise JsonInputError(where, problem)
+    try:
+        # Non-blocking: a FIFO put in its place since the check opens at once, and is refused below.
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+        with os.fdopen(fd, "rb") as f:
+            st = os.fstat(f.fileno())
+            if not stat.S_ISREG(st.st_mode):
+                raise JsonInputError(where, "is not a file")
+            if st.st_size > max_bytes:
+                raise JsonInputError(where, f"{st.st_size:,} bytes, more than the {max_bytes:,} a {what} "
+                                     "may have (is it the right file?)")
+            data = f.read(max_bytes + 1)
+    except OSError as exc:
+        raise JsonInputError(where, f"cannot read the {what} ({exc.strerror or exc})") from exc
+    if len(data) > max_bytes:
+        raise JsonInputError(where, f"more than the {max_bytes:,} bytes a {what} may have (is it the right file?)")
+    try:
+        return json.loads(data.decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise JsonInputError(where, f"cannot read the {what} (not UTF-8 JSON: {exc})") from exc
+
+
+def free_bytes(path: str | os.PathLike) -> int:
+    """Bytes free to this user on the file system that holds ``path`` (or would: its nearest existing folder)."""
+    return shutil.disk_usage(_nearest_existing(Path(path).absolute())).free
+
+
+def check_free_space(folder: str | os.PathLike, needed_bytes: float, what: str) -> None:
+    """Refuse a job that would write more than the file system holding ``folder`` has free.
+
+    Raises
+    ------
+    PreflightError
+        ``"<what> needs about X GB in FOLDER, Y GB free"``.
+    """
+    free = free_bytes(folder)
+    if needed_bytes > free:
+        scale, unit = (1e9, "GB") if needed_bytes >= 1e9 else (1e6, "MB")  # one unit for both figures
+        raise PreflightError(f"{what} needs about {needed_bytes / scale:.2f} {unit} in {folder}, "
+                             f"{free / scale:.2f} {unit} free; free some space or write elsewhere")
 
 
 def check_device(device: str, option: str = "--device") -> str:

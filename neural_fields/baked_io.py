@@ -27,6 +27,8 @@ HEADER_KEY = "regnf-baked"
 """Key of the JSON header in the safetensors metadata."""
 FORMAT_VERSION = 1
 """Written by :func:`save_baked`."""
+BYTES_PER_NODE = 4 + 3 * torch.finfo(RGB_STORAGE).bits // 8
+"""Bytes a grid node takes in a baked-grid file: its float32 distance and its three stored colour channels."""
 MAX_NODES = 2**30
 """Most grid nodes a file may declare (16 GB of float32 distance and colour); far above what
 :class:`~regnf.neural_fields.baked_field.BakeConfig` makes (at most 2^25 a field by default)."""

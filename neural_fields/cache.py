@@ -3,8 +3,9 @@
 Layout (default root ``~/.cache/regnf``, or ``$REGNF_CACHE``)::
 
     captures/object-<name>-<key>/meta_data.json ...
-    captures/room-<name>-<coverage>-<key>/meta_data.json ...
+    captures/room-<name>-<coverage>[-<noise>]-<key>/meta_data.json ...   (<noise>: not at ideal)
     fields/<name>-<source>-<key>.safetensors
+    fields/.<name>-mesh-<key>.safetensors.lock        held while a mesh is distilled into that entry
     baked/<room>-<coverage>-<source>/index.json ...   grids ``regnf demo`` bakes from its stage (regnf.data_set_grids)
 
 ``key`` hashes everything the result depends on (generator version, configs, and for a
@@ -26,17 +27,21 @@ the counts tensor and the digest change; the provenance stays, so the entry is r
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import hashlib
 import json
 import logging
 import os
 import re
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Literal, TypeVar
 
 import trimesh
 
+from regnf.core.file_lock import LockUnavailable, file_lock
+from regnf.core.preflight import check_output_dir
 from regnf.neural_fields.checkpoint import (
     VISIBILITY_KEY,
     CheckpointError,
@@ -45,7 +50,13 @@ from regnf.neural_fields.checkpoint import (
     save_field,
     verify_checkpoint,
 )
-from regnf.neural_fields.distill import DISTILL_VERSION, DistillConfig, distill_mesh
+from regnf.neural_fields.distill import (
+    DISTILL_VERSION,
+    DistillConfig,
+    distill_mesh,
+    distillation_targets,
+    mesh_source,
+)
 from regnf.neural_fields.field import FieldInfo, Symmetry
 from regnf.neural_fields.presets import object_mesh_preset, object_rgbd_preset, scene_rgbd_preset
 from regnf.neural_fields.training import (
@@ -123,10 +134,14 @@ def _without_progress(config: object) -> object:
     return dataclasses.replace(config, progress=True)
 
 
-def capture_info(capture: Capture) -> FieldInfo:
-    """Label, name and symmetry of the captured thing, from the capture's ``regnf`` block."""
+def capture_info(capture: Capture, room: bool = True) -> FieldInfo:
+    """Label, name and symmetry of the captured thing, from the capture's ``regnf`` block.
+
+    ``room`` says what a capture without that block (a user's own) holds: a room (label
+    ``scene``) or a library object (label ``object``), as the training preset assumes.
+    """
     meta = capture.meta or {}
-    kind = meta.get("kind", "scene")
+    kind = meta.get("kind", "scene" if room else "object")
     return FieldInfo(
         label="scene" if kind == "scene" else str(meta.get("label", "object")),
         # The folder's real name: a symlink or "." must not change the field's name (or its
@@ -151,6 +166,39 @@ def entry_stem(name: str, fallback: str) -> str:
     """
     stem = re.sub(r"[^A-Za-z0-9._-]", "_", name).lstrip(".")
     return stem[:64] or fallback
+
+
+def check_entry_writable(entry: Path) -> None:
+    """Refuse, before an entry is made (a capture taken, a field trained), a cache that cannot take it.
+
+    Raises
+    ------
+    regnf.core.preflight.PreflightError
+        The entry's folder (or the nearest existing folder above it) is not writable, or is a file.
+    """
+    check_output_dir(entry.parent, "--cache-dir")
+
+
+def mesh_digest(mesh: trimesh.Trimesh) -> str:
+    """SHA-256 of what a field distilled from ``mesh`` depends on: its vertices, its faces and
+    the face colours distillation reads (:func:`regnf.neural_fields.distill.face_colors`), which
+    a mesh with vertex colours has too. Texture colours are not read, so not hashed."""
+    colors = mesh.visual.face_colors.tobytes() if mesh.visual.kind in ("face", "vertex") else b""
+    return hashlib.sha256(mesh.vertices.tobytes() + mesh.faces.tobytes() + colors).hexdigest()
+
+
+@contextlib.contextmanager
+def entry_lock(path: Path) -> Iterator[None]:
+    """Hold the lock of cache entry ``path`` (``.<name>.lock`` beside it), waiting for another
+    process that holds it. Where the file system cannot lock, go on without it: two processes
+    then both make the entry, and the atomic writes keep it whole."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with contextlib.ExitStack() as stack:
+        try:
+            stack.enter_context(file_lock(path.parent / f".{path.name}.lock", "the cache entry", timeout=float("inf")))
+        except LockUnavailable as exc:
+            log.info("making %s without a lock: %s", path, exc)
+        yield
 
 
 def reusable(path: Path, provenance: dict) -> bool:
@@ -218,15 +266,19 @@ class Cache:
         folder = self.root / "captures" / f"object-{name}-{config_key('object', name, _without_progress(cfg), GENERATOR)}"
         if (folder / "meta_data.json").is_file():
             return load_capture(folder)
+        check_entry_writable(folder)
         return capture_object(name, folder, dataclasses.replace(cfg, progress=self.progress))
 
     def room_capture(self, name: str, config: RoomCaptureConfig | None = None) -> Capture:
         """The capture of room ``name`` (made if missing)."""
         cfg = self._capture_config(config or RoomCaptureConfig())
         key = config_key("room", name, _without_progress(cfg), GENERATOR)
-        folder = self.root / "captures" / f"room-{name}-{cfg.coverage}-{key}"
+        # The key holds the noise level and seed; the level also shows in the folder's name.
+        noise = "" if cfg.noise == "ideal" else f"-{cfg.noise}"
+        folder = self.root / "captures" / f"room-{name}-{cfg.coverage}{noise}-{key}"
         if (folder / "meta_data.json").is_file():
             return load_capture(folder)
+        check_entry_writable(folder)
         return capture_room(name, folder, dataclasses.replace(cfg, progress=self.progress))
 
     def rgbd_entry(self, capture: Capture, config: RGBDTrainConfig) -> tuple[Path, str]:
@@ -250,6 +302,7 @@ class Cache:
         if reusable(path, {"data_sha256": fingerprint}):
             if config.visibility_resolution > 0 and read_header(path).get(VISIBILITY_KEY) is None:
                 log.info("adding the visibility grid to cached field %s", path)
+                check_entry_writable(path)
                 # The key hashed this capture's bytes, so it is the data the field was trained
                 # on: the grid is the one training would have attached.
                 attach_visibility(
@@ -257,7 +310,8 @@ class Cache:
                     margin=config.visibility_margin, device=config.device,
                 )
             return path
-        info = capture_info(capture)
+        check_entry_writable(path)
+        info = capture_info(capture, room=config.architecture.inside_out)
         info.provenance = {"source": "rgbd", "capture": str(capture.root), "data_sha256": fingerprint}
         field, _ = train_rgbd(capture, config, info=info, progress=self.progress)
         return save_field(field, path)
@@ -278,17 +332,31 @@ class Cache:
         info = FieldInfo(label=obj.label, name=name, symmetry=Symmetry(obj.symmetry_order))
         return self.distilled_field(shaded_copy(obj.mesh), info, config)
 
-    def distilled_field(self, mesh: trimesh.Trimesh, info: FieldInfo, config: DistillConfig) -> Path:
-        """Checkpoint of a field distilled from ``mesh`` (distilled if missing)."""
-        colors = mesh.visual.face_colors.tobytes() if mesh.visual.kind == "face" else b""
-        mesh_sha = hashlib.sha256(mesh.vertices.tobytes() + mesh.faces.tobytes() + colors).hexdigest()
+    def distilled_entry(self, mesh: trimesh.Trimesh, info: FieldInfo, config: DistillConfig) -> tuple[Path, str]:
+        """The cache file of the field distilled from ``mesh`` with ``config``, and the mesh's
+        digest (:func:`mesh_digest`)."""
+        mesh_sha = mesh_digest(mesh)
         key = config_key(config, mesh_sha, info.label, info.name, info.symmetry.order, DISTILL_VERSION)
-        path = self.root / "fields" / f"{entry_stem(info.name, 'mesh')}-mesh-{key}.safetensors"
+        return self.root / "fields" / f"{entry_stem(info.name, 'mesh')}-mesh-{key}.safetensors", mesh_sha
+
+    def distilled_field(self, mesh: trimesh.Trimesh, info: FieldInfo, config: DistillConfig) -> Path:
+        """Checkpoint of a field distilled from ``mesh`` (distilled if missing).
+
+        The mesh is checked and its targets prepared before anything is written; then the
+        entry's lock (:func:`entry_lock`) is taken, so that of two processes distilling the
+        same mesh with the same settings the second waits and reuses the first's field.
+        """
+        path, mesh_sha = self.distilled_entry(mesh, info, config)
         if reusable(path, {"mesh_sha256": mesh_sha}):
             return path
-        info.provenance = {**info.provenance, "source": "mesh", "mesh_sha256": mesh_sha}
-        field, _ = distill_mesh(mesh, config, info=info, progress=self.progress)
-        return save_field(field, path)
+        check_entry_writable(path)
+        targets = distillation_targets(mesh, config, mesh_source(info))
+        with entry_lock(path):
+            if reusable(path, {"mesh_sha256": mesh_sha}):
+                return path  # made by another process while this one waited
+            info.provenance = {**info.provenance, "source": "mesh", "mesh_sha256": mesh_sha}
+            field, _ = distill_mesh(mesh, config, info=info, progress=self.progress, targets=targets)
+            return save_field(field, path)
 
     def scene_field(self, name: str, coverage: str = "full", device: str = "cpu") -> Path:
         """Checkpoint of room ``name`` trained from its ``coverage`` capture."""

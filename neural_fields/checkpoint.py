@@ -57,6 +57,7 @@ from safetensors import SafetensorError, safe_open
 from safetensors.torch import save as save_to_bytes
 
 from regnf.core.atomic_io import write_bytes
+from regnf.core.preflight import input_file_problem
 from regnf.neural_fields.field import FieldInfo, Symmetry
 from regnf.neural_fields.neural_sdf import ARCHITECTURE, NeuralSDF, NeuralSDFConfig, parameter_count
 from regnf.neural_fields.rgbd_samples import CaptureLike, capture_where
@@ -444,10 +445,9 @@ def _read(
     path: Path, limits: ArchitectureLimits | None, allow_legacy: bool
 ) -> tuple[dict, _Parsed]:
     """Read the header of ``path`` and validate everything it says; see :func:`read_header`."""
-    if not path.exists():
-        raise CheckpointError(path, "file does not exist")
-    if not path.is_file():
-        raise CheckpointError(path, "is not a file")
+    problem = input_file_problem(path, missing="file does not exist")
+    if problem is not None:
+        raise CheckpointError(path, problem)
     try:
         with safe_open(str(path), framework="pt") as f:
             meta = f.metadata() or {}

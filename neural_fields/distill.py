@@ -96,6 +96,9 @@ class DistillConfig:
     otherwise: the field's ``to_world`` maps to the mesh's own metres, turned."""
     sign: MeshSignConfig = field(default_factory=MeshSignConfig)
     """How signs are decided (winding numbers) and internal faces found."""
+    scale: float = 1.0
+    """Metres per unit of the mesh as given (0.001 for a file in millimetres); applied to the
+    vertices before anything else."""
 
 
 def normalising_transform(mesh: trimesh.Trimesh, margin: float) -> np.ndarray:
@@ -159,7 +162,8 @@ def distillation_targets(
     Parameters
     ----------
     mesh : trimesh.Trimesh
-        In metres, up axis ``config.up``; any triangles (open, flipped, several parts...).
+        In units of ``config.scale`` metres, up axis ``config.up``; any triangles (open,
+        flipped, several parts...).
     config : DistillConfig, optional
     source : str
         The mesh's file, for error messages.
@@ -169,14 +173,16 @@ def distillation_targets(
     MeshError
         The mesh cannot be signed (see the module).
     ValueError
-        ``config.up`` is not an axis.
+        ``config.up`` is not an axis, or ``config.scale`` is not a positive number.
     """
     cfg = config or DistillConfig()
     if cfg.up not in UP_AXES:
         raise ValueError(f"up axis must be one of {', '.join(UP_AXES)}, got {cfg.up!r}")
+    if not (np.isfinite(cfg.scale) and cfg.scale > 0):
+        raise ValueError(f"scale must be a positive number of metres per unit, got {cfg.scale}")
     t0 = time.perf_counter()
     colors = face_colors(mesh)
-    vertices = np.asarray(mesh.vertices, dtype=np.float64)
+    vertices = np.asarray(mesh.vertices, dtype=np.float64) * cfg.scale
     if cfg.up != "z":
         vertices = vertices @ up_rotation(cfg.up).T
     repaired = repair_mesh(vertices, np.asarray(mesh.faces), source=source)
@@ -184,7 +190,7 @@ def distillation_targets(
     to_world = normalising_transform(trimesh.Trimesh(repaired.vertices, repaired.faces, process=False), cfg.margin)
     s = to_world[0, 0]
     verts = (repaired.vertices - to_world[:3, 3]) / s
-    signed = SignedMesh(verts, repaired.faces, repaired.piece, cfg.sign)
+    signed = SignedMesh(verts, repaired.faces, repaired.piece, cfg.sign, source)
     surf = signed.surface
     unit = trimesh.Trimesh(surf.vertices, surf.faces, process=False)
     pts, fid = trimesh.sample.sample_surface(unit, cfg.pool_surface, seed=cfg.seed)
@@ -213,13 +219,14 @@ def distill_mesh(
     info: FieldInfo | None = None,
     progress: bool = True,
     source: str | None = None,
+    targets: DistillTargets | None = None,
 ) -> tuple[NeuralSDF, dict]:
     """Fit a :class:`NeuralSDF` to a mesh given in metres (any triangles; see the module).
 
     Parameters
     ----------
     mesh : trimesh.Trimesh
-        Metres, up axis ``config.up``.
+        Units of ``config.scale`` metres, up axis ``config.up``.
     config : DistillConfig, optional
     info : FieldInfo, optional
         Label, name, symmetry, provenance of the field (``provenance["mesh"]``, if set, names
@@ -228,6 +235,9 @@ def distill_mesh(
         Show a progress bar.
     source : str, optional
         Name of the mesh in error messages (default: from ``info``).
+    targets : DistillTargets, optional
+        ``distillation_targets(mesh, config)`` if already prepared (a caller that checks the
+        mesh before it takes a lock); prepared here otherwise.
 
     Returns
     -------
@@ -243,7 +253,9 @@ def distill_mesh(
     """
     cfg = config or DistillConfig()
     t0 = time.perf_counter()
-    targets = distillation_targets(mesh, cfg, source or mesh_source(info))
+    prepared_before = 0.0 if targets is None else targets.seconds
+    if targets is None:
+        targets = distillation_targets(mesh, cfg, source or mesh_source(info))
     torch.manual_seed(cfg.seed)
     to_world = targets.to_world
     lo, hi = targets.bounds
@@ -293,7 +305,7 @@ def distill_mesh(
 
     losses = optimise(model, cfg.steps, loss_at, cfg.lr_grid, cfg.lr_mlp, lr_final=cfg.lr_final,
                       desc=f"distil {info.name or 'mesh'}", progress=progress)
-    seconds = time.perf_counter() - t0
+    seconds = time.perf_counter() - t0 + prepared_before
     model.info.provenance = {
         **model.info.provenance,
         "trained_from": "mesh",

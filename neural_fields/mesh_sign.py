@@ -10,7 +10,11 @@ Distance and sign come from two surfaces:
   from several shells do, a face of one part inside another is not on the solid's surface,
   and distances to it would put a false zero inside the solid. A face is internal when the
   point just in front of it is inside (winding number above 0.5); faces that cross into
-  another part are bisected first, so that only their inner pieces go.
+  another part are bisected first, so that only their inner pieces go. Splitting near other
+  parts' boxes costs the area of the faces there; where that is too costly (large faces of
+  many overlapping parts, triangle soups), faces are split only along the curves where they
+  touch another part's faces (:mod:`regnf.neural_fields.face_contacts`), and a mesh whose
+  faces cut through each other too often even for that is refused.
 
 :class:`SignedMesh` holds both, in the frame its vertices are given in (distillation uses the
 field frame, about [-1, 1]^3).
@@ -23,6 +27,12 @@ from dataclasses import dataclass, field
 import numpy as np
 import open3d as o3d
 
+from regnf.neural_fields.face_contacts import (
+    FaceSplit,
+    bisect_longest_edge,
+    longest_edges,
+    split_at_contacts,
+)
 from regnf.neural_fields.mesh_repair import MeshError, overlapping_pieces, piece_boxes, piece_groups
 from regnf.neural_fields.winding import RayWinding, WindingConfig, winding_numbers
 
@@ -40,10 +50,20 @@ class MeshSignConfig:
     front_offset: float = 1e-4
     """Distance in front of a face (fraction of the diagonal) at which it is tested for being
     internal: far above float32 rounding (6e-8), far below any part's thickness."""
+    box_pairs: int = 1_000_000
+    """Most (piece of a face, overlapping part) box tests of the splitting near other parts'
+    boxes; past it, faces are split only where they touch another part's faces."""
+    contact_pairs: int = 4_000_000
+    """Most candidate face pairs of the splitting at contacts; past it the mesh is refused."""
+    contact_pieces: int = 1_000_000
+    """Most pieces of faces the splitting at contacts makes; past it the mesh is refused."""
 
     def validate(self) -> None:
         """Raise ``ValueError`` for a setting out of range."""
         self.winding.validate()
+        if min(self.box_pairs, self.contact_pairs, self.contact_pieces) < 0:
+            raise ValueError(f"sign: the limits must be >= 0, got {self.box_pairs}, {self.contact_pairs}, "
+                             f"{self.contact_pieces}")
         if not (0 < self.split_edge <= 1 and 0 < self.front_offset < self.split_edge):
             raise ValueError(
                 f"sign: need 0 < front_offset < split_edge <= 1, got {self.front_offset}, {self.split_edge}"
@@ -85,20 +105,6 @@ def reaches_other_piece(
     return out
 
 
-def bisect_longest_edge(tri: np.ndarray) -> np.ndarray:
-    """(2t, 3, 3): each triangle of ``tri`` (t, 3, 3) split at the midpoint of its longest
-    edge into two with the same winding (children of triangle i at 2i and 2i + 1)."""
-    edge_len = np.stack(
-        [np.linalg.norm(tri[:, (j + 1) % 3] - tri[:, j], axis=1) for j in range(3)], axis=1
-    )
-    e = edge_len.argmax(axis=1)
-    order = (e[:, None] + np.arange(3)[None, :]) % 3
-    a, b, c = (np.take_along_axis(tri, order[:, j, None, None], axis=1)[:, 0] for j in range(3))
-    m = 0.5 * (a + b)
-    # (a, b, c) with a -> b the longest edge becomes (a, m, c) and (m, b, c).
-    return np.stack([np.stack([a, m, c], axis=1), np.stack([m, b, c], axis=1)], axis=1).reshape(-1, 3, 3)
-
-
 @dataclass
 class Surface:
     """The faces that bound the solid: a triangle soup for distances and surface samples."""
@@ -115,19 +121,83 @@ class Surface:
     """Faces of the repaired mesh that were bisected (they reached into another part)."""
 
 
+def split_near_boxes(
+    tri: np.ndarray,
+    piece: np.ndarray,
+    cand: np.ndarray,
+    boxes: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+    pad: float,
+    split: float,
+    max_pairs: int,
+) -> FaceSplit | None:
+    """Bisect the faces ``cand`` while their pieces' boxes meet another overlapping piece's box.
+
+    Pieces longer than ``split`` are bisected and their children tested again, until every
+    candidate piece is short; a child away from every other piece's box is kept untested.
+
+    Parameters
+    ----------
+    tri : (f, 3, 3) float
+    piece : (f,) int
+    cand : (c,) int
+        Faces whose box meets another overlapping piece's box.
+    boxes : (lo, hi, offsets, partners)
+        Boxes of the pieces and the CSR lists of overlapping pieces
+        (:func:`regnf.neural_fields.mesh_repair.overlapping_pieces`).
+    pad, split : float
+    max_pairs : int
+        Most (piece of a face, overlapping piece) box tests to make.
+
+    Returns
+    -------
+    FaceSplit or None
+        None as soon as the next round of box tests would pass ``max_pairs``.
+    """
+    lo, hi, offsets, partners = boxes
+    n_partners = offsets[1:] - offsets[:-1]
+    pieces, parent = tri[cand], cand
+    test_tri, test_parent, free_tri, free_parent, split_parents = [], [], [], [], []
+    pairs = 0
+    while len(pieces):
+        short = longest_edges(pieces) <= split
+        test_tri.append(pieces[short])
+        test_parent.append(parent[short])
+        split_parents.append(parent[~short])
+        child_parent = np.repeat(parent[~short], 2)
+        pairs += int(n_partners[piece[child_parent]].sum())
+        if pairs > max_pairs:
+            return None
+        children = bisect_longest_edge(pieces[~short])
+        near = reaches_other_piece(children, piece[child_parent], lo, hi, offsets, partners, pad)
+        # A piece away from every other part's box cannot be inside it: kept untested.
+        free_tri.append(children[~near])
+        free_parent.append(child_parent[~near])
+        pieces, parent = children[near], child_parent[near]
+    return FaceSplit(
+        tested=np.concatenate(test_tri),
+        tested_parent=np.concatenate(test_parent),
+        kept=np.concatenate(free_tri),
+        kept_parent=np.concatenate(free_parent),
+        split_faces=len(np.unique(np.concatenate(split_parents))),
+    )
+
+
 def solid_surface(
     vertices: np.ndarray,
     faces: np.ndarray,
     piece: np.ndarray,
     winding: RayWinding,
     config: MeshSignConfig,
+    source: str = "mesh",
 ) -> Surface:
     """The mesh without the faces (and pieces of faces) that lie inside another part.
 
-    Only faces whose box meets the box of another, overlapping piece are candidates; those
-    longer than ``split_edge`` are bisected, their pieces tested again, until every candidate
-    piece is short; a candidate is dropped when the point ``front_offset`` in front of its
-    centroid has a winding number above 0.5. One piece, no candidates: the mesh as it is.
+    Only faces whose box meets the box of another, overlapping piece are candidates; they are
+    split into short pieces near the other parts (:func:`split_near_boxes`, or where that
+    would pass :attr:`MeshSignConfig.box_pairs`, only along the curves where they touch
+    another part's faces: :func:`regnf.neural_fields.face_contacts.split_at_contacts`); a
+    tested piece is dropped when the point ``front_offset`` in front of its centroid has a
+    winding number above 0.5. One piece, no candidates: the mesh as it is.
 
     Parameters
     ----------
@@ -139,6 +209,14 @@ def solid_surface(
     winding : RayWinding
         Of the same mesh.
     config : MeshSignConfig
+    source : str
+        The mesh's file, for error messages.
+
+    Raises
+    ------
+    MeshError
+        Its parts cut through each other along too many faces for either way of splitting
+        (:attr:`MeshSignConfig.contact_pairs`, :attr:`MeshSignConfig.contact_pieces`).
     """
     V = np.asarray(vertices, dtype=np.float64)
     Fc = np.asarray(faces, dtype=np.int64)
@@ -154,31 +232,21 @@ def solid_surface(
     cand = np.flatnonzero(reaches_other_piece(tri, piece, lo, hi, offsets, partners, pad))
     if len(cand) == 0:
         return keep_all
-    # Bisect candidates that are too long, re-testing the pieces, until all are short.
-    pieces, parent = tri[cand], cand
-    test_tri, test_parent, free_tri, free_parent, split_parents = [], [], [], [], []
     split = config.split_edge * diag
-    while len(pieces):
-        longest = np.stack(
-            [np.linalg.norm(pieces[:, (j + 1) % 3] - pieces[:, j], axis=1) for j in range(3)], axis=1
-        ).max(axis=1)
-        short = longest <= split
-        test_tri.append(pieces[short])
-        test_parent.append(parent[short])
-        split_parents.append(parent[~short])
-        children = bisect_longest_edge(pieces[~short])
-        child_parent = np.repeat(parent[~short], 2)
-        near = reaches_other_piece(children, piece[child_parent], lo, hi, offsets, partners, pad)
-        # A piece away from every other part's box cannot be inside it: kept untested.
-        free_tri.append(children[~near])
-        free_parent.append(child_parent[~near])
-        pieces, parent = children[near], child_parent[near]
-    tested = np.concatenate(test_tri)
+    parts = split_near_boxes(tri, piece, cand, (lo, hi, offsets, partners), pad, split, config.box_pairs)
+    if parts is None:
+        parts = split_at_contacts(tri, piece, cand, pad, split, config.contact_pairs, config.contact_pieces)
+    if parts is None:
+        raise MeshError(source, f"{len(cand)} of its {len(Fc)} faces reach into other parts, and they cut "
+                                "through each other too often to find the solid's surface (more than "
+                                f"{config.contact_pairs} face pairs or {config.contact_pieces} pieces of faces); "
+                                "is it a triangle soup rather than a solid?")
+    tested = parts.tested
     normal = np.cross(tested[:, 1] - tested[:, 0], tested[:, 2] - tested[:, 0])
     normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-300)
     internal = winding_numbers(winding, tested.mean(axis=1) + pad * normal, config.winding) > 0.5
-    kept_tri = np.concatenate([tested[~internal], *free_tri])
-    kept_parent = np.concatenate([np.concatenate(test_parent)[~internal], *free_parent])
+    kept_tri = np.concatenate([tested[~internal], parts.kept])
+    kept_parent = np.concatenate([parts.tested_parent[~internal], parts.kept_parent])
     whole = np.ones(len(Fc), dtype=bool)
     whole[cand] = False
     soup = len(V) + np.arange(3 * len(kept_tri), dtype=np.int64).reshape(-1, 3)
@@ -187,7 +255,7 @@ def solid_surface(
         faces=np.concatenate([Fc[whole], soup]),
         parent=np.concatenate([np.flatnonzero(whole), kept_parent]),
         internal_faces=int(internal.sum()),
-        split_faces=len(np.unique(np.concatenate(split_parents))),
+        split_faces=parts.split_faces,
     )
 
 
@@ -203,6 +271,13 @@ class SignedMesh:
     piece : (f,) int
         Connected piece of each face.
     config : MeshSignConfig, optional
+    source : str
+        The mesh's file, for error messages.
+
+    Raises
+    ------
+    MeshError
+        See :func:`solid_surface`.
     """
 
     def __init__(
@@ -211,6 +286,7 @@ class SignedMesh:
         faces: np.ndarray,
         piece: np.ndarray,
         config: MeshSignConfig | None = None,
+        source: str = "mesh",
     ) -> None:
         self.config = config or MeshSignConfig()
         self.config.validate()
@@ -220,7 +296,8 @@ class SignedMesh:
         lo, hi = piece_boxes(V, Fc, piece)
         pad = self.config.front_offset * float(np.linalg.norm(V.max(axis=0) - V.min(axis=0)))
         self.winding = RayWinding(V, Fc, piece_groups(*overlapping_pieces(lo, hi, pad))[piece])
-        self.surface = solid_surface(V, Fc, piece, self.winding, self.config)
+        check_bounds_a_solid(self.winding, V, self.config.winding.rays, source)
+        self.surface = solid_surface(V, Fc, piece, self.winding, self.config, source)
         self._distance = o3d.t.geometry.RaycastingScene()
         self._distance.add_triangles(
             o3d.core.Tensor(self.surface.vertices.astype(np.float32)),
@@ -247,6 +324,48 @@ class SignedMesh:
         d = self.unsigned_distance(points)
         w = self.winding_numbers(points)
         return np.where(w > 0.5, -d, d).astype(np.float32), w
+
+
+SOLID_PROBES = 4096
+"""Points in a mesh's box at which :func:`check_bounds_a_solid` casts its rays."""
+MIN_DECIDED_INSIDE = 0.1
+"""Of the probe points some ray finds inside, at least this share must be inside for every ray
+(the defective meshes with holes: 0.6-0.95; a box missing two of its six sides: 0.28; a soup of
+150 random triangles: 0.02)."""
+
+
+def check_bounds_a_solid(winding: RayWinding, vertices: np.ndarray, rays: int, source: str, seed: int = 0) -> None:
+    """Refuse a mesh whose faces bound no solid before its costly steps (a soup of open faces).
+
+    Rays from points spread through the mesh's box: where some ray says inside and another
+    outside, the point is near a hole. A solid, even one with holes, is inside for every ray
+    through much of its inside; in a soup of open triangles almost no point is, and there
+    every winding number would need the costly refinement of :func:`winding_numbers`.
+
+    Parameters
+    ----------
+    winding : RayWinding
+    vertices : (v, 3) float
+        The mesh's vertices (for its box).
+    rays : int
+        Rays per point.
+    source : str
+        The mesh's file, for the message.
+    seed : int
+
+    Raises
+    ------
+    MeshError
+    """
+    lo, hi = vertices.min(axis=0), vertices.max(axis=0)
+    rng = np.random.default_rng(seed)
+    points = lo + rng.random((SOLID_PROBES, 3)) * (hi - lo)
+    votes = (winding.sample(points, rays, rng) >= 1).sum(axis=1)
+    some, every = int((votes > 0).sum()), int((votes == rays).sum())
+    if rays > 1 and some > 0 and every < MIN_DECIDED_INSIDE * some:
+        raise MeshError(source, f"its faces bound no solid: rays from {100 * (some - every) / SOLID_PROBES:.0f} % of "
+                                "the points in its box disagree on whether they are inside, and almost none are "
+                                "inside for every ray (a soup of open triangles?)")
 
 
 def check_signable(winding: np.ndarray, source: str) -> None:

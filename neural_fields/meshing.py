@@ -20,6 +20,7 @@ from regnf.core.atomic_io import atomic_path
 from regnf.core.threads import map_one_thread_each, usable_cores
 
 from .field import DEFAULT_CHUNK, Field
+from .mesh_writing import write_glb, write_ply
 
 MESH_FORMATS = {".ply": "ply", ".glb": "glb"}
 """File suffix -> trimesh export type understood by :func:`save_mesh`."""
@@ -183,7 +184,10 @@ def extract_mesh(
 
 
 def save_mesh(mesh: trimesh.Trimesh, path: str | os.PathLike) -> Path:
-    """Write ``mesh`` atomically as .ply or .glb (chosen by the suffix).
+    """Write ``mesh`` atomically as .ply or .glb (chosen by the suffix), its vertices where they are.
+
+    A PLY stores float64 vertices; a .glb (float32 by the format) stores them relative to an
+    origin when they lie far from zero (:mod:`regnf.neural_fields.mesh_writing`).
 
     Returns
     -------
@@ -200,5 +204,5 @@ def save_mesh(mesh: trimesh.Trimesh, path: str | os.PathLike) -> Path:
     if kind is None:
         raise ValueError(f"mesh path must end in .ply or .glb, got {dest.name!r}")
     with atomic_path(dest) as tmp:
-        mesh.export(tmp, file_type=kind)
+        (write_ply if kind == "ply" else write_glb)(mesh, tmp)
     return dest

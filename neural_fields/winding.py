@@ -148,7 +148,8 @@ class RayWinding:
     group : (f,) int, optional
         Geometry of each face (default: all in one).
     ray_chunk : int
-        Rays traced per call (bounds the memory of the hit lists).
+        Rays traced per call: bounds the memory of the hit lists, which hold every crossing
+        (about 40 bytes each, a dozen a ray through a dozen overlapping parts).
     """
 
     def __init__(
@@ -156,7 +157,7 @@ class RayWinding:
         vertices: np.ndarray,
         faces: np.ndarray,
         group: np.ndarray | None = None,
-        ray_chunk: int = 1 << 20,
+        ray_chunk: int = 1 << 18,
     ) -> None:
         v = np.asarray(vertices, dtype=np.float64)
         f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)

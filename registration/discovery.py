@@ -27,6 +27,11 @@ their own; otherwise they are, and the union replaces them only when neither is 
 
 The same library object may be chosen for several candidates.
 
+A candidate whose examination fails on its input (too few samples in its box, a degenerate
+cloud: :data:`~regnf.registration.step_failures.SKIPPED_ERRORS`) is skipped with its reason
+(:attr:`Discovery.skipped`), and a shortlisted object whose full registration fails so is left
+out of the choice with its reason (:attr:`Tried.error`); the other candidates go on.
+
 Candidates are examined side by side in worker processes when the fields' checkpoints are given
 (:class:`FieldFiles`, :attr:`DiscoveryConfig.workers`): each examination runs on one thread
 wherever it runs, so the result is the same bits as examining them one after another here.
@@ -37,7 +42,6 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import math
-import os
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
@@ -71,8 +75,9 @@ from regnf.registration.pipeline import (
     scored,
 )
 from regnf.registration.refinement import refine_many, without_steps
-from regnf.registration.result import RegistrationResult, registration_payload
+from regnf.registration.result import RegistrationResult
 from regnf.registration.sampling import SurfaceSamples, sample_surface
+from regnf.registration.step_failures import StepFailed, attempt
 
 
 def _ranking_init() -> InitConfig:
@@ -210,7 +215,10 @@ class Tried(NamedTuple):
     """Confidence of its best initial hypothesis before any refinement step (the shortlist's
     order)."""
     result: RegistrationResult | None
-    """The full registration; None when the object was not shortlisted."""
+    """The full registration; None when the object was not shortlisted, or its registration failed."""
+    error: str | None = None
+    """Why its full registration failed on the input (``ExceptionType: message``); None when it
+    did not fail."""
 
 
 class Discovery(NamedTuple):
@@ -229,6 +237,9 @@ class Discovery(NamedTuple):
     ambiguous: tuple[str, ...] = ()
     """Two accepted library objects that differ only where the views did not look
     (:attr:`DiscoveryConfig.unobserved_difference`): the candidate is left unmatched."""
+    skipped: str | None = None
+    """Why the candidate could not be examined (the step, ``ExceptionType: message``); None when
+    it was. A skipped candidate has no ``tried`` and no ``chosen``."""
 
 
 class DiscoveryResult(NamedTuple):
@@ -247,7 +258,13 @@ class DiscoveryResult(NamedTuple):
 
     @property
     def unmatched(self) -> list[Discovery]:
-        return [d for d in self.discoveries if d.chosen is None]
+        """The candidates examined and not identified."""
+        return [d for d in self.discoveries if d.chosen is None and d.skipped is None]
+
+    @property
+    def skipped(self) -> list[Discovery]:
+        """The candidates that could not be examined (:attr:`Discovery.skipped`)."""
+        return [d for d in self.discoveries if d.skipped is not None]
 
 
 def observed_difference(scene_field: Field, field_a: Field, result_a: RegistrationResult, field_b: Field,
@@ -332,7 +349,8 @@ def discover(scene_field: Field, library: Mapping[str, Field],
     Returns
     -------
     DiscoveryResult
-        One :class:`Discovery` per candidate, largest first.
+        One :class:`Discovery` per candidate, largest first; a candidate whose examination
+        failed on its input is there with its reason (:attr:`Discovery.skipped`).
 
     Raises
     ------
@@ -418,13 +436,17 @@ class Ranking(NamedTuple):
                 or round(self.screened[n], 6) >= best - config.shortlist_margin]
 
 
+def proposal_of(cand: Candidate, scene_field: Field) -> OrientedBox:
+    """The candidate's box in the scene field frame (what registration is given)."""
+    return cand.box.transformed(np.linalg.inv(scene_field.to_world.detach().cpu().double().numpy()))
+
+
 def rank_library(cand: Candidate, scene_field: Field, library: Mapping[str, Field],
                  library_samples: Mapping[str, SurfaceSamples], config: DiscoveryConfig) -> Ranking:
     """Step 2 for one candidate: sample its box, score every library object's best initial
     hypothesis there on a subset of the samples (:attr:`DiscoveryConfig.ranking_points`)."""
     reg = config.registration
-    S_inv = np.linalg.inv(scene_field.to_world.detach().cpu().double().numpy())
-    proposal = cand.box.transformed(S_inv)
+    proposal = proposal_of(cand, scene_field)
     ts = time.perf_counter()
     with one_thread():
         scene_samples = sample_surface(scene_field, proposal, reg.scene_sampling, side="scene")
@@ -456,12 +478,17 @@ def register_shortlisted(ranking: Ranking, scene_field: Field, library_field: Fi
                                                            "initialisation": time.perf_counter() - ti})
 
 
-def choose(cand: Candidate, ranking: Ranking, results: Mapping[str, RegistrationResult], scene_field: Field,
-           library: Mapping[str, Field], library_samples: Mapping[str, SurfaceSamples],
+def choose(cand: Candidate, ranking: Ranking, results: Mapping[str, RegistrationResult | StepFailed],
+           scene_field: Field, library: Mapping[str, Field], library_samples: Mapping[str, SurfaceSamples],
            config: DiscoveryConfig) -> Discovery:
     """Step 4: the accepted registration of highest confidence among the shortlisted objects'
-    ``results`` (unless ambiguous), refined once more in the registered object's box."""
-    tried = [Tried(name, ranking.screened[name], results.get(name)) for name in ranking.order()]
+    ``results`` (unless ambiguous), refined once more in the registered object's box. A failed
+    registration (:class:`StepFailed`) is kept as its object's :attr:`Tried.error`."""
+    tried = []
+    for name in ranking.order():
+        r = results.get(name)
+        failed = isinstance(r, StepFailed)
+        tried.append(Tried(name, ranking.screened[name], None if failed else r, r.reason if failed else None))
     accepted = sorted((t for t in tried if t.result is not None and t.result.accepted),
                       key=lambda t: -t.result.confidence)
     chosen = accepted[0] if accepted else None
@@ -484,7 +511,9 @@ def choose(cand: Candidate, ranking: Ranking, results: Mapping[str, Registration
 def examine(cand: Candidate, scene_field: Field, library: Mapping[str, Field],
             library_samples: Mapping[str, SurfaceSamples], config: DiscoveryConfig) -> Discovery:
     """Steps 2-4 of the module docstring for one candidate, here and in order (the side-by-side
-    path, :mod:`regnf.registration.discovery_workers`, runs the same steps in workers).
+    path, :mod:`regnf.registration.discovery_workers`, runs the same steps in workers). A step
+    that fails on its input skips the candidate, or leaves out one shortlisted object, with the
+    reason recorded (:mod:`regnf.registration.step_failures`).
 
     Parameters
     ----------
@@ -495,10 +524,37 @@ def examine(cand: Candidate, scene_field: Field, library: Mapping[str, Field],
         Each library object's samples, taken with ``config.registration.library_sampling``.
     config : DiscoveryConfig
     """
-    ranking = rank_library(cand, scene_field, library, library_samples, config)
-    results = {name: register_shortlisted(ranking, scene_field, library[name], library_samples[name], config)
+    ranking = rank_or_skip(cand, scene_field, library, library_samples, config)
+    if isinstance(ranking, Discovery):
+        return ranking
+    results = {name: attempt(register_shortlisted, ranking, scene_field, library[name], library_samples[name],
+                             config)
                for name in ranking.shortlisted(config)}
-    return choose(cand, ranking, results, scene_field, library, library_samples, config)
+    return choose_or_skip(cand, ranking, results, scene_field, library, library_samples, config)
+
+
+def skipped_discovery(cand: Candidate, scene_field: Field, step: str, failed: StepFailed) -> Discovery:
+    """The candidate skipped because ``step`` failed on its input."""
+    return Discovery(cand, proposal_of(cand, scene_field), [], None, (), f"{step}: {failed.reason}")
+
+
+def rank_or_skip(cand: Candidate, scene_field: Field, library: Mapping[str, Field],
+                 library_samples: Mapping[str, SurfaceSamples], config: DiscoveryConfig) -> Ranking | Discovery:
+    """:func:`rank_library`, or the candidate skipped when that fails on its input."""
+    ranking = attempt(rank_library, cand, scene_field, library, library_samples, config)
+    if isinstance(ranking, StepFailed):
+        return skipped_discovery(cand, scene_field, "ranking the library in its box", ranking)
+    return ranking
+
+
+def choose_or_skip(cand: Candidate, ranking: Ranking, results: Mapping[str, RegistrationResult | StepFailed],
+                   scene_field: Field, library: Mapping[str, Field], library_samples: Mapping[str, SurfaceSamples],
+                   config: DiscoveryConfig) -> Discovery:
+    """:func:`choose`, or the candidate skipped when that fails on its input."""
+    chosen = attempt(choose, cand, ranking, results, scene_field, library, library_samples, config)
+    if isinstance(chosen, StepFailed):
+        return skipped_discovery(cand, scene_field, "choosing and refitting its object", chosen)
+    return chosen
 
 
 def overlapping_pairs(candidates: list[Candidate], min_iou: float) -> list[tuple[int, int]]:
@@ -578,51 +634,3 @@ def examined(found: Candidates,
                 del single[k]
     out += single.values()
     return sorted(out, key=lambda d: -float(np.prod(d.candidate.box.half_extents)))
-
-
-def box_json(box: OrientedBox) -> dict:
-    """An oriented box as JSON data (``center``, ``half_extents``, ``rotation`` as lists)."""
-    return {k: np.asarray(v, dtype=np.float64).tolist() for k, v in box._asdict().items()}
-
-
-def discovery_record(discovery: Discovery, index: int) -> dict:
-    """What an instance's provenance keeps of how it was found (JSON data).
-
-    ``candidate`` is the candidate's index in the result (largest box first),
-    ``candidate_box_metres`` its box in scene metres, ``tried`` every library object in the
-    short registration's order with its ``screened`` score and, for those refined, the full
-    registration's ``confidence`` and ``accepted``; ``chosen`` and ``chosen_confidence`` what
-    became of it (after the refit), ``ambiguous`` the two objects it could not tell apart.
-    """
-    return {
-        "found_by": "discovery",
-        "candidate": int(index),
-        "candidate_box_metres": box_json(discovery.candidate.box),
-        "candidate_points": len(discovery.candidate.points),
-        "chosen": None if discovery.chosen is None else discovery.chosen.library_name,
-        "ambiguous": list(discovery.ambiguous),
-        "chosen_confidence": None if discovery.chosen is None else round(float(discovery.chosen.result.confidence), 6),
-        "tried": [{
-            "library": t.library_name,
-            "screened": round(float(t.screened), 6),
-            "confidence": None if t.result is None else round(float(t.result.confidence), 6),
-            "accepted": None if t.result is None else bool(t.result.accepted),
-        } for t in discovery.tried],
-    }
-
-
-def instance_payloads(result: DiscoveryResult, scene_field: Field, library: Mapping[str, Field],
-                      scene_path: str | os.PathLike, library_paths: Mapping[str, str | os.PathLike]
-                      ) -> list[tuple[int, dict]]:
-    """(candidate index, registration JSON) of every identified candidate: what ``regnf
-    register --out`` writes, with the ``discovery`` record (:func:`discovery_record`) that the
-    stage keeps as the instance's provenance."""
-    out = []
-    for i, d in enumerate(result.discoveries):
-        if d.chosen is None:
-            continue
-        name = d.chosen.library_name
-        payload = registration_payload(d.chosen.result, scene_field, library[name], scene_path, library_paths[name])
-        payload["discovery"] = discovery_record(d, i)
-        out.append((i, payload))
-    return out

@@ -31,7 +31,7 @@ def draw_top_view(result: DiscoveryResult, path: str | os.PathLike,
     ----------
     result : DiscoveryResult
         Its candidates' surface points are drawn grey; each identified candidate's box green
-        with the library object and confidence, each unmatched one red and dashed.
+        with the library object and confidence, each unmatched (or skipped) one red and dashed.
     path : str or PathLike
     truth : sequence of (name, OrientedBox)
         True boxes in scene metres, drawn black and dotted with their names (benchmarks).
@@ -61,7 +61,7 @@ def draw_top_view(result: DiscoveryResult, path: str | os.PathLike,
         xy = footprint(d.candidate.box)
         if d.chosen is None:
             ax.plot(xy[:, 0], xy[:, 1], color="tab:red", linestyle="--", linewidth=1.2)
-            ax.annotate("unmatched", xy[0], fontsize=7, color="tab:red", xytext=(2, -9), textcoords="offset points")
+            ax.annotate("unmatched" if d.skipped is None else "skipped", xy[0], fontsize=7, color="tab:red", xytext=(2, -9), textcoords="offset points")
         else:
             ax.plot(xy[:, 0], xy[:, 1], color="tab:green", linewidth=1.6)
             ax.annotate(f"{d.chosen.library_name} {d.chosen.result.confidence:.2f}", xy[0], fontsize=7,

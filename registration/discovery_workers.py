@@ -7,6 +7,10 @@ steps it needs have finished, so every worker stays busy until the last candidat
 on the demo's room, five examinations of 5-11 s each, whole examinations as tasks left one core
 idle for a third of the time.
 
+A step that fails on its input returns what the same step returns in the calling process (the
+candidate skipped, or the object's failure: :mod:`regnf.registration.step_failures`), so that
+one candidate does not end the others' examination.
+
 Every step runs on one thread in its worker, as it does when discovery examines the candidates
 one after another in its own process, so the result is the same bits (tested). The workers load
 the fields once each from their checkpoints (:class:`~regnf.registration.discovery.FieldFiles`)
@@ -32,12 +36,13 @@ from regnf.registration.discovery import (
     DiscoveryConfig,
     FieldFiles,
     Ranking,
-    choose,
-    rank_library,
+    choose_or_skip,
+    rank_or_skip,
     register_shortlisted,
 )
 from regnf.registration.result import RegistrationResult
 from regnf.registration.sampling import SurfaceSamples, sample_surface
+from regnf.registration.step_failures import StepFailed, attempt
 
 
 class StepTask(NamedTuple):
@@ -80,15 +85,15 @@ def run_step(task: StepTask) -> Any:
         name, = task.args
         with one_thread():
             return sample_surface(library[name], None, task.config.registration.library_sampling, side="library")
-    if task.step == "rank":
+    if task.step == "rank":  # a Ranking, or the candidate skipped
         cand, samples = task.args
-        return rank_library(cand, scene, library, samples, task.config)
-    if task.step == "register":
+        return rank_or_skip(cand, scene, library, samples, task.config)
+    if task.step == "register":  # a RegistrationResult, or a StepFailed
         ranking, name, samples = task.args
-        return register_shortlisted(ranking, scene, library[name], samples, task.config)
+        return attempt(register_shortlisted, ranking, scene, library[name], samples, task.config)
     if task.step == "choose":
         cand, ranking, results, samples = task.args
-        return choose(cand, ranking, results, scene, library, samples, task.config)
+        return choose_or_skip(cand, ranking, results, scene, library, samples, task.config)
     raise ValueError(f"unknown discovery step {task.step!r}")
 
 
@@ -155,7 +160,7 @@ class DiscoveryWorkers:
         ``on_done()`` after each candidate's choice."""
         samples = dict(library_samples)
         rankings: dict[int, Ranking] = {}
-        results: dict[int, dict[str, RegistrationResult]] = {k: {} for k in range(len(cands))}
+        results: dict[int, dict[str, RegistrationResult | StepFailed]] = {k: {} for k in range(len(cands))}
         out: dict[int, Discovery] = {}
         pending = {self._submit("rank", (cand, samples)): ("rank", k, "") for k, cand in enumerate(cands)}
         while pending:
@@ -163,6 +168,10 @@ class DiscoveryWorkers:
             for future in done:
                 step, k, name = pending.pop(future)
                 value = self._value(future, f"the {step} step of candidate {k}")
+                if step == "rank" and isinstance(value, Discovery):  # skipped: nothing more to do
+                    out[k] = value
+                    on_done()
+                    continue
                 if step == "rank":
                     rankings[k] = value
                     for n in value.shortlisted(self.config):

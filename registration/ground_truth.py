@@ -118,12 +118,15 @@ def scored_instance(inst: Instance, discovery: Discovery | None, iou: float, can
     Always: ``instance``, ``object``, ``iou``, ``candidate``, ``chosen``, ``confidence`` (the
     chosen object's), ``identified``, ``within_bars``; with a candidate also ``ambiguous``,
     ``right_object_screened_rank`` and ``right_object_confidence`` (its full registration, None
-    if not shortlisted); once identified, the symmetry-aware errors ``rot_geodesic_rad``,
+    if not shortlisted), or ``skipped`` (why it could not be examined); once identified, the symmetry-aware errors ``rot_geodesic_rad``,
     ``trans_m``, ``trans_rel_diag`` and ``scale_rel``.
     """
     row = {"instance": inst.id, "object": inst.library, "iou": iou, "candidate": candidate, "chosen": None,
            "confidence": None, "identified": False, "within_bars": False}
     if discovery is None:
+        return row
+    if discovery.skipped is not None:  # examined no object: nothing to rank
+        row["skipped"] = discovery.skipped
         return row
     names = [t.library_name for t in discovery.tried]
     right = discovery.tried[names.index(inst.library)]

@@ -9,6 +9,7 @@ import numpy as np
 
 from regnf.neural_fields.field import Field
 from regnf.neural_fields.oriented_box import OrientedBox
+from regnf.registration.scale_warnings import scale_warnings
 from regnf.registration.transform import SimilarityTransform
 
 
@@ -105,8 +106,9 @@ def asdict_plain(obj: object) -> dict:
 
 def registration_payload(result: RegistrationResult, scene: Field, library: Field, scene_path: str | os.PathLike,
                          library_path: str | os.PathLike) -> dict:
-    """What ``regnf register --out`` writes (and a stage records): the result, the fields, and the
-    object -> scene transform in metres."""
+    """What ``regnf register --out`` writes (and a stage records): the result, the fields, the
+    object -> scene transform in metres and its ``warnings`` (a scale that suggests other units,
+    :func:`~regnf.registration.scale_warnings.scale_warnings`)."""
     S = scene.to_world.detach().cpu().double().numpy()
     L = library.to_world.detach().cpu().double().numpy()
     object_to_scene = S @ result.transform.inverse().matrix() @ np.linalg.inv(L)
@@ -117,4 +119,5 @@ def registration_payload(result: RegistrationResult, scene: Field, library: Fiel
         "library_name": library.name,
         "library_label": library.label,
         "object_to_scene_metres": object_to_scene.tolist(),
+        "warnings": scale_warnings(object_to_scene),
     }

@@ -22,6 +22,7 @@ given (or ``REGNF_DEBUG=1`` is set). The statuses (also in the README):
 
 from __future__ import annotations
 
+import errno
 import os
 import sys
 import traceback
@@ -103,6 +104,8 @@ def _one_line(exc: BaseException) -> str:
         # PermissionError, FileExistsError, IsADirectoryError, ENOSPC...: name the file.
         names = [n for n in (exc.filename, exc.filename2) if n]
         text = f"{' -> '.join(map(str, names))}: {exc.strerror}" if names else exc.strerror
+        if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+            text += " (free some space, or write elsewhere, and run again)"
     elif isinstance(exc, MemoryError):
         text = "out of memory (make the job smaller: resolution, image size, number of views)"
     else:

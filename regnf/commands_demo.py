@@ -31,4 +31,5 @@ class Demo:
         from regnf.neural_fields.cache import Cache
 
         check_output_dir(self.out)
+        check_output_dir(self.cache_dir, "--cache-dir")  # the demo writes its baked grids there, cached or not
         run_demo(self.out, self.demo, Cache(self.cache_dir))

@@ -7,8 +7,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from rich.console import Console
+from rich.markup import escape
 
-from regnf.core.preflight import PreflightError, check_input_file, check_output_file
+from regnf.core.preflight import (
+    PreflightError,
+    check_input_file,
+    check_output_dir,
+    check_output_file,
+)
 from regnf.neural_fields.checkpoint import load_field
 from regnf.registration.discovery import DiscoveryConfig
 
@@ -52,8 +58,10 @@ class Discover:
     in several places)."""
     out: Path
     """Output folder: discovery.json (every candidate, the library objects tried in it with their
-    confidences, what it became), registration/candidate_<k>.json (each identified one, as
-    `regnf register --out` writes it) and top_view.png (the room from above, the boxes found)."""
+    confidences, what it became; the candidates skipped with why; the warnings; the files
+    written), registration/candidate_<k>.json (each identified one, as `regnf register --out`
+    writes it) and top_view.png (the room from above, the boxes found). A rerun removes only the
+    files its previous run listed in discovery.json."""
     stage: Path | None = None
     """Write every identified instance into this stage, with how it was found as its
     provenance; made from --scene and --library if it does not exist."""
@@ -70,21 +78,27 @@ class Discover:
     def run(self) -> None:
         from regnf.core.atomic_io import write_json
         from regnf.core.output_dir import inspect_output_dir, owned_output_dir
-        from regnf.registration.discovery import (
-            FieldFiles,
-            discover,
-            discovery_record,
+        from regnf.registration.discovery import FieldFiles, discover
+        from regnf.registration.discovery_records import (
+            discovery_json,
             instance_payloads,
+            recorded_files,
+            registration_file,
+            remove_stale,
         )
         from regnf.registration.discovery_view import draw_top_view
+        from regnf.registration.field_roles import check_roles, checkpoint_label
         from regnf.scene_graph import add_instance_from_registration, new_stage
 
         # Everything that can be checked is checked before the minute of work.
         if not self.library:
             raise PreflightError("--library: give at least one library object checkpoint")
+        check_output_dir(self.out, "--out")
         check_input_file(self.scene, "--scene", "scene field checkpoint")
         for path in self.library:
             check_input_file(path, "--library", "library field checkpoint")
+        # From the headers alone: a room taken for an object is refused before it is loaded.
+        check_roles((self.scene, checkpoint_label(self.scene)), [(p, checkpoint_label(p)) for p in self.library])
         if self.stage is not None:
             if self.stage.suffix not in (".usda", ".usdc"):
                 raise PreflightError(f"--stage {self.stage}: must end in .usda or .usdc")
@@ -101,15 +115,16 @@ class Discover:
                 raise PreflightError(f"--library {path}: holds {f.name!r}, as {paths[f.name]} does; "
                                      "library names must be unique")
             library[f.name], paths[f.name] = f, path
-        with owned_output_dir(self.out, DISCOVER_KIND, self.reuse, "the discovery folder") as folder:
-            folder = folder.reserve(ENTRIES)
+        with owned_output_dir(self.out, DISCOVER_KIND, self.reuse, "the discovery folder") as claimed:
+            # What the previous run made here, by its own record: only that may be removed.
+            previous = recorded_files(claimed.path / "discovery.json") if claimed.owns("discovery.json") else set()
+            folder = claimed.reserve(ENTRIES)
             result = discover(scene, library, self.discovery, progress=True,
                               files=FieldFiles(self.scene, dict(paths)))
             payloads = instance_payloads(result, scene, library, self.scene, paths)
-            if folder.owns("registration") and (folder.path / "registration").exists():
-                folder.remove("registration")  # an earlier run's: this run's replaces it
-            for index, payload in payloads:
-                write_json(folder.path / "registration" / f"candidate_{index}.json", payload)
+            files = [registration_file(index) for index, _ in payloads]
+            for rel, (_, payload) in zip(files, payloads):
+                write_json(folder.path / rel, payload)
             written: dict[int, str] = {}
             if self.stage is not None and payloads:
                 if not self.stage.exists():
@@ -117,28 +132,36 @@ class Discover:
                 for index, payload in payloads:
                     written[index] = add_instance_from_registration(self.stage, payload,
                                                                     allow_outside=self.allow_outside)
-            write_json(folder.path / "discovery.json", {
+            write_json(folder.path / "discovery.json", discovery_json(result, payloads, written, files, {
                 "scene_field": str(self.scene),
                 "library_fields": {name: str(p) for name, p in paths.items()},
                 "stage": None if self.stage is None else str(self.stage),
-                "seconds": result.seconds,
-                "support_planes": len(result.found.supports),
-                "candidates": [{**discovery_record(d, i), "stage_instance": written.get(i)}
-                               for i, d in enumerate(result.discoveries)],
-            })
+            }))
+            remove_stale(folder.path, previous, set(files))
             draw_top_view(result, folder.path / "top_view.png", title=f"regnf discover: {self.scene.name}")
+        warned = {index: payload["warnings"] for index, payload in payloads}
         for i, d in enumerate(result.discoveries):
             size = " x ".join(f"{2 * h:.2f}" for h in d.candidate.box.half_extents)
-            if d.ambiguous:
+            for t in d.tried:
+                if t.error is not None:
+                    console.print(f"  candidate {i}: [yellow]{t.library_name} not registered[/] ({escape(t.error)})")
+            if d.skipped is not None:
+                console.print(f"  candidate {i} ({size} m): [yellow]skipped[/]: {escape(d.skipped)}")
+            elif d.ambiguous:
                 console.print(f"  candidate {i} ({size} m): [red]unmatched[/], ambiguous: {' or '.join(d.ambiguous)} "
                               "(they differ only where no view of the scene looked)")
             elif d.chosen is None:
-                best = max((t for t in d.tried if t.result is not None), key=lambda t: t.result.confidence)
-                console.print(f"  candidate {i} ({size} m): [red]unmatched[/] (best: {best.library_name}, "
-                              f"confidence {best.result.confidence:.2f})")
+                registered = [t for t in d.tried if t.result is not None]
+                best = max(registered, key=lambda t: t.result.confidence) if registered else None
+                shown = "no object registered" if best is None else (
+                    f"best: {best.library_name}, confidence {best.result.confidence:.2f}")
+                console.print(f"  candidate {i} ({size} m): [red]unmatched[/] ({shown})")
             else:
                 where = f" -> {written[i]}" if i in written else ""
                 console.print(f"  candidate {i} ({size} m): [green]{d.chosen.library_name}[/], confidence "
                               f"{d.chosen.result.confidence:.2f}{where}")
+                for warning in warned.get(i, []):
+                    console.print(f"  [yellow]candidate {i} ({d.chosen.library_name})[/]: {escape(warning)}")
+        skipped = f", {len(result.skipped)} skipped" if result.skipped else ""
         console.print(f"[green]discovered[/] {len(result.instances)} instances in {len(result.discoveries)} "
-                      f"candidates, {result.seconds['total']:.0f} s -> {self.out}")
+                      f"candidates{skipped}, {result.seconds['total']:.0f} s -> {self.out}")

@@ -13,6 +13,7 @@ from rich.console import Console
 
 from regnf.core.atomic_io import write_bytes
 from regnf.core.preflight import (
+    PreflightError,
     check_input_file,
     check_mesh_resolution,
     check_output_dir,
@@ -21,6 +22,7 @@ from regnf.core.preflight import (
 from regnf.neural_fields.cache import Cache, capture_info, default_cache_dir
 from regnf.neural_fields.checkpoint import load_field
 from regnf.neural_fields.field import FieldInfo, Symmetry
+from regnf.neural_fields.mesh_writing import written_rounding
 from regnf.neural_fields.meshing import MESH_FORMATS, extract_mesh, save_mesh
 from regnf.neural_fields.presets import object_mesh_preset, object_rgbd_preset, scene_rgbd_preset
 from regnf.synthetic.capture import (
@@ -34,6 +36,9 @@ from regnf.synthetic.rooms import ROOM_NAMES
 from regnf.synthetic.sdfstudio_format import load_capture
 
 console = Console(stderr=True)
+
+MESH_WARN_ROUNDING = 1e-3
+"""Largest move of a vertex, in metres (field units with --no-world), that ``regnf mesh`` writes without a warning."""
 
 
 
@@ -56,21 +61,33 @@ class Synth:
     """Generate the ONR-like data set: library objects captured in a void, and rooms."""
 
     names: tuple[str, ...] = ()
-    """Objects (c dc fc fc-nop mc et t wt) and/or rooms (ac-room atbl-room mix-room); empty: all."""
+    """Objects (c dc fc fc-nop mc et t wt) and/or rooms (ac-room atbl-room mix-room); empty: all
+    (the rooms only with a --noise other than ideal)."""
     coverage: Literal["full", "low", "both"] = "both"
     """Room trajectories to capture."""
     out: Path | None = None
     """Write here (one folder per capture) instead of the cache."""
     seed: int = 0
     """Room layout and trajectory seed."""
+    noise: Literal["ideal", "sensor", "slam", "harsh"] = "ideal"
+    """Sensor and pose noise of the room captures: ideal (none), sensor (depth and colour noise,
+    1 mm / 0.05 degree pose jitter), slam (sensor plus a drift reaching 1 cm / 0.3 degree), harsh
+    (twice the noise, 10 % speckle, 3 cm / 1 degree drift); true poses go to poses_true.json."""
+    noise_seed: int = 0
+    """Seed of the sensor and pose noise."""
     cache_dir: Path = dataclasses.field(default_factory=default_cache_dir)
     """Cache directory (used when --out is not given)."""
 
     def run(self) -> None:
-        names = self.names or (*LIBRARY_NAMES, *ROOM_NAMES)
+        noisy = self.noise != "ideal"
+        names = self.names or (ROOM_NAMES if noisy else (*LIBRARY_NAMES, *ROOM_NAMES))
         unknown = [n for n in names if n not in LIBRARY_NAMES and n not in ROOM_NAMES]
         if unknown:
             raise SystemExit(f"unknown object or room {unknown}; choose from {LIBRARY_NAMES + ROOM_NAMES}")
+        objects = [n for n in names if n in LIBRARY_NAMES]
+        if noisy and objects:
+            raise SystemExit(f"--noise {self.noise}: the noise model applies to rooms "
+                             f"({' '.join(ROOM_NAMES)}), not to objects {objects}")
         if self.out is not None:
             check_output_dir(self.out)
         cache = Cache(self.cache_dir)
@@ -82,9 +99,11 @@ class Synth:
                 console.print(f"[green]{name}[/]: {len(cap.frames)} frames in {cap.root}")
                 continue
             for cov in coverages:
-                cfg = RoomCaptureConfig(coverage=cov, seed=self.seed)
+                cfg = RoomCaptureConfig(coverage=cov, seed=self.seed, noise=self.noise, noise_seed=self.noise_seed)
+                # A noisy capture never lands in (or replaces) the ideal capture's folder.
+                folder = f"{name}-{cov}" + (f"-{self.noise}-{self.noise_seed}" if noisy else "")
                 cap = (
-                    capture_room(name, self.out / f"{name}-{cov}", cfg)
+                    capture_room(name, self.out / folder, cfg)
                     if self.out else cache.room_capture(name, cfg)
                 )
                 console.print(f"[green]{name} ({cov})[/]: {len(cap.frames)} frames, "
@@ -149,12 +168,18 @@ class Train:
 
 @dataclass
 class Distill:
-    """Distil a neural SDF from a mesh in metres (CAD models, scans; need not be watertight)."""
+    """Distil a neural SDF from a mesh (CAD models, scans; need not be watertight)."""
 
     mesh: Path
-    """Input mesh (.ply, .obj, .glb, .stl...) in metres. Holes, open or overlapping parts, flipped
-    or inconsistent winding, duplicate and degenerate faces are repaired or tolerated; a mesh
-    that encloses nothing (a flat sheet, a point cloud) is refused."""
+    """Input mesh (.ply, .obj, .glb, .stl...), in metres unless --units or --scale says otherwise.
+    Holes, open or overlapping parts, flipped or inconsistent winding, duplicate and degenerate
+    faces are repaired or tolerated; faces at non-finite vertices are dropped (and counted); a
+    mesh that encloses nothing (a flat sheet, a point cloud, a soup of open triangles) is
+    refused. Files it names (materials, textures, buffers) are read only from its own folder."""
+    units: Literal["m", "cm", "mm"] = "m"
+    """Unit of the mesh file's coordinates; they are turned to metres before anything else."""
+    scale: float | None = None
+    """Metres per unit of the mesh file, for other units (0.0254: inches); instead of --units."""
     out: Path | None = None
     """Also copy the checkpoint here (.safetensors); it is kept in the cache either way."""
     up: Literal["z", "y", "x", "-z", "-y", "-x"] = "z"
@@ -174,26 +199,34 @@ class Distill:
     """Cache directory: the same mesh and settings are never distilled twice."""
 
     def run(self) -> None:
-        import trimesh
+        from rich.markup import escape
 
+        from regnf.neural_fields.mesh_reading import UNITS, extent_warning, load_mesh_file
         from regnf.neural_fields.mesh_repair import MeshError
 
         check_input_file(self.mesh, "--mesh", "mesh file")
         check_checkpoint_out(self.out)
         if self.steps is not None and self.steps < 1:
             raise SystemExit(f"--steps must be at least 1, got {self.steps}")
-        try:
-            mesh = trimesh.load(self.mesh, force="mesh")
-        except Exception as exc:  # trimesh raises many types for unreadable files
-            raise SystemExit(f"{self.mesh}: cannot read mesh ({exc})") from exc
-        cfg = dataclasses.replace(object_mesh_preset(self.device), up=self.up)
+        if self.scale is not None and not (math.isfinite(self.scale) and self.scale > 0):
+            raise PreflightError(f"--scale {self.scale}: must be a positive number of metres per unit")
+        if self.scale is not None and self.units != "m":
+            raise PreflightError(f"--units {self.units} and --scale {self.scale}: give one of them")
+        scale = UNITS[self.units] if self.scale is None else self.scale
+        loaded = load_mesh_file(self.mesh)
+        mesh = loaded.mesh
+        size = extent_warning(mesh, scale, str(self.mesh), units_given=self.scale is not None or self.units != "m")
+        for line in [*loaded.warnings, *([size] if size else [])]:
+            console.print(f"[yellow]warning[/]: {escape(line)}", soft_wrap=True)
+        cfg = dataclasses.replace(object_mesh_preset(self.device), up=self.up, scale=scale)
         if self.steps is not None:
             cfg = dataclasses.replace(cfg, steps=self.steps)
-        info = FieldInfo(label=self.label, name=self.name or self.mesh.stem,
-                         symmetry=Symmetry(self.symmetry), provenance={"mesh": str(self.mesh)})
+        units = {"units": self.units} if self.scale is None else {}
+        info = FieldInfo(label=self.label, name=self.name or self.mesh.stem, symmetry=Symmetry(self.symmetry),
+                         provenance={"mesh": str(self.mesh), **units, "metres_per_unit": scale})
         try:
             path = Cache(self.cache_dir).distilled_field(mesh, info, cfg)
-        except MeshError:
+        except (MeshError, PreflightError):
             raise  # already "<file>: <reason>"; the command line prints it on one line
         except ValueError as exc:
             raise SystemExit(f"{self.mesh}: {exc}") from exc
@@ -208,7 +241,7 @@ class Mesh:
     field: Path
     """Checkpoint (.safetensors)."""
     out: Path
-    """Mesh to write (.ply or .glb)."""
+    """Mesh to write: .ply (float64 vertices) or .glb (float32, relative to an origin when far from zero)."""
     resolution: int = 256
     """Cells along the longest axis of the field's bounds."""
     world: bool = True
@@ -225,4 +258,8 @@ class Mesh:
         with torch.no_grad():
             mesh = extract_mesh(field, resolution=self.resolution, in_world=self.world)
         save_mesh(mesh, self.out)
+        rounding = written_rounding(mesh, MESH_FORMATS[self.out.suffix.lower()])
+        if rounding > MESH_WARN_ROUNDING:
+            console.print(f"[yellow]warning[/]: {self.out} holds its vertices as float32, which moves them by up "
+                          f"to {rounding:.3g} {'m' if self.world else 'field units'}; write a .ply (float64)", soft_wrap=True)
         console.print(f"{len(mesh.vertices)} vertices, {len(mesh.faces)} faces -> {self.out}")

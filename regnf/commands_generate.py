@@ -36,9 +36,11 @@ class Generate(GenerateConfig):
         return GenerateConfig(**{f.name: getattr(self, f.name) for f in dataclasses.fields(GenerateConfig)})
 
     def run(self) -> None:
+        from regnf.core.preflight import check_output_dir
         from regnf.generate import generate, tile_sheet, variants_per_minute
 
         cfg = self.config()
+        check_output_dir(self.out, "--out")
         try:
             report = generate(self.stage, self.out, cfg)
         except ValueError as exc:  # StageError, a refused folder, settings mismatches: each names the file

@@ -2,16 +2,16 @@
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 from rich.console import Console
+from rich.markup import escape
 from scipy.spatial.transform import Rotation
 
 from regnf.core.atomic_io import write_json
-from regnf.core.preflight import check_output_file
+from regnf.core.preflight import check_output_file, read_json_input
 from regnf.neural_fields.checkpoint import load_field
 from regnf.registration.pipeline import RegistrationConfig
 from regnf.registration.result import registration_payload
@@ -24,14 +24,12 @@ def load_box_metres(path: Path) -> np.ndarray:
 
     Accepted: ``{"corners": [[x, y, z] x 8]}`` or ``{"center": [..], "size": [..], "yaw": rad}``.
     A box of zero or negative size, a mirrored one or corners that form no box are refused
-    with a message naming the file (``SystemExit``, before anything is loaded).
+    with a message naming the file (``SystemExit``, before anything is loaded); a file that is
+    not a regular file, too large or not JSON, by :func:`regnf.core.preflight.read_json_input`.
     """
     from regnf.neural_fields.oriented_box import OrientedBox
 
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise SystemExit(f"{path}: cannot read the box ({exc})") from exc
+    data = read_json_input(path, "--box", "box")
     if not isinstance(data, dict):
         raise SystemExit(f"{path}: a box is a JSON object with 'corners' or 'center' + 'size' (+ 'yaw')")
     try:
@@ -111,6 +109,7 @@ class Register:
 
     def run(self) -> None:
         from regnf.neural_fields.oriented_box import OrientedBox
+        from regnf.registration.field_roles import check_roles
         from regnf.registration.pipeline import register
 
         # Everything that can be checked is checked before the registration's seconds of work.
@@ -122,6 +121,7 @@ class Register:
         corners = self.proposal_corners()
         scene = load_field(self.scene, device=self.device)
         library = load_field(self.library, device=self.device)
+        check_roles((self.scene, scene.label), [(self.library, library.label)])
         S = scene.to_world.detach().cpu().double().numpy()
         proposal = OrientedBox.from_corners(corners).transformed(np.linalg.inv(S))
         result = register(scene, library, proposal, self.registration)
@@ -139,6 +139,8 @@ class Register:
 
             written = add_instance_from_registration(self.stage, payload, force=self.force,
                                                     allow_outside=self.allow_outside)
+        for warning in payload["warnings"]:  # a scale that suggests other units
+            console.print(f"[yellow]{written or library.name}[/]: {escape(warning)}")
         if result.accepted:
             console.print(f"[green]registered[/] {library.name!r}: {summary}")
             if written:

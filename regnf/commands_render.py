@@ -157,6 +157,9 @@ class ReplaceInstances(_Views):
 
     seed: int = 0
     """Seed of the random choices (the same seed gives the same outputs)."""
+    allow_size_change: bool = False
+    """Swap in an object whose size differs from the instance's by more than 3x (bounding-box
+    diagonals at the instance's scale; refused by default: one library is likely in other units)."""
 
     def run(self) -> None:
         from regnf.compositor.from_stage import composite_from_stage
@@ -169,7 +172,8 @@ class ReplaceInstances(_Views):
             scene_only = composite_from_stage(self.stage, self.composite_config("scene"), self.device,
                                               allow_outside=self.allow_outside)
             cams = self.cameras(scene_only.field)
-            cfg = ReplaceConfig(self.composite_config("substitute"), self.render, self.device)
+            cfg = ReplaceConfig(self.composite_config("substitute"), self.render, self.device,
+                                allow_size_change=self.allow_size_change)
             result = replace_and_render(self.stage, self.seed, self.out, cams, cfg, allow_outside=self.allow_outside)
         except (StageError, ValueError) as exc:
             raise SystemExit(f"regnf replace: {exc}") from exc

@@ -2,13 +2,12 @@
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
 from rich.console import Console
 
-from regnf.core.preflight import check_mesh_resolution, check_output_file
+from regnf.core.preflight import check_mesh_resolution, check_output_file, read_json_input
 
 console = Console(stderr=True)
 
@@ -72,10 +71,7 @@ class StageAddInstance:
     def run(self) -> None:
         from regnf.scene_graph import StageError, add_instance_from_registration
 
-        try:
-            data = json.loads(self.result.read_text())
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-            raise SystemExit(f"{self.result}: cannot read the registration result ({exc})") from exc
+        data = read_json_input(self.result, "--result", "registration result")
         if not isinstance(data, dict):
             raise SystemExit(f"{self.result}: a registration result is a JSON object (from `regnf register --out`)")
         try:

@@ -34,6 +34,7 @@ class View(ViewerConfig):
     def run(self) -> None:
         from regnf.scene_graph import StageError
         from regnf.viewer import serve
+        from regnf.viewer.trust import is_loopback
 
         cfg = self.config()
         try:
@@ -42,8 +43,14 @@ class View(ViewerConfig):
             raise SystemExit(f"regnf view: {exc}") from exc
         except OSError as exc:
             raise SystemExit(f"regnf view: cannot listen on {cfg.host}:{cfg.port}: {exc.strerror or exc}") from exc
-        console.print(f"[green]viewer[/] of {self.stage}: open http://{cfg.host}:{viewer.port} "
-                      "in a browser on this machine (Ctrl-C stops it)")
+        if is_loopback(cfg.host):
+            where = "in a browser on this machine"
+        else:
+            console.print(f"[yellow]warning[/]: the viewer listens on {cfg.host}: anyone on the network who "
+                          f"has the URL below can edit {self.stage}", soft_wrap=True)
+            where = "in a browser"
+        console.print(f"[green]viewer[/] of {self.stage}: open {viewer.url} {where} (Ctrl-C stops it)",
+                      soft_wrap=True)
         try:
             while True:
                 time.sleep(1.0)

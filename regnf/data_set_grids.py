@@ -31,9 +31,10 @@ from regnf.compositor.baked_composite import BakedGrids, bake_grids, masked_scen
 from regnf.compositor.stage_config import StageCompositeConfig
 from regnf.core.atomic_io import write_json
 from regnf.core.file_lock import LockBusy, folder_lock
+from regnf.core.preflight import JsonInputError, check_free_space, read_json_input
 from regnf.core.threads import usable_cores
 from regnf.neural_fields.baked_field import BakeConfig, BakedField
-from regnf.neural_fields.baked_io import load_baked, save_baked
+from regnf.neural_fields.baked_io import BYTES_PER_NODE, load_baked, save_baked
 from regnf.neural_fields.camera import Camera
 
 from .manifest import sha256_file
@@ -46,7 +47,8 @@ SCENE_FILE = "scene.safetensors"
 
 def bake_for_data_set(base: Path, folder: Path, key: str, cameras: Sequence[Camera], bake: BakeConfig,
                       composite: StageCompositeConfig, device: str = "cpu",
-                      progress: bool = False, substitution: bool = False) -> tuple[Path, float]:
+                      progress: bool = False, substitution: bool = False,
+                      reserve_bytes: int = 0) -> tuple[Path, float]:
     """The grids of the data set whose base stage is ``base``, in ``folder``: (its index, the
     seconds spent baking, 0 when the grids were kept).
 
@@ -73,6 +75,14 @@ def bake_for_data_set(base: Path, folder: Path, key: str, cameras: Sequence[Came
     substitution : bool
         Bake every instance's own object too (a replacement shows another one), for the
         stage's substitution; grids kept without one are baked again.
+    reserve_bytes : int
+        Bytes the caller writes on the same disk after the grids (the variants of a data set).
+
+    Raises
+    ------
+    regnf.core.preflight.PreflightError
+        Before any baking: the grid files and ``reserve_bytes`` would not fit in the space free
+        in ``folder`` (the figure and the folder named).
     """
     from regnf.compositor.from_stage import composite_from_scene
     from regnf.compositor.replace import replacement_candidates, swapped
@@ -101,7 +111,11 @@ def bake_for_data_set(base: Path, folder: Path, key: str, cameras: Sequence[Came
         field = next(p.field for p, k in zip(placed.field.placements, placed.field.instance_ids)
                      if any(k_of[iid] == k for iid in at))
         objects[name] = (field, places)
-    grids = bake_grids(masked_scene(comp.field), objects, cameras, bake, progress)
+    def fits(nodes: int) -> None:
+        what = f"baking {nodes:,} grid nodes" + (" and writing the variants" if reserve_bytes else "")
+        check_free_space(folder, nodes * BYTES_PER_NODE + reserve_bytes, what)
+
+    grids = bake_grids(masked_scene(comp.field), objects, cameras, bake, progress, check_nodes=fits)
     folder.mkdir(parents=True, exist_ok=True)
     # An old index stays until the new one replaces it: if this run is killed in between, the
     # files it rewrote no longer match its digests (and the next run bakes again), unless they
@@ -131,7 +145,7 @@ def _index_checks_out(index: Path, key: str, substitution: bool = False) -> bool
     """Whether ``index`` records grids of ``key`` (with every instance's own object, for
     ``substitution``) whose files all have their digests."""
     try:
-        record = json.loads(index.read_text(encoding="utf-8"))
+        record = read_json_input(index, None, "record of baked grids")
         if record.get("config_key") != key or (substitution and record.get("substitution") is not True):
             return False
         entries = _entries(record)
@@ -147,7 +161,7 @@ def _index_checks_out(index: Path, key: str, substitution: bool = False) -> bool
         with cf.ThreadPoolExecutor(usable_cores()) as pool:
             digests = list(pool.map(sha256_file, paths))
         return all(d == entry["sha256"] for d, entry in zip(digests, entries, strict=True))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError, AttributeError):
+    except (OSError, JsonInputError, KeyError, TypeError, AttributeError):
         return False
 
 
@@ -161,11 +175,11 @@ def load_data_set_grids(index: str | os.PathLike, device: str = "cpu") -> BakedG
     """
     index = Path(index)
     try:
-        record = json.loads(index.read_text(encoding="utf-8"))
+        record = read_json_input(index, None, "record of baked grids")
         scene_file = record["scene"]["file"]
         object_files = {str(n): e["file"] for n, e in record["objects"].items()}
         nodes = int(record["nodes"])
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
+    except (OSError, KeyError, TypeError, ValueError) as exc:  # JsonInputError is a ValueError
         raise ValueError(f"{index}: not a record of baked grids ({type(exc).__name__}: {exc})") from None
     for name in (scene_file, *object_files.values()):
         if not isinstance(name, str) or name != Path(name).name or name.startswith("."):

@@ -198,7 +198,8 @@ def _discover_all(stage: Path, out: Path, scene_path: Path, library_paths: dict[
     from regnf.core.atomic_io import write_json
     from regnf.neural_fields.checkpoint import load_field
     from regnf.neural_fields.oriented_box import OrientedBox
-    from regnf.registration.discovery import FieldFiles, discover, instance_payloads
+    from regnf.registration.discovery import FieldFiles, discover
+    from regnf.registration.discovery_records import instance_payloads
     from regnf.registration.discovery_view import draw_top_view
     from regnf.registration.ground_truth import score_discovery
     from regnf.scene_graph import add_instance_from_registration
@@ -221,7 +222,9 @@ def _discover_all(stage: Path, out: Path, scene_path: Path, library_paths: dict[
             "accepted": False, "confidence": None, "rot_geodesic_rad": None, "trans_m": None,
             "trans_rel_diag": None, "scale_rel": None, "within_bars": False, "seconds": None, "history": [],
         }
-        if d is not None:
+        if d is not None and d.skipped is not None:
+            row["found_as"] = f"skipped: {d.skipped}"
+        elif d is not None:
             row["found_as"] = (d.chosen.library_name if d.chosen is not None else
                                f"ambiguous: {' or '.join(d.ambiguous)}" if d.ambiguous else "unmatched")
             row["confidence"] = score["right_object_confidence"]
@@ -250,7 +253,8 @@ def _discover_all(stage: Path, out: Path, scene_path: Path, library_paths: dict[
                           [(inst.library, box) for inst, box in zip(capture.instances, truth_boxes)],
                           title="discovery: the room from above")
     return rows, {"candidates": len(result.discoveries), "identified": len(result.instances),
-                  "unmatched": len(result.unmatched), "false_instances": false, "seconds": result.seconds,
+                  "unmatched": len(result.unmatched), "skipped": [d.skipped for d in result.skipped],
+                  "false_instances": false, "seconds": result.seconds,
                   "image": str(image)}
 
 
@@ -468,7 +472,10 @@ def _summary(config: DemoConfig, out: Path, stage: Path, usdz: Path, log: StepLo
     note = (f"The room was captured with {config.coverage} coverage. No boxes were given: discovery found "
             f"{discovery['candidates']} candidates in the scene field, identified {discovery['identified']} of them "
             f"(a short registration of every library object in each, the best and any close behind fully registered) and left "
-            f"{discovery['unmatched']} unmatched, in {discovery['seconds']['total']:.0f} s; the errors are measured "
+            f"{discovery['unmatched']} unmatched"
+            + (f" and skipped {len(discovery['skipped'])} that could not be examined ({'; '.join(discovery['skipped'])})"
+               if discovery.get("skipped") else "")
+            + f", in {discovery['seconds']['total']:.0f} s; the errors are measured "
             f"against the true poses. {len(registrations) - len(missed)} of {len(registrations)} objects were found, "
             f"identified as the right library object and written to the stage; "
             f"{sum(r['accepted'] and r['within_bars'] for r in registrations)} of them are within the bars (rotation <= "

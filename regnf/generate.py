@@ -84,8 +84,10 @@ from regnf.core.output_dir import (
     replace_entry,
     staging_dir,
 )
+from regnf.core.preflight import JsonInputError, read_json_input
 from regnf.neural_fields.camera import Camera
 
+from .generate_disk import check_generation_disk, variant_bytes
 from .manifest import MANIFEST_NAME, append_row, read_manifest, sealed, sha256_file, write_manifest
 
 GENERATION_JSON = "generation.json"
@@ -162,6 +164,10 @@ class GenerateConfig:
     """Write into an output folder that holds files regnf generate did not make (they are kept:
     nothing but the data set's own names is written there, and nothing is removed). Without it
     such a folder is refused; a new, empty or earlier generate folder needs nothing."""
+    allow_size_change: bool = False
+    """Swap in objects whose size differs from the instance's by more than 3x (bounding-box
+    diagonals at the instance's scale; refused by default, before anything is written: one
+    library is likely in other units)."""
 
     def __post_init__(self) -> None:
         # Checked here, before any work: a huge request fails at once, not minutes in.
@@ -386,12 +392,23 @@ def _legacy_entries(out: Path) -> list[str]:
     :data:`LAYOUT` are then this command's own (that version wrote them).
     """
     try:
-        meta = json.loads((out / GENERATION_JSON).read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        meta = read_json_input(out / GENERATION_JSON, None, "data set record")
+    except JsonInputError:
         return []
     if not isinstance(meta, dict) or not isinstance(meta.get("config_key"), str):
         return []
     return [name for name in LAYOUT if os.path.lexists(out / name)]
+
+
+def check_variant_sizes(stage: Path) -> None:
+    """Refuse a stage where a variant could swap in an object of another size
+    (:func:`regnf.compositor.size_change.check_swap_sizes` over every object a seed may pick)."""
+    from regnf.compositor.replace import replacement_candidates
+    from regnf.compositor.size_change import check_swap_sizes
+    from regnf.scene_graph import read_stage
+
+    scene = read_stage(stage)
+    check_swap_sizes(scene, replacement_candidates(scene), stage)
 
 
 def check_source(stage: str | os.PathLike, out: str | os.PathLike) -> None:
@@ -453,9 +470,10 @@ def prepare_output(stage: str | os.PathLike, out: str | os.PathLike, config: Gen
     recorded = False
     if meta_path.exists():
         try:
-            meta = json.loads(meta_path.read_text())
-        except (OSError, json.JSONDecodeError) as exc:
-            raise ValueError(f"{meta_path}: unreadable ({exc}); remove it or choose another output folder") from exc
+            meta = read_json_input(meta_path, None, "data set record")
+        except JsonInputError as exc:
+            raise ValueError(f"{meta_path}: unreadable ({exc.problem}); remove it or choose another output "
+                             "folder") from exc
         if meta.get("config_key") != key:
             raise ValueError(f"{meta_path}: {out} holds variants of another stage or other settings "
                              f"(config_key {meta.get('config_key')}, now {key}); choose another output folder")
@@ -555,7 +573,9 @@ def generate(
     Raises
     ------
     ValueError
-        The source stage is inside ``out/stage/``; ``out`` holds files regnf generate did
+        The source stage is inside ``out/stage/``; a variant could swap in an object of
+        another size (:class:`~regnf.compositor.size_change.SizeChangeError`, unless
+        ``config.allow_size_change``); ``out`` holds files regnf generate did
         not make and ``config.reuse`` is off (:class:`regnf.core.output_dir.OutputFolderError`);
         ``out`` holds a data set of other settings; the stage cannot be read (a
         ``scene_graph.StageError`` naming the file). Nothing is written then.
@@ -568,7 +588,10 @@ def generate(
     out = Path(out).absolute()
     # The source is checked and read before the folder is claimed: a refusal writes nothing.
     check_source(stage, out)
+    if not config.allow_size_change:
+        check_variant_sizes(Path(stage).absolute())
     source = source_summary(Path(stage).absolute())
+    check_generation_disk(stage, out, config)
     with owned_output_dir(out, KIND, config.reuse, "the data set folder", _legacy_entries):
         _remove_leftovers(out)
         base, key = prepare_output(stage, out, config, source)
@@ -620,7 +643,8 @@ def _make_variants(out: Path, base: Path, key: str, config: GenerateConfig, todo
             # The orbit unturned: the turns move the cameras around, not nearer or farther.
             orbit = orbit_around_bounds(bounds, config.cameras)
             index, timings["bake"] = bake_for_data_set(base, out / BAKED_DIR, key, orbit, render.bake,
-                                                       config.composite, config.device, progress)
+                                                       config.composite, config.device, progress,
+                                                       reserve_bytes=len(todo) * variant_bytes(config))
             baked = str(index)
         _run_variants(out, base, key, config, todo, rows, made, failed, progress, on_variant, bounds, render,
                       baked, stack, warm)

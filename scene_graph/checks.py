@@ -117,7 +117,8 @@ def check_registration(reg: RegistrationProvenance) -> None:
         ``confidence`` a finite real number; ``accepted`` and ``forced`` real bools;
         ``scene_to_library`` a similarity; loss, timing and threshold keys identifiers and
         their values real numbers (NaN allowed: a loss is NaN when nothing was refined);
-        the proposal box absent or complete and valid (:func:`check_box`).
+        the proposal box absent or complete and valid (:func:`check_box`); ``warnings`` a list
+        of one-line strings.
 
     Raises
     ------
@@ -144,6 +145,9 @@ def check_registration(reg: RegistrationProvenance) -> None:
             raise ValueError(f"registration {label} {bad} are not numbers")
     if reg.discovery is not None:
         check_json_data(reg.discovery, "the registration's discovery record")
+    if not isinstance(reg.warnings, list) or not all(isinstance(w, str) and w and "\n" not in w
+                                                     for w in reg.warnings):
+        raise ValueError(f"registration 'warnings' must be a list of one-line strings, got {reg.warnings!r:.80}")
     box = (reg.proposal_center, reg.proposal_half_extents, reg.proposal_rotation)
     if any(b is not None for b in box):
         if any(b is None for b in box):

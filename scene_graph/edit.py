@@ -265,7 +265,7 @@ def parse_registration(
         similarity), ``losses`` / ``timings`` / ``thresholds`` (objects of numbers) and
         ``proposal_box`` (``center`` (3,), ``half_extents`` (3,) all > 0, ``rotation`` (3, 3)
         orthonormal with det +1), or null; ``discovery`` (an object of JSON data: how
-        discovery found the instance), or null.
+        discovery found the instance), or null; ``warnings`` (a list of one-line strings), or null.
     forced : bool
         Recorded on the provenance (written although not accepted).
     stage_path : str or PathLike
@@ -335,6 +335,7 @@ def parse_registration(
         proposal_rotation=rotation,
         forced=bool(forced),
         discovery=None if found is None else dict(found),
+        warnings=[] if result.get("warnings") is None else result["warnings"],
     )
     try:
         check_registration(reg)

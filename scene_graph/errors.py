@@ -14,7 +14,8 @@ class StageError(ValueError):
     path : str or PathLike
         The file at fault (a stage, an asset layer or a checkpoint).
     prim : str
-        The prim path concerned (``/`` for the layer as a whole).
+        The prim path concerned (``/`` for the layer as a whole, empty for a path that is no
+        readable file at all).
     problem : str
         What is wrong, in words.
     """
@@ -23,4 +24,5 @@ class StageError(ValueError):
         self.path = Path(path)
         self.prim = prim
         self.problem = problem
-        super().__init__(f"{self.path}: prim {prim}: {problem}")
+        where = f"prim {prim}: " if prim else ""
+        super().__init__(f"{self.path}: {where}{problem}")

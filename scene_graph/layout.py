@@ -55,6 +55,8 @@ A_BOX_HALF = R + "proposal:halfExtents"
 A_BOX_ROTATION = R + "proposal:rotation"
 A_DISCOVERY = R + "discovery"
 """JSON text: how discovery found the instance (absent when the registration was given a box)."""
+A_WARNINGS = R + "warnings"
+"""Text, one warning a line: what the registration warned of (absent when nothing)."""
 
 KEY_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 """Keys of losses / timings / thresholds: they become attribute name parts."""

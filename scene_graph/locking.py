@@ -23,7 +23,7 @@ from regnf.core.file_lock import LOCK_NAME, folder_lock
 
 from . import layout as L
 from .errors import StageError
-from .usd_read import read_stage
+from .usd_read import check_stage_file, read_stage
 
 STAGE_LOCK_TIMEOUT_S = 60.0
 """Seconds a writer waits for another writer of the same stage folder before it raises
@@ -79,8 +79,8 @@ def stage_lock(stage_path: str | os.PathLike, create: bool = False) -> Iterator[
     """
     stage_path = Path(stage_path).absolute()
     folder = stage_path.parent
-    if not create and not stage_path.is_file():
-        raise StageError(stage_path, "/", "no such stage file")
+    if not create:
+        check_stage_file(stage_path)
     made = _make_folders(folder) if create else []
     try:
         with contextlib.ExitStack() as stack:
@@ -125,8 +125,7 @@ def check_writable(stage_path: str | os.PathLike, allow_outside: bool = False) -
         asset folder, root layer or lock file the user cannot write.
     """
     path = Path(stage_path).absolute()
-    if not path.is_file():
-        raise StageError(path, "/", "no such stage file")
+    check_stage_file(path)
     if path.suffix not in L.STAGE_SUFFIXES:
         raise StageError(path, "/", f"only a {' or '.join(L.STAGE_SUFFIXES)} stage can be edited "
                          "(export a package to .usda first)")

@@ -93,6 +93,8 @@ class RegistrationProvenance:
     """How ``regnf discover`` found the instance with no box given (the candidate's box, every
     library object tried there with its confidence), as JSON-compatible data; None when the
     registration was given its box."""
+    warnings: list[str] = field(default_factory=list)
+    """What the registration warned of, one line each (a scale that suggests other units)."""
 
 
 @dataclass

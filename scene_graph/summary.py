@@ -45,6 +45,7 @@ def summarize(scene: ComposedScene) -> str:
             + ("" if reg.accepted else " (NOT accepted, forced)")
             + ("" if reg.library_name == inst.library_name else f", registered as {reg.library_name}")
             + ("" if reg.discovery is None else ", " + discovery_line(reg.discovery))
+            + "".join(f"; warning: {w}" for w in reg.warnings)
         )
         t = ", ".join(f"{v:.3f}" for v in ops.translate)
         lines.append(

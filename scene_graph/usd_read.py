@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 from pxr import Ar, Sdf, Tf, Usd, UsdGeom
 
+from regnf.core.preflight import input_file_problem
 from regnf.neural_fields.checkpoint import CheckpointError, verify_checkpoint
 
 from . import layout as L
@@ -37,6 +38,19 @@ OPS_RTOL = 1e-9
 """The xform ops must compose to the stored 4x4 to this (relative) tolerance."""
 
 
+def check_stage_file(path: Path) -> None:
+    """Refuse a stage path that is not a readable regular file (a folder, a FIFO, a device), unopened.
+
+    Raises
+    ------
+    StageError
+        ``no such stage file``, ``is not a file (a folder)`` and so on.
+    """
+    problem = input_file_problem(path, "no such stage file")
+    if problem is not None:
+        raise StageError(path, "", problem)
+
+
 def open_stage(path: str | os.PathLike, allow_outside: bool = False) -> Usd.Stage:
     """Open a stage fresh from disk (layers already in memory are reloaded), inside its boundary.
 
@@ -49,7 +63,8 @@ def open_stage(path: str | os.PathLike, allow_outside: bool = False) -> Usd.Stag
     Raises
     ------
     StageError
-        No such file, a file USD cannot open, an arc outside the boundary.
+        No such file, not a regular file (a folder, FIFO, device), a file USD cannot open, an arc
+        outside the boundary.
     """
     path = Path(path).absolute()
     folder = None
@@ -57,8 +72,8 @@ def open_stage(path: str | os.PathLike, allow_outside: bool = False) -> Usd.Stag
         data = dict(root_layer_of(path).customLayerData).get("regnf")
         if isinstance(data, dict) and data.get("role") in (L.ROLE_LIBRARY, L.ROLE_SLOT):
             folder = path.parent.parent
-    elif not path.is_file():
-        raise StageError(path, "/", "no such stage file")
+    else:
+        check_stage_file(path)
     return open_composed(str(path), Boundary.of(path, allow_outside, folder))
 
 
@@ -68,11 +83,10 @@ def root_layer_of(path: str | os.PathLike) -> Sdf.Layer:
     Raises
     ------
     StageError
-        No such file, or USD cannot parse it.
+        No such file, not a regular file (a folder, FIFO, device), or USD cannot parse it.
     """
     path = Path(path).absolute()
-    if not path.is_file():
-        raise StageError(path, "/", "no such stage file")
+    check_stage_file(path)
     file = str(path)
     was_loaded = Sdf.Layer.Find(file) is not None
     try:
@@ -195,11 +209,12 @@ def read_field(prim: Usd.Prim, layer: Sdf.Layer, boundary: Boundary, check_check
     bounds = np.asarray(_get(prim, L.A_BOUNDS, file), dtype=np.float64)
     if bounds.shape != (2, 3):
         raise StageError(file, where, f"'{L.A_BOUNDS}' must hold 2 points, got shape {bounds.shape}")
+    _finite(bounds, L.A_BOUNDS, file, where)
     return FieldRecord(
         name=str(_get(prim, L.A_NAME, file)),
         label=str(labels[0]),
         checkpoint=Path(checkpoint),
-        to_world=from_usd_matrix(_get(prim, L.A_TO_WORLD, file)),
+        to_world=_finite(from_usd_matrix(_get(prim, L.A_TO_WORLD, file)), L.A_TO_WORLD, file, where),
         bounds=bounds,
         symmetry_order=int(_get(prim, L.A_SYM_ORDER, file)),
         provenance=provenance,
@@ -209,21 +224,30 @@ def read_field(prim: Usd.Prim, layer: Sdf.Layer, boundary: Boundary, check_check
 
 def _instance_matrix(prim: Usd.Prim, file: str) -> np.ndarray:
     where = str(prim.GetPath())
-    M = from_usd_matrix(_get(prim, L.A_OBJECT_TO_SCENE, file))
+    M = _finite(from_usd_matrix(_get(prim, L.A_OBJECT_TO_SCENE, file)), L.A_OBJECT_TO_SCENE, file, where)
     order = [str(t) for t in UsdGeom.Xformable(prim).GetXformOpOrderAttr().Get() or []]
     if order != list(OP_ORDER):
         raise StageError(file, where, f"xformOpOrder is {order}, expected {list(OP_ORDER)}")
-    t = np.array(_get(prim, OP_ORDER[0], file), dtype=np.float64)
+    t = _finite(np.array(_get(prim, OP_ORDER[0], file), dtype=np.float64), OP_ORDER[0], file, where)
     q = _get(prim, OP_ORDER[1], file)
-    s = np.array(_get(prim, OP_ORDER[2], file), dtype=np.float64)
+    quat = _finite(np.array([q.GetReal(), *q.GetImaginary()], dtype=np.float64), OP_ORDER[1], file, where)
+    s = _finite(np.array(_get(prim, OP_ORDER[2], file), dtype=np.float64), OP_ORDER[2], file, where)
     if not (s > 0).all() or np.ptp(s) > 1e-12 * s.max():
         raise StageError(file, where, f"scale {s.tolist()} is not uniform and positive")
-    quat = np.array([q.GetReal(), *q.GetImaginary()], dtype=np.float64)
+    if not np.linalg.norm(quat) > 0:
+        raise StageError(file, where, f"'{OP_ORDER[1]}' {quat.tolist()} is a zero quaternion")
     composed = matrix_from_ops(XformOps(t, quat, float(s[0])))
     err = np.abs(composed - M).max()
-    if err > OPS_RTOL * max(1.0, np.abs(M).max()):
+    if not err <= OPS_RTOL * max(1.0, np.abs(M).max()):  # written so that a NaN fails too
         raise StageError(file, where, f"the xform ops disagree with '{L.A_OBJECT_TO_SCENE}' by {err:.3g}")
     return M
+
+
+def _finite(value: np.ndarray, name: str, file: str, where: str) -> np.ndarray:
+    """``value`` (an attribute's numbers) if every entry is finite; else a StageError naming ``name``."""
+    if not np.isfinite(value).all():
+        raise StageError(file, where, f"'{name}' has non-finite entries: {value.tolist()}")
+    return value
 
 
 def _discovery(prim: Usd.Prim, file: str) -> dict | None:
@@ -267,6 +291,7 @@ def _registration(prim: Usd.Prim, file: str) -> RegistrationProvenance | None:
         proposal_rotation=(np.array([[rot[i][j] for j in range(3)] for i in range(3)]).T if rot is not None else None),
         forced=bool(_get(prim, L.A_FORCED, file, required=False) or False),
         discovery=_discovery(prim, file),
+        warnings=str(_get(prim, L.A_WARNINGS, file, required=False) or "").splitlines(),
     )
     try:
         check_registration(reg)  # the writer's rules: a stage edited by hand must still render

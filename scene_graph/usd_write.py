@@ -210,6 +210,8 @@ def _author_instance(parent: Sdf.PrimSpec, inst: InstanceRecord, label: str) -> 
         _attr(spec, L.A_BOX_ROTATION, T.Matrix3d, Gf.Matrix3d(np.asarray(reg.proposal_rotation, float).T.tolist()))
     if reg.discovery is not None:
         _attr(spec, L.A_DISCOVERY, T.String, json.dumps(reg.discovery, sort_keys=True))
+    if reg.warnings:
+        _attr(spec, L.A_WARNINGS, T.String, "\n".join(reg.warnings))
 
 
 def root_layer_data(scene: ComposedScene) -> dict:

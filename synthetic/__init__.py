@@ -23,6 +23,8 @@ _EXPORTS: dict[str, str] = {
     "LibraryObject": "library",
     "library_object_names": "library",
     "make_library_object": "library",
+    "PoseNoiseConfig": "pose_noise",
+    "perturb_poses": "pose_noise",
     "RGBDRenderer": "render",
     "ROOM_NAMES": "rooms",
     "Room": "rooms",
@@ -32,6 +34,9 @@ _EXPORTS: dict[str, str] = {
     "CaptureFrame": "sdfstudio_format",
     "load_capture": "sdfstudio_format",
     "write_capture": "sdfstudio_format",
+    "NOISE_LEVELS": "sensor_noise",
+    "SensorNoiseConfig": "sensor_noise",
+    "apply_sensor_noise": "sensor_noise",
     "ShadingConfig": "shading",
     "shade_face_colors": "shading",
     "shaded_copy": "shading",
@@ -55,6 +60,7 @@ if TYPE_CHECKING:  # static analysers see the real names
         library_object_names,
         make_library_object,
     )
+    from regnf.synthetic.pose_noise import PoseNoiseConfig, perturb_poses
     from regnf.synthetic.render import RGBDRenderer
     from regnf.synthetic.rooms import ROOM_NAMES, Room, make_room
     from regnf.synthetic.sdfstudio_format import (
@@ -64,4 +70,5 @@ if TYPE_CHECKING:  # static analysers see the real names
         load_capture,
         write_capture,
     )
+    from regnf.synthetic.sensor_noise import NOISE_LEVELS, SensorNoiseConfig, apply_sensor_noise
     from regnf.synthetic.shading import ShadingConfig, shade_face_colors, shaded_copy

@@ -21,6 +21,12 @@ from regnf.synthetic.library import make_library_object
 from regnf.synthetic.render import VOID_GREY, RGBDRenderer
 from regnf.synthetic.rooms import make_room
 from regnf.synthetic.sdfstudio_format import Capture, load_capture, normalisation, write_capture
+from regnf.synthetic.sensor_noise import (
+    NOISE_LEVELS,
+    TRUE_POSES_NAME,
+    noisy_capture_frames,
+    write_true_poses,
+)
 from regnf.synthetic.shading import shaded_copy
 from regnf.synthetic.trajectories import (
     object_capture_poses,
@@ -87,6 +93,10 @@ class RoomCaptureConfig:
     """Normalisation: s = half the largest bbox extent times this."""
     progress: bool = True
     """Show a tqdm progress bar."""
+    noise: str = "ideal"
+    """Sensor and pose noise level: ideal, sensor, slam or harsh (:data:`NOISE_LEVELS`)."""
+    noise_seed: int = 0
+    """Seed of the sensor and pose noise (unused at ``ideal``)."""
 
     def frame_count(self) -> int:
         """Frames of the capture: ``n_views``, or 120 for full coverage and 30 for low."""
@@ -180,6 +190,8 @@ def capture_room(
     """Generate room ``name`` (layout from ``config.seed``), capture it, write it to ``out_dir``."""
     if config.coverage not in ("full", "low"):
         raise ValueError(f"capture_room: coverage must be 'full' or 'low', got {config.coverage!r}")
+    if config.noise not in NOISE_LEVELS:
+        raise ValueError(f"capture_room: noise must be one of {', '.join(NOISE_LEVELS)}, got {config.noise!r}")
     out = Path(out_dir)
     room = make_room(name, seed=config.seed)
     K = _intrinsics(config.width, config.height, config.focal, config.focal_over_width)
@@ -210,6 +222,19 @@ def capture_room(
         zfar=50.0,
     ) as renderer:
         rgbs, depths = _render_all(renderer, poses, K, f"capture {name}", config.progress)
+    settings = dataclasses.asdict(config)
+    noise: dict = {}
+    if config.noise == "ideal":
+        # An ideal capture's metadata names no noise settings: the fields trained on it are
+        # cached under a hash of its bytes, which adding noise options must not change.
+        del settings["noise"], settings["noise_seed"]
+    else:
+        true_poses = poses
+        level = NOISE_LEVELS[config.noise]
+        rgbs, depths, poses = noisy_capture_frames(rgbs, depths, poses, K, level, config.noise_seed)
+        write_true_poses(out, true_poses, config.noise, config.noise_seed)
+        noise = {"noise": {"level": config.noise, "seed": config.noise_seed,
+                           "true_poses_path": TRUE_POSES_NAME, "config": dataclasses.asdict(level)}}
     instances: list[Instance] = []
     for inst, mesh in zip(room.instances, meshes):
         path = out / "meshes" / f"{inst.id}.ply"
@@ -226,7 +251,8 @@ def capture_room(
         "seed": config.seed,
         "generator": GENERATOR,
         "coverage": config.coverage,
-        "config": dataclasses.asdict(config),
+        "config": settings,
+        **noise,
     }
     write_capture(
         out,

@@ -42,10 +42,13 @@ import numpy as np
 import trimesh
 
 from regnf.core.atomic_io import atomic_path, write_json
+from regnf.core.preflight import JsonInputError, input_file_problem, read_json_input
 from regnf.synthetic.instance import Instance
 
 META_NAME = "meta_data.json"
 """File name of the capture's metadata."""
+MAX_META_BYTES = 256 * 2**20
+"""Largest capture metadata file read, in bytes (about 400,000 frames)."""
 
 SPLITS = ("train", "test", "val")
 """Accepted frame splits; frames without one are training frames."""
@@ -464,12 +467,14 @@ def load_capture(path: str | Path) -> Capture:
     # paths, provenance and cache keys do not depend on the working directory.
     meta_path = Path(os.path.abspath(meta_path))
     root = meta_path.parent
-    if not meta_path.is_file():
-        raise CaptureError(f"{meta_path}: file not found (is this a capture folder?)")
+    problem = input_file_problem(meta_path, "file not found (is this a capture folder?)")
+    if problem is not None:
+        raise CaptureError(f"{meta_path}: {problem}")
     try:
-        data = json.loads(meta_path.read_text(encoding="utf-8"))
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise CaptureError(f"{meta_path}: invalid JSON ({exc})") from exc
+        data = read_json_input(meta_path, None, "capture metadata", MAX_META_BYTES)
+    except JsonInputError as exc:
+        bad_text = isinstance(exc.__cause__, (UnicodeDecodeError, json.JSONDecodeError))
+        raise CaptureError(f"{meta_path}: " + (f"invalid JSON ({exc.__cause__})" if bad_text else exc.problem)) from exc
     if not isinstance(data, dict):
         raise CaptureError(f"{meta_path}: top level must be a JSON object")
     for key in ("height", "width", "frames"):

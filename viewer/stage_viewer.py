@@ -25,15 +25,23 @@ render delays only the next image, not the panel. A newer camera supersedes a qu
 an image whose camera moved while it rendered is dropped.
 
 The stage is read (and refused with the same one-line error as ``regnf stage show``) before
-any server starts.
+any server starts, and the port is checked free (:mod:`regnf.viewer.trust`).
+
+Only the viewer's own page edits: requests must name the viewer's address and carry the
+session's token (:attr:`StageViewer.url`; :mod:`regnf.viewer.trust`), and what a page sends is
+checked before use (:mod:`regnf.viewer.messages`). A stage changed on disk by another program
+is reloaded, on a timer and before each edit (:mod:`regnf.viewer.stage_watch`); a write it
+makes stale is refused with a message in the panel.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
+import secrets
 import threading
 import time
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -43,30 +51,39 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from regnf.compositor.from_stage import StageComposite, composite_from_scene
+from regnf.compositor.render_folder import MAX_PIXELS
 from regnf.compositor.replace import pick_replacements, swapped
 from regnf.compositor.stage_config import StageCompositeConfig
 from regnf.core.cameras import look_at
 from regnf.core.image_io import rgb_to_uint8
-from regnf.core.threads import one_thread
 from regnf.neural_fields.camera import Camera
 from regnf.neural_fields.distance_grid import DistanceGrid
-from regnf.neural_fields.oriented_box import OrientedBox
 from regnf.neural_fields.sphere_tracer import SphereTracerConfig, render
-from regnf.registration.pipeline import RegistrationConfig, register, sample_pair
-from regnf.registration.result import registration_payload
-from regnf.registration.transform import SimilarityTransform
 from regnf.scene_graph import (
     SCENE_PRIM,
     ComposedScene,
     add_instance_from_registration,
     discovery_line,
-    instance_path,
     load_record_field,
     original_selections,
-    provenance_from_registration,
     read_stage,
-    set_instance,
+    replacement_base,
 )
+from regnf.viewer import messages
+from regnf.viewer.editing import (
+    DEFAULT_BOX_SIZE,
+    MIN_BOX_SIZE,
+    EditState,
+    SampleSets,
+    gone,
+    instance_samples,
+    refine_from_pose,
+    register_box,
+    write_refined,
+)
+from regnf.viewer.messages import MAX_ASPECT, one_line_errors, one_line_logs, quiet, render_size
+from regnf.viewer.stage_watch import StageWatcher, stamp
+from regnf.viewer.trust import check_host, free_port, guarded_server, page_url, uninstall
 
 VIEWS = ("proxies", "scene field", "substitution", "replacement")
 """What the viewport shows: the stage's proxy meshes, or a field render of one composite."""
@@ -74,8 +91,6 @@ CHANNELS = ("rgb", "depth", "instance id")
 """Which image of a field render is shown."""
 
 _MODE_OF_VIEW = {"scene field": "scene", "substitution": "substitute", "replacement": "substitute"}
-HAND_METHOD = "refined from a pose set by hand in regnf view"
-"""Appended to the registration method of an instance corrected in the viewer."""
 SCENE_SAMPLES_RGB = (40, 110, 255)
 """Colour of a selected registration's scene samples (the benchmark's pictures use blue too)."""
 LIBRARY_SAMPLES_RGB = (255, 140, 0)
@@ -83,9 +98,6 @@ LIBRARY_SAMPLES_RGB = (255, 140, 0)
 OPENING_GRACE_S = 3.0
 """Seconds after a browser connects during which its camera reports count only once they show
 the opening view (see ``StageViewer._on_connect``)."""
-NEW_BOX_PAD = 0.1
-"""Without a recorded proposal box, refinement uses the library object's box at the dragged
-pose grown by this fraction (the scene side is sampled inside it)."""
 
 
 @dataclass(frozen=True)
@@ -93,9 +105,11 @@ class ViewerConfig:
     """Settings of :func:`serve`."""
 
     port: int = 8080
-    """TCP port of the viewer's web page."""
+    """TCP port of the viewer's web page (0: any free one); a port in use is refused."""
     host: str = "127.0.0.1"
-    """Interface to listen on; the default serves this machine only (``0.0.0.0``: every one)."""
+    """Interface to listen on; the default serves this machine only (others need allow_remote_edits)."""
+    allow_remote_edits: bool = False
+    """Accept a non-loopback ``host``: whoever has the printed URL can then edit the stage."""
     device: str = "cpu"
     """Where the fields are loaded and rendered (``cpu`` or ``cuda``)."""
     coarse_pixels: int = 64 * 48
@@ -124,20 +138,27 @@ class ViewerConfig:
     allow_outside: bool = False
     """Open asset paths of the stage that lie outside its folder (refused by default, as in
     ``regnf stage show``)."""
+    stage_poll_seconds: float = 1.0
+    """Seconds between two checks of the stage's files for changes made by another program."""
 
     def __post_init__(self) -> None:
         if not 0 <= self.port <= 65535:
             raise ValueError(f"port must be in [0, 65535], got {self.port}")
+        check_host(self.host, self.allow_remote_edits)
         if self.coarse_pixels < 1 or self.refined_pixels < self.coarse_pixels:
             raise ValueError("need 1 <= coarse_pixels <= refined_pixels, got "
                              f"{self.coarse_pixels} and {self.refined_pixels}")
+        if self.refined_pixels > MAX_PIXELS:
+            raise ValueError(f"refined_pixels must be at most {MAX_PIXELS:,}, got {self.refined_pixels:,}")
+        if not (math.isfinite(self.stage_poll_seconds) and self.stage_poll_seconds > 0):
+            raise ValueError(f"stage_poll_seconds must be finite and > 0, got {self.stage_poll_seconds}")
         for name in ("rest_seconds", "opening_rest_seconds"):
             if not (math.isfinite(getattr(self, name)) and getattr(self, name) >= 0):
                 raise ValueError(f"{name} must be finite and >= 0, got {getattr(self, name)}")
         if not 0.05 < self.opening_fov < 3.0:
             raise ValueError(f"opening_fov must be in (0.05, 3) radians, got {self.opening_fov}")
-        if not (math.isfinite(self.opening_aspect) and self.opening_aspect >= 1.0):
-            raise ValueError(f"opening_aspect must be >= 1, got {self.opening_aspect}")
+        if not (math.isfinite(self.opening_aspect) and 1.0 <= self.opening_aspect <= MAX_ASPECT):
+            raise ValueError(f"opening_aspect must be in [1, {MAX_ASPECT:g}], got {self.opening_aspect}")
 
 
 class ViewRequest(NamedTuple):
@@ -158,9 +179,9 @@ class ViewRequest(NamedTuple):
 
 
 def viewer_camera(request: ViewRequest, pixels: int) -> Camera:
-    """The pinhole camera of ``request`` with about ``pixels`` square pixels, centred."""
-    w = max(1, round(math.sqrt(pixels * request.aspect)))
-    h = max(1, round(w / request.aspect))
+    """The pinhole camera of ``request`` with about ``pixels`` square pixels, centred (its size
+    bounded by :func:`regnf.viewer.messages.render_size`)."""
+    w, h = render_size(pixels, request.aspect)
     f = 0.5 * h / math.tan(0.5 * request.fov_y)
     K = np.array([[f, 0.0, 0.5 * w], [0.0, f, 0.5 * h], [0.0, 0.0, 1.0]])
     return Camera(K, w, h, request.camera_to_world)
@@ -434,133 +455,18 @@ def instance_table(scene: ComposedScene) -> str:
     return "\n".join(rows)
 
 
-@dataclass
-class EditState:
-    """An instance being corrected in the viewer."""
-
-    instance_id: str
-    scale: float
-    """The instance's scale (the gizmo moves and turns; the refinement finds the scale)."""
-    gizmo: Any
-    """viser's transform controls."""
-    payload: dict | None = None
-    """The refined registration (``regnf register --out``'s JSON), once refined."""
-
-
-def instance_fields(scene: ComposedScene, composites: Composites, instance_id: str) -> tuple[Any, Any]:
-    """The scene field and the library field of instance ``instance_id`` (loaded once)."""
-    rec = scene.library[scene.instances[instance_id].library_name]
-    return composites.field(SCENE_PRIM, scene.scene), composites.field(instance_path(instance_id), rec)
-
-
-def instance_proposal(inst: Any, scene_field: Any, library_field: Any, object_to_scene: np.ndarray) -> OrientedBox:
-    """The proposal box (scene field frame) of an instance: the one recorded with its
-    registration, or (placed by hand) the library object's box at ``object_to_scene`` (4, 4)
-    grown by :data:`NEW_BOX_PAD`."""
-    reg = inst.registration
-    if reg is not None and reg.proposal_center is not None and reg.proposal_half_extents is not None:
-        return OrientedBox(reg.proposal_center, reg.proposal_half_extents, reg.proposal_rotation)
-    S = scene_field.to_world.detach().cpu().double().numpy()
-    L = library_field.to_world.detach().cpu().double().numpy()
-    return OrientedBox.from_bounds(library_field.bounds, np.linalg.inv(S) @ object_to_scene @ L).inflated(NEW_BOX_PAD)
-
-
-class SampleSets(NamedTuple):
-    """The two point sets a registration of an instance compares, in scene metres."""
-
-    scene: np.ndarray
-    """(n, 3) float64 surface samples of the scene field inside the proposal box."""
-    library: np.ndarray
-    """(m, 3) float64 surface samples of the library field, placed by the instance's pose."""
-
-
-def instance_samples(scene: ComposedScene, composites: Composites, instance_id: str,
-                     config: RegistrationConfig | None = None) -> SampleSets:
-    """The registration's two sample sets of instance ``instance_id`` at its recorded pose.
-
-    The sampling is the registration's own (:func:`regnf.registration.pipeline.sample_pair`,
-    on one thread as :func:`~regnf.registration.register` runs it: the same points for the same
-    fields, box and settings); ``config`` defaults to the registration's defaults (what
-    ``regnf register`` and the demo use). The library samples are placed by the stage's
-    transform, so a right pose puts them on the scene samples.
-    """
-    inst = scene.instances[instance_id]
-    scene_field, library_field = instance_fields(scene, composites, instance_id)
-    S = scene_field.to_world.detach().cpu().double().numpy()
-    L = library_field.to_world.detach().cpu().double().numpy()
-    O = np.asarray(inst.object_to_scene, dtype=np.float64)
-    proposal = instance_proposal(inst, scene_field, library_field, O)
-    with one_thread():
-        a, b = sample_pair(scene_field, library_field, proposal, config or RegistrationConfig())
-    to_metres = O @ L
-    return SampleSets(np.asarray(a.points, dtype=np.float64) @ S[:3, :3].T + S[:3, 3],
-                      np.asarray(b.points, dtype=np.float64) @ to_metres[:3, :3].T + to_metres[:3, 3])
-
-
-def refine_from_pose(stage: Path, scene: ComposedScene, composites: Composites, instance_id: str,
-                     object_to_scene: np.ndarray) -> dict:
-    """The registration of instance ``instance_id`` refined from the pose ``object_to_scene``
-    (4, 4) (object -> scene metres), as ``regnf register --out`` writes it.
-
-    The proposal box is the one recorded with the instance, or (placed by hand) the library
-    object's box at ``object_to_scene`` grown by :data:`NEW_BOX_PAD`.
-    """
-    scene_field, library_field = instance_fields(scene, composites, instance_id)
-    S = scene_field.to_world.detach().cpu().double().numpy()
-    L = library_field.to_world.detach().cpu().double().numpy()
-    O = np.asarray(object_to_scene, dtype=np.float64)
-    # scene field -> metres -> the object's canonical metres -> library field
-    start = SimilarityTransform.from_matrix(np.linalg.inv(L) @ np.linalg.inv(O) @ S)
-    proposal = instance_proposal(scene.instances[instance_id], scene_field, library_field, O)
-    result = register(scene_field, library_field, proposal, initial=start)
-    rec = scene.library[scene.instances[instance_id].library_name]
-    payload = registration_payload(result, scene_field, library_field, scene.scene.checkpoint, rec.checkpoint)
-    payload["method"] = f"{result.method}, {HAND_METHOD}"
-    return payload
-
-
-def register_box(scene: ComposedScene, composites: Composites, library_name: str,
-                 box_to_scene: np.ndarray, half_extents: np.ndarray) -> dict:
-    """The registration of library object ``library_name`` inside a box drawn in the viewer, as
-    ``regnf register --out`` writes it.
-
-    Parameters
-    ----------
-    box_to_scene : (4, 4) float
-        Rigid pose of the box (its centre and axes) in scene metres.
-    half_extents : (3,) float
-        Half sizes in metres.
-    """
-    rec = scene.library[library_name]
-    scene_field = composites.field(SCENE_PRIM, scene.scene)
-    library_field = composites.field(f"library object {library_name!r}", rec)
-    S = scene_field.to_world.detach().cpu().double().numpy()
-    box_m = OrientedBox(box_to_scene[:3, 3], half_extents, box_to_scene[:3, :3])
-    result = register(scene_field, library_field, box_m.transformed(np.linalg.inv(S)))
-    payload = registration_payload(result, scene_field, library_field, scene.scene.checkpoint, rec.checkpoint)
-    payload["library_name"] = library_name
-    payload["method"] = f"{result.method}, inside a box drawn in regnf view"
-    return payload
-
-
-def write_refined(stage: Path, instance_id: str, payload: dict, allow_outside: bool = False) -> None:
-    """Write a refined registration (:func:`refine_from_pose`) to instance ``instance_id``:
-    accepted by the user, so recorded as forced when below the acceptance threshold."""
-    provenance = provenance_from_registration(payload, forced=not payload["accepted"])
-    set_instance(stage, instance_id, np.asarray(payload["object_to_scene_metres"], dtype=np.float64),
-                 provenance, allow_outside=allow_outside)
-
-
 class StageViewer:
     """A running viewer of one stage: the viser server, its panel and the render worker."""
 
     def __init__(self, stage: str | Path, config: ViewerConfig = ViewerConfig()) -> None:
-        import viser
-
         self.stage = Path(stage)
         # Read (and refuse) the stage before any socket is opened.
+        before = stamp(self.stage)
         self.scene = read_stage(self.stage, allow_outside=config.allow_outside)
+        base = replacement_base(self.stage, allow_outside=config.allow_outside)
         self.config = config
+        # A port in use is refused before the fields load and the first image renders.
+        port = free_port(config.host, config.port)
         self.composites = Composites(self.stage, self.scene, config)
         # The first view's composite (fields loaded, empty-space grid built: 3.6 s for the demo
         # room) is made before the server starts, so that a browser's first image needs only
@@ -575,7 +481,13 @@ class StageViewer:
                                 "substitution", "rgb", 0)
             wide = round(config.coarse_pixels * config.opening_aspect * 0.75)  # a 4:3 coarse image's height
             opening = (first, render_request(self.composites, first, wide, config))
-        self.server = viser.ViserServer(host=config.host, port=config.port, verbose=False)
+        self.token = secrets.token_urlsafe(24)
+        """The session's token: the page's URL carries it (:attr:`url`)."""
+        self.server, self._guard = guarded_server(config.host, port, self.token)
+        one_line_errors(self.server._websock_server._background_event_loop)  # viser has no public handle
+        one_line_logs()
+        # An image finished after its page closed has nowhere to go: not worth a warning.
+        warnings.filterwarnings("ignore", message="Queued a .* on a closed connection", category=UserWarning)
         self.server.scene.set_up_direction("+z")
         camera = self.server.initial_camera
         camera.position, camera.look_at, camera.up, camera.fov = eye, target, (0.0, 0.0, 1.0), config.opening_fov
@@ -594,12 +506,28 @@ class StageViewer:
         self._add_panel()
         self._add_editing()
         self.worker = RenderWorker(self.composites, config, self._show, opening)
-        self.server.on_client_connect(self._on_connect)
+        self.server.on_client_connect(self._quiet(self._on_connect, "a new page"))
         self.server.on_client_disconnect(lambda client: self.worker.forget(client.client_id))
+        self.watch = StageWatcher(self.stage, base, tuple(sorted(before + stamp(base) if base else before)),
+                                  self._reload_from_disk, config.stage_poll_seconds)
+        self.watch.start()
 
     @property
     def port(self) -> int:
         return int(self.server.get_port())
+
+    @property
+    def url(self) -> str:
+        """The page's URL, with the session's token (what ``regnf view`` prints)."""
+        return page_url(self.config.host, self.port, self.token)
+
+    def _quiet(self, callback: Any, what: str, status: Any = None) -> Any:
+        """``callback`` for viser, whose error is one logged line (and shown in ``status``)."""
+        def report(line: str) -> None:
+            if status is not None:
+                status.content = line
+
+        return quiet(callback, what, report)
 
     # -- the stage ---------------------------------------------------------------------------
     def _add_proxies(self) -> None:
@@ -625,18 +553,36 @@ class StageViewer:
             self.status = gui.add_markdown("")
         with gui.add_folder("Instances"):
             self.table = gui.add_markdown(instance_table(self.scene))
+            self.stage_status = gui.add_markdown("")
             ids = list(self.scene.instances) or ["(none)"]
             self.selected = gui.add_dropdown("selected", ids, initial_value=ids[0])
             self.show_samples = gui.add_checkbox("show sample sets", initial_value=False)
             self.details = gui.add_markdown("")
             self.samples_status = gui.add_markdown("")
-        self.view.on_update(lambda _: self._show_proxies())
-        for handle in (self.view, self.channel, self.seed):
-            handle.on_update(lambda _: self._request_all())
-        self.selected.on_update(lambda _: self._select())
-        self.show_samples.on_update(lambda _: self.update_samples())
+        for handle, what in ((self.view, "show"), (self.channel, "channel"), (self.seed, "replacement seed")):
+            handle.on_update(self._quiet(lambda event: self._view_changed(event.target), what, self.status))
+        self.selected.on_update(self._quiet(lambda _: self._select(), "select", self.details))
+        self.show_samples.on_update(self._quiet(lambda _: self.update_samples(), "show sample sets",
+                                                self.samples_status))
         self._select()
         self._show_proxies()
+
+    def _view_changed(self, handle: Any) -> None:
+        """A choice of the View panel changed: an unknown one (logged) is put back, else the
+        proxies and every client's image follow."""
+        if handle is self.seed:
+            if messages.seed(handle.value) is None:
+                handle.value = 0  # its own update follows
+                return
+        else:
+            names, fallback, what = ((VIEWS, "substitution", "view") if handle is self.view
+                                     else (CHANNELS, "rgb", "channel"))
+            if messages.known(handle.value, names, what) is None:
+                handle.value = fallback  # its own update follows
+                return
+        if handle is self.view:
+            self._show_proxies()
+        self._request_all()
 
     def _show_proxies(self) -> None:
         visible = self.view.value == "proxies"
@@ -656,6 +602,8 @@ class StageViewer:
             self._box.remove()
             self._box = None
         if inst is None:
+            if self.selected.value != "(none)":
+                messages.ignored("an unknown instance", self.selected.value)
             self.details.content = ""
             return
         reg = inst.registration
@@ -734,26 +682,46 @@ class StageViewer:
         with gui.add_folder("New instance", expand_by_default=False):
             names = sorted(self.scene.library) or ["(empty library)"]
             self.new_object = gui.add_dropdown("library object", names, initial_value=names[0])
-            self.new_size = gui.add_vector3("box size (m)", initial_value=(0.7, 0.7, 1.0),
-                                            min=(0.05, 0.05, 0.05), step=0.05)
+            self.new_size = gui.add_vector3("box size (m)", initial_value=DEFAULT_BOX_SIZE,
+                                            min=(MIN_BOX_SIZE,) * 3, step=0.05)
             self.draw_button = gui.add_button("draw box")
             self.register_button = gui.add_button("register box", disabled=True)
             self.add_button = gui.add_button("add instance", disabled=True)
             self.new_status = gui.add_markdown("")
         self.new_box: dict[str, Any] = {}
-        self.draw_button.on_click(lambda _: self.draw_box())
-        self.register_button.on_click(lambda _: self.register_box_async())
-        self.add_button.on_click(lambda _: self.add_new_instance())
-        self.new_size.on_update(lambda _: self._size_box())
-        self.move_button.on_click(lambda _: self.start_edit(self.selected.value))
-        self.refine_button.on_click(lambda _: self.refine_async())
-        self.accept_button.on_click(lambda _: self.accept())
-        self.reject_button.on_click(lambda _: self.reject())
+        for handle, action, what, status in (
+                (self.draw_button, lambda: self.draw_box(), "draw box", self.new_status),
+                (self.register_button, lambda: self.register_box_async(), "register box", self.new_status),
+                (self.add_button, lambda: self.add_new_instance(), "add instance", self.new_status),
+                (self.move_button, lambda: self.start_edit(self.selected.value), "move selected", self.edit_status),
+                (self.refine_button, lambda: self.refine_async(), "refine", self.edit_status),
+                (self.accept_button, lambda: self.accept(), "accept", self.edit_status),
+                (self.reject_button, lambda: self.reject(), "reject", self.edit_status)):
+            handle.on_click(self._quiet(lambda _, act=action: act(), what, status))
+        self.new_size.on_update(self._quiet(lambda _: self._size_box(), "box size", self.new_status))
+
+    def _stage_ready(self, status: Any, action: str, write: bool = False) -> bool:
+        """Whether ``action`` may go on. The stage is reloaded first if another program changed
+        it; the action is refused (``status`` says why) while the stage on disk cannot be read
+        and, for a write, when it has just changed (the user sees the new stage first)."""
+        changed = self.watch.sync()
+        if self.watch.error is not None:
+            status.content = f"{action} refused: the stage on disk cannot be read now ({self.watch.error})"
+            return False
+        if changed and write:
+            status.content = (f"{self.stage.name} was changed on disk by another program and is reloaded: "
+                              f"check it, then press {action} again")
+            return False
+        return True
 
     def start_edit(self, iid: str) -> None:
         """Put a transform gizmo, with the library proxy, on instance ``iid``."""
+        if not self._stage_ready(self.edit_status, "move selected"):
+            return
         inst = self.scene.instances.get(iid)
-        if inst is None:
+        if inst is None or inst.library_name not in self.scene.library:
+            messages.ignored("an unknown instance", iid)
+            self.edit_status.content = f"no instance **{iid}** in the stage: choose one in the list"
             return
         self.reject()
         M = inst.object_to_scene
@@ -770,20 +738,28 @@ class StageViewer:
         self.accept_button.disabled = True
         self.edit_status.content = f"drag **{iid}** near its place, then press refine"
 
-    def gizmo_pose(self) -> np.ndarray:
-        """(4, 4) object -> scene metres of the gizmo, at the edited instance's scale."""
+    def gizmo_pose(self) -> np.ndarray | None:
+        """(4, 4) object -> scene metres of the gizmo, at the edited instance's scale (None,
+        logged, when what the client sent is not a pose)."""
         assert self.edit is not None
         g = self.edit.gizmo
-        return client_pose(g.position, g.wxyz) @ np.diag([self.edit.scale] * 3 + [1.0])
+        placed = messages.pose(g.position, g.wxyz, "the gizmo")
+        return None if placed is None else client_pose(*placed) @ np.diag([self.edit.scale] * 3 + [1.0])
 
     def refine_async(self) -> threading.Thread | None:
         """Start :meth:`refine` on its own thread (never in a GUI callback's)."""
-        if self.edit is None:
+        if self.edit is None or not self._stage_ready(self.edit_status, "refine"):
+            return None
+        edit = self.edit
+        if edit is None:
+            return None  # its instance left the stage: the reload said so
+        start = self.gizmo_pose()
+        if start is None:
+            self.edit_status.content = f"the pose of **{edit.instance_id}**'s gizmo is not a pose: move it again"
             return None
         self.refine_button.disabled = True
-        self.edit_status.content = f"refining **{self.edit.instance_id}** ..."
-        start = self.gizmo_pose()
-        thread = threading.Thread(target=self._refine_job, args=(self.edit, start), daemon=True)
+        self.edit_status.content = f"refining **{edit.instance_id}** ..."
+        thread = threading.Thread(target=self._refine_job, args=(edit, start), daemon=True)
         thread.start()
         return thread
 
@@ -811,22 +787,41 @@ class StageViewer:
 
     def accept(self) -> None:
         """Write the refined pose of the edited instance to the stage."""
-        with self._edit_lock:
-            edit = self.edit
-            if edit is None or edit.payload is None:
+        edit = self.edit
+        if edit is None or edit.payload is None:
+            return
+        with self.watch.lock:  # no reload between the check and the write
+            ready = self._stage_ready(self.edit_status, "accept", write=True)
+            if self.edit is not edit:
+                self.edit_status.content = gone(edit.instance_id)
                 return
-            write_refined(self.stage, edit.instance_id, edit.payload, self.config.allow_outside)
+            if not ready:
+                return
+            try:
+                with self.watch.writing():
+                    write_refined(self.stage, edit.instance_id, edit.payload, self.config.allow_outside)
+            except Exception as exc:  # noqa: BLE001 (reported in the panel; the stage is unchanged)
+                self.edit_status.content = f"accept failed: {' '.join(str(exc).split())}"
+                return
+        self._end_edit(edit, f"**{edit.instance_id}** written to {self.stage.name}")
+
+    def _end_edit(self, edit: EditState, message: str) -> None:
+        """Remove the gizmo of ``edit`` (if still the current one) and say ``message``."""
+        with self._edit_lock:
+            if self.edit is not edit:
+                return
             self.edit = None
         self.server.scene.remove_by_name("/edit/gizmo")
         for button in (self.refine_button, self.accept_button, self.reject_button):
             button.disabled = True
-        self._reload()
-        self.edit_status.content = f"**{edit.instance_id}** written to {self.stage.name}"
+        self.edit_status.content = message
 
     def draw_box(self) -> None:
         """A proposal box standing on the floor below the scene's centre, with a gizmo."""
+        if not self._stage_ready(self.new_status, "draw box"):
+            return
         lo, hi = self.scene.scene.proxy.extent.astype(np.float64)
-        half = 0.5 * np.asarray(self.new_size.value, dtype=np.float64)
+        half = 0.5 * self._box_size()
         centre = np.array([0.5 * (lo[0] + hi[0]), 0.5 * (lo[1] + hi[1]), max(lo[2], 0.0) + half[2]])
         gizmo = self.server.scene.add_transform_controls("/new/gizmo", scale=float(max(half.max(), 0.3)),
                                                           position=tuple(centre))
@@ -836,22 +831,39 @@ class StageViewer:
         self.add_button.disabled = True
         self.new_status.content = "drag the box around an object, choose the object, press register box"
 
+    def _box_size(self) -> np.ndarray:
+        """(3,) size in metres of the panel's box, within [MIN_BOX_SIZE, the room's largest side];
+        a size that is not finite (logged) is put back to the default."""
+        lo, hi = self.scene.scene.proxy.extent.astype(np.float64)
+        size = messages.box_size(self.new_size.value, MIN_BOX_SIZE, max(float((hi - lo).max()), MIN_BOX_SIZE))
+        size = np.asarray(DEFAULT_BOX_SIZE) if size is None else size
+        if tuple(size) != tuple(self.new_size.value):
+            self.new_size.value = tuple(float(v) for v in size)  # its own update redraws the box
+        return size
+
     def _size_box(self) -> None:
         if self.new_box:
             self.server.scene.add_box("/new/gizmo/box", color=(60, 200, 255),
-                                      dimensions=tuple(float(v) for v in self.new_size.value), wireframe=True)
+                                      dimensions=tuple(float(v) for v in self._box_size()), wireframe=True)
 
-    def new_box_pose(self) -> tuple[np.ndarray, np.ndarray]:
-        """(4, 4) rigid pose in scene metres and (3,) half extents of the drawn box."""
+    def new_box_pose(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """(4, 4) rigid pose in scene metres and (3,) half extents of the drawn box (None, logged,
+        when what the client sent is not a pose)."""
         g = self.new_box["gizmo"]
-        return client_pose(g.position, g.wxyz), 0.5 * np.asarray(self.new_size.value, dtype=np.float64)
+        placed = messages.pose(g.position, g.wxyz, "the box")
+        return None if placed is None else (client_pose(*placed), 0.5 * self._box_size())
 
     def register_box_async(self) -> threading.Thread | None:
         """Start the registration inside the drawn box on its own thread."""
-        if not self.new_box:
+        if not self.new_box or not self._stage_ready(self.new_status, "register box"):
             return None
-        pose, half = self.new_box_pose()
-        name = self.new_object.value
+        placed = self.new_box_pose()
+        name = messages.known(self.new_object.value, self.scene.library, "library object")
+        if placed is None or name is None:
+            self.new_status.content = ("the box's pose is not a pose: move it again" if placed is None else
+                                       f"no library object **{self.new_object.value}** in the stage: choose one")
+            return None
+        pose, half = placed
         self.register_button.disabled = True
         self.new_status.content = f"registering **{name}** ..."
         box = self.new_box
@@ -882,18 +894,37 @@ class StageViewer:
         payload = self.new_box.get("payload") if self.new_box else None
         if payload is None:
             return None
-        iid = add_instance_from_registration(self.stage, payload, force=not payload["accepted"],
-                                             allow_outside=self.config.allow_outside)
+        with self.watch.lock:  # no reload between the check and the write
+            if not self._stage_ready(self.new_status, "add instance", write=True):
+                return None
+            try:
+                with self.watch.writing():
+                    iid = add_instance_from_registration(self.stage, payload, force=not payload["accepted"],
+                                                         allow_outside=self.config.allow_outside)
+            except Exception as exc:  # noqa: BLE001 (reported in the panel; the stage is unchanged)
+                self.new_status.content = f"add instance failed: {' '.join(str(exc).split())}"
+                return None
         self.server.scene.remove_by_name("/new/gizmo")
         self.new_box = {}
         self.register_button.disabled = True
         self.add_button.disabled = True
-        self._reload()
         self.new_status.content = f"**{iid}** added to {self.stage.name}"
         return iid
 
+    def _reload_from_disk(self, other: bool) -> None:
+        """:meth:`_reload` for the stage's watcher (``other``: another program changed it)."""
+        try:
+            self._reload()
+        except (ValueError, OSError) as exc:
+            self.stage_status.content = (f"{self.stage.name} changed on disk and cannot be read now; shown as it "
+                                         f"was, edits wait: {' '.join(str(exc).split())}")
+            raise
+        self.stage_status.content = (f"{self.stage.name} was changed on disk by another program: reloaded"
+                                     if other else "")
+
     def _reload(self) -> None:
-        """Re-read the stage after an edit: proxies, table, composites, renders."""
+        """Re-read the stage after an edit or a change on disk: proxies, table, lists,
+        composites, renders; an edit whose instance left the stage is dropped."""
         self.scene = read_stage(self.stage, allow_outside=self.config.allow_outside)
         self.composites.reset(self.scene)
         for mesh in self._meshes:
@@ -903,19 +934,18 @@ class StageViewer:
         self.table.content = instance_table(self.scene)
         ids = list(self.scene.instances) or ["(none)"]
         self.selected.options = ids
+        self.new_object.options = sorted(self.scene.library) or ["(empty library)"]
         self._select()
+        edit = self.edit
+        if edit is not None and edit.instance_id not in self.scene.instances:
+            self._end_edit(edit, gone(edit.instance_id))
         self._request_all()
 
     def reject(self) -> None:
         """Drop the edit: the stage is left untouched."""
-        with self._edit_lock:
-            if self.edit is None:
-                return
-            self.edit = None
-        self.server.scene.remove_by_name("/edit/gizmo")
-        for button in (self.refine_button, self.accept_button, self.reject_button):
-            button.disabled = True
-        self.edit_status.content = "edit dropped; the stage is unchanged"
+        edit = self.edit
+        if edit is not None:
+            self._end_edit(edit, "edit dropped; the stage is unchanged")
 
     # -- clients and renders -----------------------------------------------------------------
     def _on_connect(self, client: Any) -> None:
@@ -929,8 +959,10 @@ class StageViewer:
 
         def camera_moved(_: Any) -> None:
             if not settled[0]:
-                cam = client.camera
-                reported = ViewRequest(client_pose(cam.position, cam.wxyz), float(cam.fov), 1.0, "", "", 0)
+                cam = messages.camera(client.camera.position, client.camera.wxyz, client.camera.fov)
+                if cam is None:
+                    return
+                reported = ViewRequest(client_pose(cam[0], cam[1]), cam[2], 1.0, "", "", 0)
                 opening = ViewRequest(look_at(self.server.initial_camera.position, self.server.initial_camera.look_at),
                                       float(self.server.initial_camera.fov), 1.0, "", "", 0)
                 settled[0] = same_camera(reported, opening) or time.monotonic() - connected > OPENING_GRACE_S
@@ -938,7 +970,7 @@ class StageViewer:
                     return
             self._request(client)
 
-        client.camera.on_update(camera_moved)
+        client.camera.on_update(self._quiet(camera_moved, "a camera update", self.status))
         self._request(client, opening=True)
 
     def _request_all(self) -> None:
@@ -946,14 +978,25 @@ class StageViewer:
             self._request(client)
 
     def _request(self, client: Any, opening: bool = False) -> None:
+        """Ask the worker for ``client``'s view: its camera (or the opening one) and the panel's
+        choices, each checked (:mod:`regnf.viewer.messages`); one that is not usable (logged)
+        asks for nothing."""
         cam = client.camera
-        aspect = float(cam.aspect) if cam.aspect and cam.aspect > 0 else 4.0 / 3.0
+        aspect = messages.viewport_aspect(cam.image_width, cam.image_height)
         if opening:
             initial = self.server.initial_camera
             pose, fov = look_at(initial.position, initial.look_at), float(initial.fov)
         else:
-            pose, fov = client_pose(cam.position, cam.wxyz), float(cam.fov)
-        req = ViewRequest(pose, fov, aspect, self.view.value, self.channel.value, int(self.seed.value))
+            got = messages.camera(cam.position, cam.wxyz, cam.fov)
+            if got is None:
+                return
+            pose, fov = client_pose(got[0], got[1]), got[2]
+        view = messages.known(self.view.value, VIEWS, "view")
+        channel = messages.known(self.channel.value, CHANNELS, "channel")
+        seed = messages.seed(self.seed.value)
+        if view is None or channel is None or seed is None:
+            return
+        req = ViewRequest(pose, fov, aspect, view, channel, seed)
         self.worker.request(client.client_id, req, self.config.opening_rest_seconds if opening else None)
 
     def _show(self, client_id: int, image: np.ndarray, level: str) -> None:
@@ -967,15 +1010,18 @@ class StageViewer:
             self.status.content += f"\n\nlast error: {self.worker.errors[-1]}"
 
     def close(self) -> None:
-        """Stop the render worker and the server."""
+        """Stop the stage's watcher, the render worker and the server."""
+        self.watch.stop()
         self.worker.stop()
         self.server.stop()
+        uninstall(self._guard)
 
 
 def serve(stage: str | Path, config: ViewerConfig = ViewerConfig()) -> StageViewer:
-    """Start a viewer of ``stage`` (returns at once; :meth:`StageViewer.close` stops it).
+    """Start a viewer of ``stage`` (returns at once; :meth:`StageViewer.close` stops it; its page
+    is :attr:`StageViewer.url`).
 
     Raises :class:`~regnf.scene_graph.StageError` (naming the stage) before any server starts if
-    the stage cannot be read.
+    the stage cannot be read, and :class:`~regnf.viewer.trust.TrustError` if the port is in use.
     """
     return StageViewer(stage, config)

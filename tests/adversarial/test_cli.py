@@ -27,6 +27,7 @@ from regnf.compositor.placement import PlacedObject
 from regnf.compositor.render_folder import MAX_PIXELS
 from regnf.neural_fields.analytic import Sphere
 from tests.adversarial.disk import changes, snapshot
+from tests.adversarial.mounts import tmpfs
 from tests.regnf.cli_helpers import assert_fails, run_cli
 from tests.scene_graph.helpers import checkpoint
 
@@ -65,14 +66,8 @@ def read_only_dir(tmp_path: Path) -> Iterator[Path]:
         yield folder
         folder.chmod(0o755)
         return
-    made = subprocess.run(["mount", "-t", "tmpfs", "-o", "ro,size=64k", "tmpfs", str(folder)],
-                          capture_output=True, check=False)
-    if made.returncode != 0:
-        pytest.skip(f"cannot make a read-only folder as root here ({made.stderr.decode().strip()})")
-    try:
+    with tmpfs(folder, "ro,size=64k"):
         yield folder
-    finally:
-        subprocess.run(["umount", str(folder)], check=True)
 
 
 def test_a_corrupt_checkpoint_is_one_line_for_mesh_and_register(tmp_path, corrupt, good_box, capsys) -> None:

@@ -125,3 +125,25 @@ def test_files_must_name_the_library(fields: FieldFiles) -> None:
     scene, library = _loaded(fields)
     with pytest.raises(ValueError, match="files name the library objects"):
         discover(scene, library, CONFIG, files=FieldFiles(fields.scene, {"pouf": fields.library["pouf"]}))
+
+
+def test_a_candidate_over_empty_space_is_skipped_in_a_worker_as_here(fields: FieldFiles) -> None:
+    from regnf.neural_fields.oriented_box import OrientedBox
+    from regnf.registration import discovery_workers
+    from regnf.registration.candidates import Candidate
+    from regnf.registration.discovery import examine
+
+    scene, library = _loaded(fields)
+    # Air above the floor, away from every object: the scene's sampling finds no surface there.
+    empty = Candidate(OrientedBox.from_aabb(np.array([-1.2, 0.8, 1.0]), np.array([-0.8, 1.2, 1.4])),
+                      np.zeros((0, 3)))
+    cfg = dataclasses.replace(CONFIG, workers=1)
+    with discovery_workers.DiscoveryWorkers(fields, "cpu", cfg, 1) as pool:
+        samples = pool.library_samples()
+        there, = pool.examine([empty], samples, lambda: None)
+    here = examine(empty, scene, library, samples, cfg)
+    for d in (there, here):
+        assert d.chosen is None and d.tried == []
+        assert d.skipped.startswith("ranking the library in its box: ValueError: ")
+        assert "contains no surface" in d.skipped
+    assert there.skipped == here.skipped

@@ -74,7 +74,7 @@ def opened(stage: Path, browser, **settings) -> Iterator[tuple[StageViewer, Call
     and the page's text; the viewer is closed after."""
     viewer = StageViewer(stage, ViewerConfig(port=free_port(), **settings))
     try:
-        browser.get(f"http://127.0.0.1:{viewer.port}")
+        browser.get(viewer.url)
         wait_for(lambda: len(viewer.server.get_clients()) == 1, 60, "the browser to connect")
         yield viewer, lambda: browser.find_element("tag name", "body").text
     finally:
@@ -130,7 +130,7 @@ def test_the_page_records_when_it_lists_the_instances(stage: Path, browser) -> N
     viewer = StageViewer(stage, ViewerConfig(port=free_port()))
     try:
         t0 = time.monotonic()
-        browser.get(f"http://127.0.0.1:{viewer.port}")
+        browser.get(viewer.url)
         listed = listed_seconds(browser, 60)
         elapsed = time.monotonic() - t0
         assert 0.0 < listed <= elapsed
@@ -142,7 +142,7 @@ def test_the_page_records_when_it_lists_the_instances(stage: Path, browser) -> N
         # An id the page never shows is never recorded.
         browser.execute_cdp_cmd("Page.removeScriptToEvaluateOnNewDocument", {"identifier": watcher})
         watch_instances(browser, ["no_such_instance"])
-        browser.get(f"http://127.0.0.1:{viewer.port}")
+        browser.get(viewer.url)
         with pytest.raises(ValueError, match="did not list its instances within 3 s"):
             listed_seconds(browser, 3)
     finally:
