@@ -21,7 +21,7 @@ from regnf.neural_fields.checkpoint import load_field
 from regnf.neural_fields.evaluation import chamfer_relative, heldout_psnr, surface_error
 from regnf.neural_fields.field import Field
 from regnf.synthetic.capture import RoomCaptureConfig
-from regnf.synthetic.library import LIBRARY_NAMES, make_library_object
+from regnf.synthetic.library import LIBRARY_NAMES, instance_mesh, make_library_object
 from regnf.synthetic.rooms import ROOM_NAMES
 
 QUICK_OBJECTS = ("c", "et")
@@ -83,7 +83,7 @@ def run_fields_benchmark(cache: Cache, quick: bool = False, device: str = "cpu")
             path = cache.object_field(name, source, device)
         else:
             capture = cache.room_capture(name, RoomCaptureConfig(coverage="full"))
-            gt = [inst.world_mesh() for inst in capture.instances]
+            gt = [instance_mesh(inst) for inst in capture.instances]
             path = cache.scene_field(name, "full", device)
         field = load_field(path, device=device)
         # train_seconds is what the training measured itself (kept in the checkpoint's

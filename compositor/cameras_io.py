@@ -1,8 +1,8 @@
 """Cameras to render from: a capture's trajectory, or an orbit inside the scene's bounds.
 
-A capture (:func:`regnf.synthetic.sdfstudio_format.load_capture`) stores OpenCV camera-to-world
+A capture (:func:`regnf.captures.formats.read_capture`) stores OpenCV camera-to-world
 poses in its normalised frame and the pinhole ``K`` of its images (pixel centres at
-``u + 0.5``); :meth:`~regnf.synthetic.sdfstudio_format.Capture.camtoworld_metres` brings the poses
+``u + 0.5``); :meth:`~regnf.captures.model.Capture.camtoworld_metres` brings the poses
 to metres, the frame of a scene field trained from that capture. Both conventions are the
 compositor's own (:mod:`regnf.neural_fields.camera`), so nothing is flipped here. Resizing scales the
 rows of ``K`` by the size ratios: with pixel-centre sampling this keeps every ray through the
@@ -18,10 +18,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from regnf.captures.formats import read_capture
 from regnf.core.cameras import look_at
 from regnf.neural_fields.camera import Camera
 from regnf.neural_fields.field import Field
-from regnf.synthetic.sdfstudio_format import load_capture
 
 
 def resized(camera: Camera, width: int, height: int) -> Camera:
@@ -55,7 +55,7 @@ def cameras_from_capture(
     Parameters
     ----------
     path : str or PathLike
-        A capture folder (or its ``meta_data.json``).
+        A capture folder of any format (or its metadata file).
     width, height : int, optional
         Output size; one alone keeps the aspect ratio; none keeps the capture's.
     indices : sequence of int, optional
@@ -63,14 +63,14 @@ def cameras_from_capture(
 
     Raises
     ------
-    regnf.synthetic.sdfstudio_format.CaptureError
+    regnf.captures.model.CaptureError
         A missing or malformed capture (the message names the file and the frame): poses and
-        intrinsics are checked by :func:`~regnf.synthetic.sdfstudio_format.load_capture` with the
+        intrinsics are checked by :func:`~regnf.captures.formats.read_capture` with the
         rules :class:`~regnf.neural_fields.camera.Camera` applies, so a capture that trains renders.
     ValueError
         An index out of range.
     """
-    capture = load_capture(path)
+    capture, _ = read_capture(path)
     w, h = target_size(capture.width, capture.height, width, height)
     chosen = range(len(capture.frames)) if indices is None else list(indices)
     cams = []

@@ -40,6 +40,8 @@ from typing import Literal, TypeVar
 
 import trimesh
 
+from regnf.captures.model import Capture
+from regnf.captures.sdfstudio import load_capture
 from regnf.core.file_lock import LockUnavailable, file_lock
 from regnf.core.preflight import check_output_dir
 from regnf.neural_fields.checkpoint import (
@@ -73,7 +75,6 @@ from regnf.synthetic.capture import (
     capture_room,
 )
 from regnf.synthetic.library import make_library_object
-from regnf.synthetic.sdfstudio_format import Capture, load_capture
 from regnf.synthetic.shading import shaded_copy
 
 CACHE_VERSION = 3
@@ -284,11 +285,11 @@ class Cache:
     def rgbd_entry(self, capture: Capture, config: RGBDTrainConfig) -> tuple[Path, str]:
         """The cache file of the field trained on ``capture`` with ``config``, and the data hash.
 
-        The key hashes the bytes of ``meta_data.json`` and of every image and depth (see
+        The key hashes the bytes of the capture's metadata file and of every image and depth (see
         :func:`regnf.neural_fields.training.capture_fingerprint`), so it is the same for any
         spelling of the capture's path and differs as soon as one input file does.
         """
-        fingerprint = capture_fingerprint(capture.root, capture_files(capture))
+        fingerprint = capture_fingerprint(capture.root, capture_files(capture), capture.meta_name)
         stem = entry_stem(capture_info(capture).name, "capture")
         return self.root / "fields" / f"{stem}-rgbd-{config_key(config, fingerprint, TRAIN_VERSION)}.safetensors", fingerprint
 

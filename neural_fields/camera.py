@@ -15,10 +15,10 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
+from regnf.captures.model import check_intrinsics, check_rigid_pose
 from regnf.core.cameras import look_at, pinhole_rays
 from regnf.neural_fields.field import Field
 from regnf.neural_fields.oriented_box import ArrayLike
-from regnf.synthetic.sdfstudio_format import check_intrinsics, check_rigid_pose
 
 
 @dataclass(frozen=True, eq=False)
@@ -27,14 +27,14 @@ class Camera:
 
     K: np.ndarray
     """(3, 3) float64 pinhole intrinsics (pixels), ``fx, fy > 0``
-    (:func:`regnf.synthetic.sdfstudio_format.check_intrinsics`)."""
+    (:func:`regnf.captures.model.check_intrinsics`)."""
     width: int
     """Image width in pixels."""
     height: int
     """Image height in pixels."""
     camera_to_world: np.ndarray
     """(4, 4) float64 rigid pose camera -> world metres, OpenCV axes
-    (:func:`regnf.synthetic.sdfstudio_format.check_rigid_pose`)."""
+    (:func:`regnf.captures.model.check_rigid_pose`)."""
 
     def __post_init__(self) -> None:
         K = np.asarray(self.K, dtype=np.float64)

@@ -802,7 +802,7 @@ def attach_visibility(
         A checkpoint of a field trained on ``capture`` (it lives in the capture's normalised
         frame: its ``to_world`` is the capture's ``worldtogt``).
     capture : Capture
-        The loaded capture (:func:`regnf.synthetic.sdfstudio_format.load_capture`).
+        The loaded capture (:func:`regnf.captures.formats.read_capture`).
     out_path : str or PathLike, optional
         Where to write the result; default: replace ``checkpoint_path``.
     resolution, margin, pixel_stride, device, indices

@@ -17,12 +17,12 @@ from typing import NamedTuple, Protocol
 import numpy as np
 import torch
 
+from regnf.captures.model import META_NAME, CaptureError
 from regnf.core.cameras import ray_aabb
-from regnf.synthetic.sdfstudio_format import META_NAME, CaptureError
 
 
 class CaptureLike(Protocol):
-    """What the sample builder needs from a capture (``regnf.synthetic.sdfstudio_format.Capture``)."""
+    """What the sample builder needs from a capture (``regnf.captures.model.Capture``)."""
 
     width: int
     height: int
@@ -186,9 +186,9 @@ def depth_normals(
 
 
 def capture_where(capture: CaptureLike) -> str:
-    """The capture's ``meta_data.json`` for messages (``capture`` for one without a root)."""
+    """The capture's metadata file for messages (``capture`` for one without a root)."""
     root = getattr(capture, "root", None)
-    return str(Path(root) / META_NAME) if root is not None else "capture"
+    return str(Path(root) / getattr(capture, "meta_name", META_NAME)) if root is not None else "capture"
 
 
 def build_samples(capture: CaptureLike, indices: Sequence[int]) -> RGBDSamples:
@@ -198,7 +198,7 @@ def build_samples(capture: CaptureLike, indices: Sequence[int]) -> RGBDSamples:
     ------
     CaptureError
         A frame without depth, or the capture's own error for an invalid image or depth
-        (:meth:`regnf.synthetic.sdfstudio_format.Capture.depth` names the file and the frame).
+        (:meth:`regnf.captures.model.Capture.depth` names the file and the frame).
     """
     pts, cols, nrm, nok, org, tt, forg, fdir = [], [], [], [], [], [], [], []
     eorg, edir, et, elim, outl = [], [], [], [], []

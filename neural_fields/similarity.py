@@ -13,13 +13,13 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from regnf.synthetic.sdfstudio_format import POSE_RTOL, similarity_scale
+from regnf.captures.model import POSE_RTOL, similarity_scale
 
 Array = np.ndarray | torch.Tensor
 
 DEFAULT_RTOL = POSE_RTOL
 """Relative tolerance on ``A^T A = s^2 I`` and on the last row; loose enough for float32 input
-(the capture loader's :data:`regnf.synthetic.sdfstudio_format.POSE_RTOL`)."""
+(the capture loader's :data:`regnf.captures.model.POSE_RTOL`)."""
 
 
 def _is_torch(*xs: object) -> bool:

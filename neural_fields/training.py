@@ -44,6 +44,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from regnf.captures.model import META_NAME, CaptureError, capture_file
 from regnf.neural_fields.field import FieldInfo
 from regnf.neural_fields.floater_pool import FloaterPool
 from regnf.neural_fields.neural_sdf import (
@@ -62,7 +63,6 @@ from regnf.neural_fields.rgbd_samples import (
 )
 from regnf.neural_fields.visibility import DEFAULT_MARGIN, DEFAULT_RESOLUTION, build_visibility
 from regnf.neural_fields.volume_render import render_rays_neus
-from regnf.synthetic.sdfstudio_format import META_NAME, CaptureError, capture_file
 
 TRAIN_VERSION = 2
 """Version of what a field trained on given captures with a given config is (part of cache
@@ -275,8 +275,9 @@ _CHUNK = 1 << 20
 """Bytes hashed at a time (captures hold hundreds of megabytes)."""
 
 
-def capture_fingerprint(root: str | os.PathLike, files: Sequence[str | os.PathLike]) -> str:
-    """SHA-256 of a capture's training data: ``meta_data.json`` and every file in ``files``.
+def capture_fingerprint(root: str | os.PathLike, files: Sequence[str | os.PathLike],
+                        meta_name: str = META_NAME) -> str:
+    """SHA-256 of a capture's training data: its metadata file and every file in ``files``.
 
     The key of a trained field: it depends on the bytes of the inputs and on their names
     inside the capture folder only, not on how the folder was named (relative, absolute,
@@ -288,6 +289,8 @@ def capture_fingerprint(root: str | os.PathLike, files: Sequence[str | os.PathLi
         The capture folder.
     files : sequence of str or PathLike
         Files the training reads (images, depths); absolute, or relative to ``root``.
+    meta_name : str
+        The capture's metadata file in ``root`` (``Capture.meta_name``).
 
     Returns
     -------
@@ -303,9 +306,9 @@ def capture_fingerprint(root: str | os.PathLike, files: Sequence[str | os.PathLi
     root = Path(root)
     base = os.path.realpath(root)
     h = hashlib.sha256(FINGERPRINT_VERSION)
-    for name in [META_NAME, *files]:
+    for name in [meta_name, *files]:
         # The loader's rule: an existing file inside the folder (an absolute name stays as is).
-        real = os.path.realpath(capture_file(root, os.fspath(name), f"{root / META_NAME}: training input"))
+        real = os.path.realpath(capture_file(root, os.fspath(name), f"{root / meta_name}: training input"))
         # Name and length first: the concatenation of (name, bytes) records is unambiguous.
         h.update(f"{Path(os.path.relpath(real, base)).as_posix()}\0{os.path.getsize(real)}\0".encode())
         with open(real, "rb") as f:

@@ -51,9 +51,9 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from regnf.captures.model import CaptureError
 from regnf.neural_fields.dense_grid import grid_shape
 from regnf.neural_fields.rgbd_samples import CaptureLike, capture_where
-from regnf.synthetic.sdfstudio_format import CaptureError
 
 DEFAULT_RESOLUTION = 128
 """Voxels along the longest axis of the bounds (shorter axes get proportionally fewer)."""
@@ -367,7 +367,7 @@ def build_visibility(
     Parameters
     ----------
     capture : Capture
-        A loaded capture (:func:`regnf.synthetic.sdfstudio_format.load_capture`): per frame ``K``,
+        A loaded capture (:func:`regnf.captures.formats.read_capture`): per frame ``K``,
         an OpenCV ``camtoworld`` and a z-depth in the capture's normalised frame, the frame a
         field trained on it by :func:`regnf.neural_fields.training.train_rgbd` lives in.
     bounds : (2, 3) float

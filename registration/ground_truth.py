@@ -9,12 +9,12 @@ from typing import TYPE_CHECKING, NamedTuple
 import numpy as np
 import trimesh
 
+from regnf.captures.instance import Instance
 from regnf.neural_fields.field import Field
 from regnf.neural_fields.oriented_box import OrientedBox
 from regnf.registration.metrics import registration_errors, within_bars
 from regnf.registration.result import RegistrationResult
 from regnf.registration.transform import SimilarityTransform
-from regnf.synthetic.instance import Instance
 from regnf.synthetic.library import make_library_object
 
 if TYPE_CHECKING:

@@ -11,6 +11,7 @@ from typing import Literal
 import torch
 from rich.console import Console
 
+from regnf.captures.formats import read_capture
 from regnf.core.atomic_io import write_bytes
 from regnf.core.preflight import (
     PreflightError,
@@ -33,7 +34,6 @@ from regnf.synthetic.capture import (
 )
 from regnf.synthetic.library import LIBRARY_NAMES
 from regnf.synthetic.rooms import ROOM_NAMES
-from regnf.synthetic.sdfstudio_format import load_capture
 
 console = Console(stderr=True)
 
@@ -112,10 +112,13 @@ class Synth:
 
 @dataclass
 class Train:
-    """Train a neural SDF from a posed RGB-D capture (sdfstudio meta_data.json layout)."""
+    """Train a neural SDF from a posed RGB-D capture (sdfstudio or nerfstudio layout)."""
 
     capture: Path
-    """Folder holding meta_data.json (ours, or a real sdfstudio / ONR download)."""
+    """Capture folder: meta_data.json (ours, or a real sdfstudio / ONR download) or a nerfstudio
+    transforms.json (Record3D, Polycam, ARKit, COLMAP); the format is detected from the folder."""
+    capture_format: Literal["auto", "sdfstudio", "nerfstudio"] = "auto"
+    """Capture layout; auto detects it from the folder's metadata file."""
     out: Path | None = None
     """Also copy the checkpoint here (.safetensors); it is kept in the cache either way."""
     preset: Literal["object", "scene"] = "object"
@@ -150,7 +153,8 @@ class Train:
             raise SystemExit(f"--outline-weight must be a finite number >= 0, got {self.outline_weight}")
         if self.carve_every is not None and self.carve_every < 0:
             raise SystemExit(f"--carve-every must be at least 0, got {self.carve_every}")
-        capture = load_capture(self.capture)
+        capture, fmt = read_capture(self.capture, self.capture_format)
+        console.print(f"capture {capture.root}: {fmt} format, {len(capture.frames)} frames")
         preset = object_rgbd_preset if self.preset == "object" else scene_rgbd_preset
         cfg = preset(self.device, self.seed)
         if self.steps is not None:

@@ -90,14 +90,14 @@ class Register:
 
     def proposal_corners(self) -> np.ndarray:
         """(8, 3) corners of the proposal box in scene metres, from --box or --capture/--instance."""
+        from regnf.captures.formats import read_capture
         from regnf.registration.ground_truth import find_instance
-        from regnf.synthetic.sdfstudio_format import load_capture
 
         if self.box is not None:
             return load_box_metres(self.box)
         if self.capture is None or self.instance is None:
             raise SystemExit("give a proposal box: --box BOX.json, or --capture DIR --instance ID")
-        capture = load_capture(self.capture)
+        capture, _ = read_capture(self.capture)
         match = [i for i in capture.instances if i.id == self.instance]
         try:
             inst = match[0] if match else find_instance(capture.instances, self.instance)

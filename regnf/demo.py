@@ -59,12 +59,12 @@ from regnf.neural_fields.cache import Cache, default_cache_dir
 from regnf.registration.metrics import BARS
 
 if TYPE_CHECKING:
+    from regnf.captures.model import Capture
     from regnf.compositor.baked_composite import BakedGrids
     from regnf.core.output_dir import OutputFolder
     from regnf.neural_fields.camera import Camera
     from regnf.scene_graph.validation import ValidationReport
     from regnf.synthetic.rooms import Room
-    from regnf.synthetic.sdfstudio_format import Capture
 
 console = Console(stderr=True)
 

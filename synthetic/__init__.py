@@ -1,7 +1,7 @@
 """Procedural ONR-like data: library objects, rooms, trajectories, RGB-D captures.
 
-Main entry points: :func:`make_library_object`, :func:`make_room`, :func:`capture_object`,
-:func:`capture_room` and :func:`load_capture` (which also reads real sdfstudio / ONR folders).
+Main entry points: :func:`make_library_object`, :func:`make_room`, :func:`capture_object` and
+:func:`capture_room` (captures are read and written by :mod:`regnf.captures`).
 
 Exports are resolved lazily, so that importing a light module (``regnf.synthetic.library``) does not
 import pyrender / OpenGL; the renderer is loaded only when something needs it.
@@ -18,7 +18,6 @@ _EXPORTS: dict[str, str] = {
     "RoomCaptureConfig": "capture",
     "capture_object": "capture",
     "capture_room": "capture",
-    "Instance": "instance",
     "LIBRARY_NAMES": "library",
     "LibraryObject": "library",
     "library_object_names": "library",
@@ -29,11 +28,6 @@ _EXPORTS: dict[str, str] = {
     "ROOM_NAMES": "rooms",
     "Room": "rooms",
     "make_room": "rooms",
-    "Capture": "sdfstudio_format",
-    "CaptureError": "sdfstudio_format",
-    "CaptureFrame": "sdfstudio_format",
-    "load_capture": "sdfstudio_format",
-    "write_capture": "sdfstudio_format",
     "NOISE_LEVELS": "sensor_noise",
     "SensorNoiseConfig": "sensor_noise",
     "apply_sensor_noise": "sensor_noise",
@@ -53,7 +47,6 @@ if TYPE_CHECKING:  # static analysers see the real names
         capture_object,
         capture_room,
     )
-    from regnf.synthetic.instance import Instance
     from regnf.synthetic.library import (
         LIBRARY_NAMES,
         LibraryObject,
@@ -63,12 +56,5 @@ if TYPE_CHECKING:  # static analysers see the real names
     from regnf.synthetic.pose_noise import PoseNoiseConfig, perturb_poses
     from regnf.synthetic.render import RGBDRenderer
     from regnf.synthetic.rooms import ROOM_NAMES, Room, make_room
-    from regnf.synthetic.sdfstudio_format import (
-        Capture,
-        CaptureError,
-        CaptureFrame,
-        load_capture,
-        write_capture,
-    )
     from regnf.synthetic.sensor_noise import NOISE_LEVELS, SensorNoiseConfig, apply_sensor_noise
     from regnf.synthetic.shading import ShadingConfig, shade_face_colors, shaded_copy

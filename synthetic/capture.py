@@ -1,6 +1,6 @@
 """Render and write the ONR-like captures: library objects in a void, and rooms.
 
-Each capture is an sdfstudio-style folder (see :mod:`regnf.synthetic.sdfstudio_format`) plus
+Each capture is an sdfstudio-style folder (see :mod:`regnf.captures.sdfstudio`) plus
 ``gt_mesh.ply`` (metres) and, for rooms, ``meshes/<instance id>.ply`` (room metres).
 """
 
@@ -14,13 +14,15 @@ import numpy as np
 import trimesh
 from tqdm import tqdm
 
+from regnf.captures.instance import Instance
+from regnf.captures.metric import SCENE_MARGIN
+from regnf.captures.model import Capture, normalisation
+from regnf.captures.sdfstudio import load_capture, write_capture
 from regnf.core.atomic_io import atomic_path
 from regnf.core.image_io import rgb_to_uint8
-from regnf.synthetic.instance import Instance
 from regnf.synthetic.library import make_library_object
 from regnf.synthetic.render import VOID_GREY, RGBDRenderer
 from regnf.synthetic.rooms import make_room
-from regnf.synthetic.sdfstudio_format import Capture, load_capture, normalisation, write_capture
 from regnf.synthetic.sensor_noise import (
     NOISE_LEVELS,
     TRUE_POSES_NAME,
@@ -89,7 +91,7 @@ class RoomCaptureConfig:
     """Seed of the room layout and of the trajectory."""
     heldout_every: int = 10
     """Every k-th frame is a ``test`` frame; 0 disables held-out frames."""
-    margin: float = 1.02
+    margin: float = SCENE_MARGIN
     """Normalisation: s = half the largest bbox extent times this."""
     progress: bool = True
     """Show a tqdm progress bar."""

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 
-from regnf.synthetic.instance import yaw_pose
+from regnf.captures.instance import yaw_pose
 from regnf.synthetic.placement import place_circles
 from regnf.synthetic.primitives import Part, box, canonicalise, cylinder, union_parts
 

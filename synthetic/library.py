@@ -11,9 +11,11 @@ from __future__ import annotations
 import functools
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 
 import trimesh
 
+from regnf.captures.instance import Instance
 from regnf.synthetic.primitives import (
     Part,
     box,
@@ -178,3 +180,25 @@ def library_label(name: str) -> str:
 def library_object_names(label: str | None = None) -> tuple[str, ...]:
     """Library names, all of them or only those of class ``label``."""
     return tuple(n for n in LIBRARY_NAMES if label is None or _SPECS[n][0] == label)
+
+
+def instance_mesh(inst: Instance) -> trimesh.Trimesh:
+    """A placed instance's mesh in room metres (with its face colours).
+
+    Read from ``inst.mesh_path`` when set, else built from the procedural library.
+
+    Raises
+    ------
+    FileNotFoundError
+        No mesh file and ``inst.library`` is not a library object.
+    """
+    if inst.mesh_path is not None and Path(inst.mesh_path).is_file():
+        return trimesh.load(inst.mesh_path, force="mesh", process=False)
+    if inst.library not in LIBRARY_NAMES:
+        raise FileNotFoundError(
+            f"instance {inst.id!r}: no mesh file ({inst.mesh_path}) and {inst.library!r} "
+            "is not a procedural library object"
+        )
+    mesh = make_library_object(inst.library).mesh
+    mesh.apply_transform(inst.object_to_world)
+    return mesh

@@ -11,9 +11,9 @@ from dataclasses import dataclass, field
 import numpy as np
 import trimesh
 
+from regnf.captures.instance import Instance, box_corners, yaw_pose
 from regnf.synthetic.clutter import make_table_clutter
-from regnf.synthetic.instance import Instance, box_corners, yaw_pose
-from regnf.synthetic.library import make_library_object
+from regnf.synthetic.library import instance_mesh, make_library_object
 from regnf.synthetic.placement import place_circles
 from regnf.synthetic.primitives import box
 
@@ -67,7 +67,7 @@ class Room:
 
     def instance_meshes(self) -> list[trimesh.Trimesh]:
         """Each instance's mesh in room metres, in ``instances`` order."""
-        return [inst.world_mesh() for inst in self.instances]
+        return [instance_mesh(inst) for inst in self.instances]
 
     def full_mesh(self) -> trimesh.Trimesh:
         """The whole room (shell, clutter and furniture) as one coloured mesh in metres.

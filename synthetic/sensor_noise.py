@@ -310,7 +310,7 @@ def write_true_poses(out_dir: str | Path, c2w: np.ndarray, level: str, seed: int
         The capture folder.
     c2w : (n, 4, 4) float
         True OpenCV camera-to-world poses, metres (compare with
-        :meth:`~regnf.synthetic.sdfstudio_format.Capture.camtoworld_metres`).
+        :meth:`~regnf.captures.model.Capture.camtoworld_metres`).
     level, seed : str, int
         The noise level's name and seed, recorded with the poses.
 

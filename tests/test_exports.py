@@ -13,7 +13,7 @@ import types
 
 import pytest
 
-PACKAGES = ("regnf.core", "regnf.synthetic", "regnf.neural_fields", "regnf.registration",
+PACKAGES = ("regnf.core", "regnf.captures", "regnf.synthetic", "regnf.neural_fields", "regnf.registration",
             "regnf.scene_graph", "regnf.compositor", "regnf.viewer", "regnf.benchmarks")
 
 

@@ -1,8 +1,8 @@
 """The package's layers: a module imports only from its own layer or the layers below it.
 
 Bottom to top: ``regnf.core`` (atomic writes, locks, output folders, executors, pre-flight
-checks), ``synthetic``, ``neural_fields``, ``registration``, ``scene_graph``, ``compositor``,
-``viewer``, ``benchmarks``, and the command line (the modules directly in ``regnf/``). Every import
+checks), ``captures``, ``synthetic``, ``neural_fields``, ``registration``, ``scene_graph``,
+``compositor``, ``viewer``, ``benchmarks``, and the command line (the modules directly in ``regnf/``). Every import
 counts, including those inside functions, and nothing imports the folders by their bare names
 (``import compositor`` would load a second copy of the module beside ``regnf.compositor``).
 """
@@ -16,8 +16,8 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 
-LAYERS = ("core", "synthetic", "neural_fields", "registration", "scene_graph", "compositor", "viewer",
-          "benchmarks", "cli")
+LAYERS = ("core", "captures", "synthetic", "neural_fields", "registration", "scene_graph", "compositor",
+          "viewer", "benchmarks", "cli")
 """Bottom to top; ``cli`` is the root package ``regnf`` itself (regnf/*.py)."""
 
 FOLDERS = {layer: ROOT / ("regnf" if layer == "cli" else layer) for layer in LAYERS}
@@ -92,6 +92,7 @@ def test_every_module_imports_only_from_below() -> None:
     ("regnf.registration.metrics", "from regnf import demo\n", 1),
     ("regnf.compositor.placement", "from . import substitution\nfrom ..scene_graph import read_stage\n", 0),
     ("regnf.core.atomic_io", "from ..synthetic import rooms\n", 1),
+    ("regnf.captures.model", "from regnf.synthetic.rooms import make_room\n", 1),
     ("regnf.scene_graph.fields", "import compositor.camera\n", 1),
     ("regnf.benchmarks.registration", "from regnf.registration.pipeline import register\n", 0),
     ("regnf.demo", "from regnf.benchmarks.registration import run_pair\nimport numpy\n", 0),

@@ -12,6 +12,7 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 
+from regnf.captures.sdfstudio import load_capture, write_capture
 from regnf.neural_fields import cache as cache_module
 from regnf.neural_fields.cache import Cache
 from regnf.neural_fields.camera import Camera
@@ -19,7 +20,6 @@ from regnf.neural_fields.checkpoint import verify_checkpoint
 from regnf.neural_fields.neural_sdf import NeuralSDFConfig
 from regnf.neural_fields.sphere_tracer import render
 from regnf.neural_fields.training import RGBDTrainConfig
-from regnf.synthetic.sdfstudio_format import load_capture, write_capture
 from tests.neural_fields import capture_helpers as C
 
 TINY = NeuralSDFConfig(levels=2, finest_resolution=16, hidden_dim=16, base_resolution=8,

@@ -14,19 +14,15 @@ import numpy as np
 import pytest
 import trimesh
 
+from regnf.captures import sdfstudio
+from regnf.captures.instance import Instance, box_corners, yaw_pose
+from regnf.captures.model import CaptureError, normalisation
+from regnf.captures.sdfstudio import load_capture, write_capture
 from regnf.compositor.cameras_io import cameras_from_capture
 from regnf.core.cameras import look_at
 from regnf.neural_fields.camera import Camera
 from regnf.neural_fields.neural_sdf import NeuralSDFConfig
 from regnf.neural_fields.training import RGBDTrainConfig, train_rgbd
-from regnf.synthetic import sdfstudio_format
-from regnf.synthetic.instance import Instance, box_corners, yaw_pose
-from regnf.synthetic.sdfstudio_format import (
-    CaptureError,
-    load_capture,
-    normalisation,
-    write_capture,
-)
 
 W, H, N = 16, 12, 3
 K = np.array([[14.0, 0.0, 8.0], [0.0, 15.0, 6.0], [0.0, 0.0, 1.0]])
@@ -130,8 +126,8 @@ def test_poses_are_checked_before_any_image_is_read(cap: Path, monkeypatch: pyte
     def forbidden(*args, **kwargs):
         raise AssertionError("load_capture read an image")
 
-    monkeypatch.setattr(sdfstudio_format.iio, "imread", forbidden)
-    monkeypatch.setattr(sdfstudio_format.np, "load", forbidden)
+    monkeypatch.setattr(sdfstudio.iio, "imread", forbidden)
+    monkeypatch.setattr(sdfstudio.np, "load", forbidden)
     assert len(load_capture(cap).frames) == N
     meta = edit_meta(cap, lambda d: _scale_rotation(d, 0, 2.0))
     refused(lambda: load_capture(cap), meta, "frames[0].camtoworld", "rigid")

@@ -20,6 +20,7 @@ import pytest
 import trimesh
 
 import regnf.demo as demo_module
+from regnf.captures.sdfstudio import write_capture
 from regnf.cli import EXIT_BAD_INPUT, _one_line, exit_status
 from regnf.core import atomic_io
 from regnf.core.atomic_io import TEMP_PREFIX, write_json
@@ -28,7 +29,6 @@ from regnf.core.preflight import PreflightError
 from regnf.generate import BAKED_DIR, GenerateConfig, generate
 from regnf.neural_fields import cache as cache_module
 from regnf.scene_graph import add_instance
-from regnf.synthetic.sdfstudio_format import write_capture
 from tests.adversarial.disk import changes, snapshot
 from tests.adversarial.mounts import tmpfs
 from tests.regnf.cli_helpers import assert_fails

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from regnf.captures.model import Capture, CaptureError
 from regnf.compositor import Camera, render
 from regnf.compositor.cameras_io import (
     OrbitConfig,
@@ -17,7 +18,6 @@ from regnf.compositor.cameras_io import (
     resized,
 )
 from regnf.neural_fields.analytic import Box, Union
-from regnf.synthetic.sdfstudio_format import Capture, CaptureError
 from tests.neural_fields import capture_helpers as C
 
 from .golden_scenes import sim

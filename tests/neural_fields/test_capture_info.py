@@ -6,8 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
+from regnf.captures.model import Capture
 from regnf.neural_fields.cache import capture_info
-from regnf.synthetic.sdfstudio_format import Capture
 
 
 def _capture(meta: dict) -> Capture:

@@ -10,6 +10,7 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
+from regnf.captures.model import Capture
 from regnf.neural_fields.rgbd_samples import (
     backproject_frame,
     build_samples,
@@ -18,7 +19,6 @@ from regnf.neural_fields.rgbd_samples import (
     outline_pixels,
     ray_box_interval,
 )
-from regnf.synthetic.sdfstudio_format import Capture
 
 from .capture_helpers import (
     BOX_CENTER,

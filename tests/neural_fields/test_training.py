@@ -9,13 +9,14 @@ import numpy as np
 import pytest
 import torch
 
+from regnf.captures.model import Capture
+from regnf.captures.sdfstudio import load_capture, write_capture
 from regnf.neural_fields.dense_grid import grid_shape
 from regnf.neural_fields.evaluation import heldout_psnr, relative_surface_errors
 from regnf.neural_fields.field import FieldInfo
 from regnf.neural_fields.neural_sdf import NeuralSDF, NeuralSDFConfig
 from regnf.neural_fields.training import RGBDTrainConfig, train_rgbd
 from regnf.neural_fields.visibility import VisibilityGrid, build_visibility
-from regnf.synthetic.sdfstudio_format import Capture, load_capture, write_capture
 
 from .capture_helpers import (
     BOX_CENTER,

@@ -20,6 +20,8 @@ import torch
 from safetensors import safe_open
 from safetensors.torch import load_file, save_file
 
+from regnf.captures.model import Capture, CaptureError
+from regnf.captures.sdfstudio import load_capture, write_capture
 from regnf.neural_fields import cache as cache_module
 from regnf.neural_fields.analytic import Box
 from regnf.neural_fields.cache import Cache, reusable
@@ -41,7 +43,6 @@ from regnf.neural_fields.field import FieldInfo
 from regnf.neural_fields.neural_sdf import NeuralSDF, NeuralSDFConfig
 from regnf.neural_fields.training import RGBDTrainConfig
 from regnf.neural_fields.visibility import VisibilityGrid, build_visibility
-from regnf.synthetic.sdfstudio_format import Capture, CaptureError, load_capture, write_capture
 
 from .capture_helpers import WORLD_OFFSET, WORLD_SCALE, WORLDTOGT
 

@@ -8,6 +8,7 @@ import numpy as np
 import open3d as o3d
 import pytest
 
+from regnf.captures.model import Capture
 from regnf.synthetic.capture import (
     ObjectCaptureConfig,
     RoomCaptureConfig,
@@ -15,7 +16,6 @@ from regnf.synthetic.capture import (
     capture_room,
 )
 from regnf.synthetic.library import make_library_object
-from regnf.synthetic.sdfstudio_format import Capture
 
 from .synth_helpers import backproject, erode
 

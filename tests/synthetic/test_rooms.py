@@ -9,7 +9,7 @@ import pytest
 from scipy.spatial import ConvexHull
 
 from regnf.synthetic.capture import RoomCaptureConfig, capture_room
-from regnf.synthetic.library import make_library_object
+from regnf.synthetic.library import instance_mesh, make_library_object
 from regnf.synthetic.render import RGBDRenderer
 from regnf.synthetic.rooms import ROOM_CONTENTS, ROOM_NAMES, make_room
 
@@ -124,7 +124,7 @@ def test_poses_agree_with_rendered_images(tmp_path: Path, name: str, coverage: s
     config = RoomCaptureConfig(width=80, height=60, n_views=12, coverage=coverage, progress=False)
     cap = capture_room(name, tmp_path, config)
     assert len(cap.instances) == len(ROOM_CONTENTS[name])
-    meshes = [inst.world_mesh() for inst in cap.instances]  # read from meshes/<id>.ply
+    meshes = [instance_mesh(inst) for inst in cap.instances]  # read from meshes/<id>.ply
     shell = make_room(cap.meta["name"], cap.meta["seed"]).mesh  # floor, walls, clutter
     seen = np.zeros(len(meshes), dtype=int)
     tol = 0.01

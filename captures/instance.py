@@ -7,7 +7,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import trimesh
 
 
 @dataclass
@@ -44,24 +43,6 @@ class Instance:
                 raise ValueError(
                     f"instance {self.id!r}: box_corners must be 8x3, got {self.box_corners.shape}"
                 )
-
-    def world_mesh(self) -> trimesh.Trimesh:
-        """The instance's mesh in room metres (with its face colours).
-
-        Read from ``mesh_path`` when set, else built from the procedural library.
-        """
-        if self.mesh_path is not None and Path(self.mesh_path).is_file():
-            return trimesh.load(self.mesh_path, force="mesh", process=False)
-        from regnf.synthetic.library import LIBRARY_NAMES, make_library_object
-
-        if self.library not in LIBRARY_NAMES:
-            raise FileNotFoundError(
-                f"instance {self.id!r}: no mesh file ({self.mesh_path}) and {self.library!r} "
-                "is not a procedural library object"
-            )
-        mesh = make_library_object(self.library).mesh
-        mesh.apply_transform(self.object_to_world)
-        return mesh
 
     def to_json(self, mesh_path: str | None = None) -> dict:
         """The ``instances`` entry of ``meta_data.json`` (metres)."""

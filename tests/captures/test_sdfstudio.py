@@ -10,14 +10,11 @@ import numpy as np
 import pytest
 import trimesh
 
+from regnf.captures.instance import Instance, box_corners, yaw_pose
+from regnf.captures.model import CaptureError, normalisation
+from regnf.captures.sdfstudio import load_capture, write_capture
 from regnf.core.cameras import look_at
-from regnf.synthetic.instance import Instance, box_corners, yaw_pose
-from regnf.synthetic.sdfstudio_format import (
-    CaptureError,
-    load_capture,
-    normalisation,
-    write_capture,
-)
+from regnf.synthetic.library import instance_mesh
 
 W, H, N = 16, 12, 3
 K = np.array([[14.0, 0.0, 8.0], [0.0, 15.0, 6.0], [0.0, 0.0, 1.0]])
@@ -90,7 +87,7 @@ def test_round_trip_is_exact(tmp_path: Path) -> None:
     np.testing.assert_array_equal(inst.object_to_world, want.object_to_world)
     np.testing.assert_array_equal(inst.box_corners, want.box_corners)
     assert inst.mesh_path == tmp_path / "meshes" / "c_0.ply"
-    assert np.all(inst.world_mesh().visual.face_colors[:, :3] == [10, 20, 30])
+    assert np.all(instance_mesh(inst).visual.face_colors[:, :3] == [10, 20, 30])
     assert cap.meta == ref["meta"]
     data = json.loads((tmp_path / "meta_data.json").read_text())
     assert data["camera_model"] == "OPENCV" and data["has_sensor_depth"] is True

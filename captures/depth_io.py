@@ -1,0 +1,107 @@
+"""Reading one frame's depth file: float ``.npy`` or 16-bit PNG, checked, then scaled.
+
+Every capture format stores z-depth in one of these encodings; the reader states, per frame,
+the factor from the file's unit to the unit wanted (:attr:`CaptureFrame.depth_scale`). The
+messages here name no file: the caller prefixes where.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import imageio.v3 as iio
+import numpy as np
+
+PNG_SUFFIXES = (".png",)
+"""Depth files read as 16-bit integer images (any other suffix is read as ``.npy``)."""
+
+
+def _read_npy(path: Path, height: int, width: int) -> np.ndarray:
+    """(H, W) float32 from a ``.npy`` of real floating point values."""
+    try:
+        # Memory-mapped: the dtype and shape are checked before anything is read, so a
+        # forged header asking for terabytes costs nothing.
+        stored = np.load(path, allow_pickle=False, mmap_mode="r")
+    except Exception as exc:  # corrupt, truncated or non-npy file
+        hint = "" if path.suffix.lower() == ".npy" else "; depth must be a float .npy or a 16-bit .png"
+        raise ValueError(f"cannot read depth ({exc}){hint}") from exc
+    if not isinstance(stored, np.ndarray):
+        # A bad file, not a bad argument: the capture's error type, a ValueError.
+        raise ValueError(f"depth must be one .npy array, got {type(stored).__name__}")  # noqa: TRY004
+    if stored.dtype.kind != "f":
+        raise ValueError(
+            f"depth has dtype {stored.dtype}, expected real floating point "
+            "(float16, float32 or float64)"
+        )
+    if np.squeeze(stored).shape != (height, width):
+        raise ValueError(f"depth shape {stored.shape} does not match {height}x{width}")
+    # Cast first: a float64 value beyond float32's range becomes inf and is refused later.
+    with np.errstate(over="ignore"):
+        depth = np.squeeze(np.asarray(stored, dtype=np.float32))
+    del stored
+    return depth
+
+
+def _read_png(path: Path, height: int, width: int) -> np.ndarray:
+    """(H, W) float32 of the integer values of a single-channel 16-bit PNG."""
+    try:
+        props = iio.improps(path, extension=".png")
+    except Exception as exc:  # imageio raises many types for unreadable files
+        raise ValueError(f"cannot read depth PNG ({exc})") from exc
+    if props.dtype != np.uint16:
+        bits = 8 * np.dtype(props.dtype).itemsize
+        raise ValueError(
+            f"depth PNG is {bits}-bit ({props.dtype}); depth must be a 16-bit PNG "
+            "(an 8-bit image cannot hold depth)"
+        )
+    if tuple(props.shape) != (height, width):
+        raise ValueError(
+            f"depth PNG shape {tuple(props.shape)} does not match {height}x{width} single-channel"
+        )
+    try:
+        img = iio.imread(path, extension=".png")
+    except Exception as exc:
+        raise ValueError(f"cannot read depth PNG ({exc})") from exc
+    return img.astype(np.float32)
+
+
+def read_depth(path: Path, height: int, width: int, scale: float = 1.0) -> np.ndarray:
+    """Z-depth of one frame, (H, W) float32, in the file's unit times ``scale``.
+
+    Parameters
+    ----------
+    path : Path
+        A ``.png`` (uint16, single channel) or a ``.npy`` (real floating point).
+    height, width : int
+        The capture's image size in pixels.
+    scale : float
+        Wanted unit per unit stored in the file (1.0: as stored, no arithmetic).
+
+    Returns
+    -------
+    (H, W) float32
+        Depth, 0 where the file has no depth.
+
+    Raises
+    ------
+    ValueError
+        Unreadable or pickled file, an 8-bit PNG, a dtype that is not real floating point
+        (``.npy``), a wrong shape, or values that are NaN, infinite or negative. The message
+        names no file.
+    """
+    path = Path(path)
+    reader = _read_png if path.suffix.lower() in PNG_SUFFIXES else _read_npy
+    depth = reader(path, height, width)
+    if scale != 1.0:
+        with np.errstate(over="ignore"):
+            depth = depth * np.float32(scale)
+    bad = int(np.count_nonzero(~np.isfinite(depth)))
+    if bad:
+        raise ValueError(f"depth has {bad} non-finite values (NaN or inf)")
+    negative = int(np.count_nonzero(depth < 0))
+    if negative:
+        raise ValueError(
+            f"depth has {negative} negative values (min {float(depth.min()):g}); "
+            "z-depth must be >= 0, 0 meaning no hit"
+        )
+    return depth
