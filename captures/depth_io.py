@@ -65,7 +65,9 @@ def _read_png(path: Path, height: int, width: int) -> np.ndarray:
     return img.astype(np.float32)
 
 
-def read_depth(path: Path, height: int, width: int, scale: float = 1.0) -> np.ndarray:
+def read_depth(
+    path: Path, height: int, width: int, scale: float = 1.0, nonfinite_unknown: bool = False
+) -> np.ndarray:
     """Z-depth of one frame, (H, W) float32, in the file's unit times ``scale``.
 
     Parameters
@@ -76,6 +78,9 @@ def read_depth(path: Path, height: int, width: int, scale: float = 1.0) -> np.nd
         The capture's image size in pixels.
     scale : float
         Wanted unit per unit stored in the file (1.0: as stored, no arithmetic).
+    nonfinite_unknown : bool
+        Read NaN and infinite values as 0 (no depth) instead of refusing them: for captures
+        whose zeros mean unknown, where a sensor's NaN means no return too.
 
     Returns
     -------
@@ -86,8 +91,8 @@ def read_depth(path: Path, height: int, width: int, scale: float = 1.0) -> np.nd
     ------
     ValueError
         Unreadable or pickled file, an 8-bit PNG, a dtype that is not real floating point
-        (``.npy``), a wrong shape, or values that are NaN, infinite or negative. The message
-        names no file.
+        (``.npy``), a wrong shape, negative values, or (without ``nonfinite_unknown``) NaN or
+        infinite ones. The message names no file.
     """
     path = Path(path)
     reader = _read_png if path.suffix.lower() in PNG_SUFFIXES else _read_npy
@@ -95,13 +100,16 @@ def read_depth(path: Path, height: int, width: int, scale: float = 1.0) -> np.nd
     if scale != 1.0:
         with np.errstate(over="ignore"):
             depth = depth * np.float32(scale)
-    bad = int(np.count_nonzero(~np.isfinite(depth)))
-    if bad:
+    nonfinite = ~np.isfinite(depth)
+    bad = int(np.count_nonzero(nonfinite))
+    if bad and nonfinite_unknown:
+        depth = np.where(nonfinite, np.float32(0.0), depth)
+    elif bad:
         raise ValueError(f"depth has {bad} non-finite values (NaN or inf)")
     negative = int(np.count_nonzero(depth < 0))
     if negative:
         raise ValueError(
             f"depth has {negative} negative values (min {float(depth.min()):g}); "
-            "z-depth must be >= 0, 0 meaning no hit"
+            "z-depth must be >= 0, 0 meaning no depth"
         )
     return depth

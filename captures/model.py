@@ -5,7 +5,9 @@ similarity normalised -> metres (``metres = s * normalised + c``), so that every
 written in the capture's own metric world. ``camtoworld`` is OpenCV (x right, y down, z forward);
 ``K`` is a pinhole matrix with pixel centres at ``(u + 0.5, v + 0.5)``. Depth is z-depth, read
 per frame from ``.npy`` (float) or 16-bit PNG and scaled by the frame's ``depth_scale`` into
-normalised units; 0 means no depth.
+normalised units; 0 means no depth. What a pixel without depth says depends on the capture
+(:attr:`Capture.zero_depth_is_empty`): for regnf's own ideal renders the ray hit nothing, for
+every other capture (a real sensor, a noisy render) the depth is unknown.
 
 The pose rules live here, at the bottom of the package graph (``core`` -> ``captures`` ->
 ``synthetic`` -> ``neural_fields`` -> ...), so that every reader, training and rendering share
@@ -37,6 +39,39 @@ META_NAME = "meta_data.json"
 
 MAX_META_BYTES = 256 * 2**20
 """Largest capture metadata file read, in bytes (about 400,000 frames)."""
+
+REGNF_GENERATOR_PREFIX = "regnf.synthetic/"
+"""Start of ``regnf.generator`` in the captures regnf's own renderer writes."""
+
+ZERO_DEPTH_KEY = "zero_depth"
+"""Key of the ``regnf`` block that overrides what a zero depth means: ``empty`` or ``unknown``."""
+
+ZERO_DEPTH_MEANINGS = ("empty", "unknown")
+"""Accepted values of :data:`ZERO_DEPTH_KEY`."""
+
+
+def zero_depth_meaning(meta: dict) -> str:
+    """What a pixel without depth means in a capture whose ``regnf`` block is ``meta``.
+
+    ``"empty"`` (the ray hit nothing) only for regnf's own renders with ideal depth: the
+    generator is regnf's and there is no ``noise`` block. Everything else is ``"unknown"``: a
+    sensor writes 0 where it has no return, which says nothing about the space along the ray.
+    :data:`ZERO_DEPTH_KEY` overrides the rule.
+
+    Raises
+    ------
+    ValueError
+        :data:`ZERO_DEPTH_KEY` present with a value other than ``empty`` or ``unknown``.
+    """
+    if ZERO_DEPTH_KEY in meta:
+        value = meta[ZERO_DEPTH_KEY]
+        if value not in ZERO_DEPTH_MEANINGS:
+            raise ValueError(f"regnf.{ZERO_DEPTH_KEY} must be 'empty' or 'unknown', got {value!r}")
+        return str(value)
+    generator = meta.get("generator")
+    ours = isinstance(generator, str) and generator.startswith(REGNF_GENERATOR_PREFIX)
+    return "empty" if ours and "noise" not in meta else "unknown"
+
 
 SPLITS = ("train", "test", "val")
 """Accepted frame splits; frames without one are training frames."""
@@ -204,6 +239,23 @@ class Capture:
     """Name of the metadata file in ``root`` (part of the training data's fingerprint)."""
 
     @property
+    def zero_depth_is_empty(self) -> bool:
+        """True where a zero depth means the ray hit nothing, False where it means unknown.
+
+        See :func:`zero_depth_meaning`. Where zeros are unknown, NaN and infinite depth values
+        are read as 0 (unknown) too; they are refused otherwise.
+
+        Raises
+        ------
+        CaptureError
+            An invalid :data:`ZERO_DEPTH_KEY`; the message names the metadata file.
+        """
+        try:
+            return zero_depth_meaning(self.meta) == "empty"
+        except ValueError as exc:
+            raise CaptureError(f"{self.root / self.meta_name}: {exc}") from exc
+
+    @property
     def scale(self) -> float:
         """Metres per normalised unit (uniform scale of ``worldtogt``)."""
         return float(np.cbrt(abs(np.linalg.det(self.worldtogt[:3, :3]))))
@@ -242,15 +294,17 @@ class Capture:
         ------
         CaptureError
             Unreadable or pickled file, an 8-bit PNG, a ``.npy`` dtype that is not real
-            floating point (complex, integer, bool), a shape other than (H, W), or values
-            that are NaN, infinite or negative (0 means no hit); the message names the file
-            and the frame (:func:`regnf.captures.depth_io.read_depth`).
+            floating point (complex, integer, bool), a shape other than (H, W), negative
+            values, or NaN or infinite ones where zeros mean empty (where they mean unknown
+            those read as 0, see :attr:`zero_depth_is_empty`); the message names the file and
+            the frame (:func:`regnf.captures.depth_io.read_depth`).
         """
         frame = self.frames[i]
         if frame.depth_path is None:
             return None
+        unknown = not self.zero_depth_is_empty
         try:
-            return read_depth(frame.depth_path, self.height, self.width, frame.depth_scale)
+            return read_depth(frame.depth_path, self.height, self.width, frame.depth_scale, unknown)
         except ValueError as exc:
             raise CaptureError(f"{frame.depth_path}: frame {i}: {exc}") from exc
 

@@ -4,7 +4,7 @@ Layout (one folder per capture)::
 
     meta_data.json            written LAST: a half-written capture has none
     000000_rgb.png            colour, uint8
-    000000_depth.npy          float32 z-depth in NORMALISED units, 0 = no hit
+    000000_depth.npy          float32 z-depth in NORMALISED units, 0 = no depth
     gt_mesh.ply, meshes/...   optional ground truth (metres)
 
 ``camtoworld`` is OpenCV (x right, y down, z forward) in the normalised frame; ``worldtogt``
@@ -52,6 +52,7 @@ from regnf.captures.model import (
     parse_matrix,
     read_metadata,
     similarity_scale,
+    zero_depth_meaning,
 )
 from regnf.core.atomic_io import atomic_path, write_json
 
@@ -189,6 +190,10 @@ def load_capture(path: str | Path) -> Capture:
         raise CaptureError(f"{meta_path}: 'regnf' must be an object")
     if meta.get("gt_mesh_path"):
         capture_file(root, meta["gt_mesh_path"], f"{meta_path}: regnf.gt_mesh_path", must_exist=False)
+    try:
+        zero_depth_meaning(meta)
+    except ValueError as exc:
+        raise CaptureError(f"{meta_path}: {exc}") from exc
     return Capture(root, width, height, frames, worldtogt, scene_box, instances, meta)
 
 

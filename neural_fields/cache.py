@@ -291,7 +291,10 @@ class Cache:
         """
         fingerprint = capture_fingerprint(capture.root, capture_files(capture), capture.meta_name)
         stem = entry_stem(capture_info(capture).name, "capture")
-        return self.root / "fields" / f"{stem}-rgbd-{config_key(config, fingerprint, TRAIN_VERSION)}.safetensors", fingerprint
+        # A capture whose zero depth is unknown trains differently from one whose zeros were
+        # once taken as empty: its key says so (an ideal capture's key stays as it was).
+        parts = (config, fingerprint, TRAIN_VERSION) + (() if capture.zero_depth_is_empty else ("zero-depth-unknown",))
+        return self.root / "fields" / f"{stem}-rgbd-{config_key(*parts)}.safetensors", fingerprint
 
     def rgbd_field(self, capture: Capture, config: RGBDTrainConfig) -> Path:
         """Checkpoint of a field trained on ``capture`` with ``config`` (trained if missing or damaged).

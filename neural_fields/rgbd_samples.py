@@ -2,10 +2,12 @@
 
 Every valid depth pixel back-projects to a surface point with its colour, the ray it was
 seen along, and (away from depth discontinuities) a normal from the depth image's local
-tangent plane. Pixels with no depth (the void around a library object) become free rays:
-nothing lies along them, which carves the silhouette. Rays beside an occluding edge (a depth
-step to a closer neighbour, or no depth next to a pixel with depth) are kept apart as well:
-they pass within about a pixel footprint of the occluder's outline.
+tangent plane. Pixels with no depth become free rays (nothing lies along them, which carves
+the silhouette) only where the capture says a zero depth is empty (the void around a library
+object in regnf's ideal renders, :attr:`regnf.captures.model.Capture.zero_depth_is_empty`);
+elsewhere (a sensor's missing return) they give no sample at all. Rays beside an occluding edge
+(a depth step to a closer neighbour, or an empty pixel next to a pixel with depth) are kept
+apart as well: they pass within about a pixel footprint of the occluder's outline.
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ class CaptureLike(Protocol):
     width: int
     height: int
     frames: Sequence
+    zero_depth_is_empty: bool
 
     def rgb(self, i: int) -> np.ndarray: ...
     def depth(self, i: int) -> np.ndarray | None: ...
@@ -48,7 +51,7 @@ class RGBDSamples(NamedTuple):
     ray_t: torch.Tensor
     """(m,) distance from the origin to the point along the unit ray."""
     free_origins: torch.Tensor
-    """(k, 3) origins of rays that hit nothing."""
+    """(k, 3) origins of rays that hit nothing (none where zero depth is unknown)."""
     free_dirs: torch.Tensor
     """(k, 3) unit directions of rays that hit nothing."""
     edge_origins: torch.Tensor
@@ -102,12 +105,14 @@ EDGE_STEP_FOOTPRINTS = 8.0
 a discontinuity (an occluding edge), not a slanted surface."""
 
 
-def edge_depths(depth: np.ndarray, valid: np.ndarray, K: np.ndarray) -> np.ndarray:
+def edge_depths(
+    depth: np.ndarray, valid: np.ndarray, K: np.ndarray, zeros_empty: bool = True
+) -> np.ndarray:
     """(h, w) float: for each pixel beside an occluding edge, the z-depth of the occluder; else 0.
 
     A pixel is beside an occluding edge when one of its 4 neighbours has depth and lies closer by
     more than :data:`EDGE_STEP_FOOTPRINTS` pixel footprints (every neighbour with depth counts
-    for a pixel that has none). Its ray then passes within about a pixel footprint of the
+    for an empty pixel; a pixel of unknown depth is beside no edge). Its ray then passes within about a pixel footprint of the
     occluder's silhouette at the occluder's depth, through space that is empty (it is in front
     of the pixel's own surface): the samples that pin a silhouette where it was seen.
 
@@ -117,6 +122,8 @@ def edge_depths(depth: np.ndarray, valid: np.ndarray, K: np.ndarray) -> np.ndarr
         z-depth, 0 where nothing was hit.
     valid : (h, w) bool
     K : (3, 3) float
+    zeros_empty : bool
+        Pixels without depth saw nothing (True) or are unknown (False).
 
     Returns
     -------
@@ -128,20 +135,23 @@ def edge_depths(depth: np.ndarray, valid: np.ndarray, K: np.ndarray) -> np.ndarr
     neigh = np.stack([pad[1:-1, 2:], pad[1:-1, :-2], pad[2:, 1:-1], pad[:-2, 1:-1]])
     nearest = neigh.min(0)
     step = EDGE_STEP_FOOTPRINTS * np.where(valid, depth, nearest) / K[0, 0]
-    # A pixel without depth is beside an edge as soon as it has a neighbour with depth.
-    edge = np.isfinite(nearest) & (~valid | (nearest < depth - step))
+    # An empty pixel is beside an edge as soon as it has a neighbour with depth.
+    edge = np.isfinite(nearest) & ((~valid & zeros_empty) | (nearest < depth - step))
     return np.where(edge, nearest, 0.0)
 
 
-def outline_pixels(depth: np.ndarray, valid: np.ndarray, K: np.ndarray) -> np.ndarray:
+def outline_pixels(
+    depth: np.ndarray, valid: np.ndarray, K: np.ndarray, zeros_empty: bool = True
+) -> np.ndarray:
     """(h, w) bool: pixels with depth that are an occluder beside an occluding edge.
 
-    The other side of :func:`edge_depths`: a pixel with depth one of whose 4 neighbours has no
-    depth or lies farther by more than :data:`EDGE_STEP_FOOTPRINTS` pixel footprints. Its point
-    lies on the silhouette the neighbour's ray passes, seen at a grazing angle: few pixels see
-    such a surface, and their points hold the outline where the edge samples push it.
+    The other side of :func:`edge_depths`: a pixel with depth one of whose 4 neighbours is empty
+    (``zeros_empty`` and no depth) or lies farther by more than :data:`EDGE_STEP_FOOTPRINTS`
+    pixel footprints. Its point lies on the silhouette the neighbour's ray passes, seen at a
+    grazing angle: few pixels see such a surface, and their points hold the outline where the
+    edge samples push it. A neighbour of unknown depth says nothing, like one beyond the image.
     """
-    z = np.where(valid, depth, np.inf)
+    z = np.where(valid, depth, np.inf if zeros_empty else -np.inf)
     pad = np.pad(z, 1, constant_values=-np.inf)  # beyond the image: nothing behind
     farthest = np.stack([pad[1:-1, 2:], pad[1:-1, :-2], pad[2:, 1:-1], pad[:-2, 1:-1]]).max(0)
     step = EDGE_STEP_FOOTPRINTS * depth / K[0, 0]
@@ -194,6 +204,9 @@ def capture_where(capture: CaptureLike) -> str:
 def build_samples(capture: CaptureLike, indices: Sequence[int]) -> RGBDSamples:
     """Gather the samples of frames ``indices`` of ``capture`` (one pass per frame).
 
+    Pixels without depth become free rays and edge rays only where the capture's zeros are
+    empty (:attr:`CaptureLike.zero_depth_is_empty`); where they are unknown they give nothing.
+
     Raises
     ------
     CaptureError
@@ -202,6 +215,7 @@ def build_samples(capture: CaptureLike, indices: Sequence[int]) -> RGBDSamples:
     """
     pts, cols, nrm, nok, org, tt, forg, fdir = [], [], [], [], [], [], [], []
     eorg, edir, et, elim, outl = [], [], [], [], []
+    zeros_empty = bool(capture.zero_depth_is_empty)
     for i in indices:
         frame = capture.frames[i]
         depth = capture.depth(i)
@@ -222,9 +236,11 @@ def build_samples(capture: CaptureLike, indices: Sequence[int]) -> RGBDSamples:
         nok.append(ok[valid])
         org.append(np.broadcast_to(origin, (int(valid.sum()), 3)))
         tt.append(np.linalg.norm(p[valid] - origin, axis=-1))
-        forg.append(np.broadcast_to(origin, (int((~valid).sum()), 3)))
-        fdir.append(d[~valid])
-        z_edge = edge_depths(depth, valid, K)
+        # A ray of unknown depth may have hit anything: it is no free ray.
+        free = ~valid if zeros_empty else np.zeros_like(valid)
+        forg.append(np.broadcast_to(origin, (int(free.sum()), 3)))
+        fdir.append(d[free])
+        z_edge = edge_depths(depth, valid, K, zeros_empty)
         at_edge = z_edge > 0
         # z-depth to distance along the unit ray, as backproject_frame measures it.
         ray_len = np.linalg.norm(camera_rays(K, *depth.shape) @ c2w[:3, :3].T, axis=-1)
@@ -233,7 +249,7 @@ def build_samples(capture: CaptureLike, indices: Sequence[int]) -> RGBDSamples:
         edir.append(d[at_edge])
         et.append((z_edge * ray_len)[at_edge])
         elim.append(own[at_edge])
-        outl.append(outline_pixels(depth, valid, K)[valid])
+        outl.append(outline_pixels(depth, valid, K, zeros_empty)[valid])
 
     def cat(a: list, width: int | None = 3) -> torch.Tensor:
         arr = np.concatenate(a, 0) if a else np.zeros((0, width) if width else (0,))

@@ -239,6 +239,9 @@ class _ViewStack:
     @staticmethod
     def build(capture: CaptureLike, indices: Sequence[int], device: torch.device) -> _ViewStack:
         depth = np.stack([capture.depth(i) for i in indices]).astype(np.float32)
+        if not capture.zero_depth_is_empty:
+            # NaN fails both tests of seen_free: a pixel of unknown depth sees nothing free.
+            depth = np.where(depth > 0, depth, np.float32(np.nan))
         K = np.stack([np.asarray(capture.frames[i].intrinsics, np.float64) for i in indices])
         c2w = np.stack([np.asarray(capture.frames[i].camtoworld, np.float64) for i in indices])
         w2c = np.linalg.inv(c2w)
@@ -249,7 +252,10 @@ class _ViewStack:
         )
 
     def seen_free(self, x: torch.Tensor, margin: float, view: torch.Tensor) -> torch.Tensor:
-        """(n,) float: 1 where view ``view[i]`` sees point ``x[i]`` in front of its surface."""
+        """(n,) float: 1 where view ``view[i]`` sees point ``x[i]`` in front of its surface.
+
+        A pixel with depth 0 sees its whole ray free; one with NaN (unknown) sees nothing.
+        """
         R, t, K = self.w2c[view, :3, :3], self.w2c[view, :3, 3], self.K[view]
         pc = (R @ x[:, :, None]).squeeze(-1) + t
         z = pc[:, 2]

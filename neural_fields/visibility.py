@@ -11,8 +11,10 @@ What a view observes
 A pixel's ray observes space from the camera up to its depth hit plus a margin behind the
 surface (``margin`` voxels, in z-depth as the depth image measures it, so that the observed
 surface and the voxels just behind it that a trilinear lookup at the surface reads count as
-observed), and, where the pixel has no depth hit (depth 0), up to where the ray leaves the
-bounds. Space behind a surface by more than the margin (occluded), outside the frustum
+observed), and, where the pixel has no depth hit (depth 0) in a capture whose zeros mean
+empty, up to where the ray leaves the bounds; where zeros mean unknown (a sensor's missing
+return, :attr:`regnf.captures.model.Capture.zero_depth_is_empty`) such a ray observes nothing.
+Space behind a surface by more than the margin (occluded), outside the frustum
 (including behind the camera) or outside the bounds is not observed. A view counts once per
 voxel however many of its rays cross it, so ``counts`` is the number of training views that
 observed the voxel (independent of the image size and of ``pixel_stride``); unobserved
@@ -328,18 +330,19 @@ def _is_box(bounds: torch.Tensor) -> bool:
 
 
 def _frame_lookup(
-    depth: np.ndarray, stride: int, margin: float, device: torch.device
+    depth: np.ndarray, stride: int, margin: float, device: torch.device, zeros_empty: bool = True
 ) -> torch.Tensor:
     """(H + 2, W + 2) float32: per pixel, the deepest z-depth its ray observes; a ring of -inf.
 
-    A hit at depth ``d`` observes up to ``d + margin``, a pixel without one (0) up to ``inf``;
+    A hit at depth ``d`` observes up to ``d + margin``, a pixel without one (0) up to ``inf``
+    where ``zeros_empty`` (the ray hit nothing) and nothing (``-inf``) where zeros are unknown;
     with ``stride > 1`` every pixel of an s x s block takes the block's nearest hit, the
     conservative choice: a coarser stride never marks more space observed than stride 1. The
     ring of ``-inf`` around the image is where projections outside the frustum are sent, so
     that the observation test needs no separate frustum test.
     """
     d = torch.from_numpy(np.array(depth, dtype=np.float32)).to(device)
-    reach = torch.where(d > 0, d + margin, torch.full_like(d, math.inf))
+    reach = torch.where(d > 0, d + margin, torch.full_like(d, math.inf if zeros_empty else -math.inf))
     if stride > 1:
         h, w = reach.shape
         pooled = -F.max_pool2d(-reach[None, None], stride, stride, ceil_mode=True)[0, 0]
@@ -427,6 +430,7 @@ def build_visibility(
         for a in range(3)
     ]
     counts = torch.zeros(shape, dtype=torch.int32, device=device)
+    zeros_empty = bool(capture.zero_depth_is_empty)
     views = 0
     for i in indices:
         depth = capture.depth(i)
@@ -437,7 +441,7 @@ def build_visibility(
         h, w = depth.shape
         cells = _frustum_cells(frame.camtoworld, frame.intrinsics, w, h, box, shape)
         if cells is not None:
-            lookup = _frame_lookup(depth, pixel_stride, margin_units, device)
+            lookup = _frame_lookup(depth, pixel_stride, margin_units, device, zeros_empty)
             proj = _projection(frame.intrinsics, frame.camtoworld).to(device)
             counts[cells] += _observed_by(lookup, proj, [axes[a][cells[a]] for a in range(3)])
     if views == 0:

@@ -45,7 +45,8 @@ def make_capture(root: Path) -> Path:
     box.export(cap / "gt_mesh.ply")
     pose = yaw_pose(0.7, np.array([0.5, -0.2, 0.0]))
     inst = Instance("c_0", "c", "chair", pose, 1.0, 0.7, box_corners(box.bounds, pose), mesh_path=mesh_path)
-    meta = {"kind": "scene", "name": "unit", "gt_mesh_path": "gt_mesh.ply"}
+    # Zeros mean empty: there NaN and inf depth are refused (elsewhere they mean unknown).
+    meta = {"kind": "scene", "name": "unit", "gt_mesh_path": "gt_mesh.ply", "zero_depth": "empty"}
     worldtogt = normalisation(np.array([[-1.0, -0.5, 0.0], [2.0, 1.0, 1.5]]), 1.02)
     write_capture(cap, rgbs, depths, poses, K, worldtogt, [inst], meta)
     # A file beside the capture, which nothing in it may name.

@@ -50,6 +50,10 @@ WORLDTOGT[:3, 3] = WORLD_OFFSET
 """Normalised -> metres: metres = 0.4 * normalised + (1, -2, 0.5)."""
 
 
+IDEAL_META = {"zero_depth": "empty"}
+"""The ``regnf`` block of a test capture rendered exactly: its zero depths are rays that hit nothing."""
+
+
 TRACE = SphereTracerConfig(max_steps=1024, background=(0.0, 0.0, 0.0))
 """Rays grazing a box face need many steps to converge; with the default 256 some pixels could
 come out empty although their rays enter the box."""
@@ -106,6 +110,7 @@ def write_analytic_capture(
         K,
         WORLDTOGT,
         splits=splits() if frame_splits is None else frame_splits,
+        meta=IDEAL_META,
     )
     return load_capture(out_dir)
 

@@ -102,7 +102,7 @@ def write_box_capture(root: Path, cameras=CAMERAS, with_depth: bool = True) -> C
     poses_m[:, :3, 3] = poses_m[:, :3, 3] * WORLD_SCALE + WORLD_OFFSET
     depths = [depth_image(c) * WORLD_SCALE for c in cameras] if with_depth else None
     rgbs = [np.zeros((H, W, 3), np.uint8) for _ in cameras]
-    write_capture(root, rgbs, depths, poses_m, K, WORLDTOGT)
+    write_capture(root, rgbs, depths, poses_m, K, WORLDTOGT, meta={"zero_depth": "empty"})
     return load_capture(root)
 
 
