@@ -61,15 +61,12 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
     try:
         yield tmp_path
         os.replace(tmp_path, dest)
-    except OSError as exc:
+    except BaseException as exc:
         tmp_path.unlink(missing_ok=True)
-        named = naming(exc, dest)
+        named = naming(exc, dest) if isinstance(exc, OSError) else exc
         if named is exc:
             raise
         raise named from exc
-    except BaseException:
-        tmp_path.unlink(missing_ok=True)
-        raise
 
 
 def naming(exc: OSError, dest: Path) -> OSError:

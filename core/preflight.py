@@ -17,7 +17,7 @@ import os
 import shutil
 import stat
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 MEMORY_FRACTION = 0.8
 """A job may plan to use at most this fraction of the memory available when it starts."""
@@ -183,6 +183,26 @@ def check_input_file(path: str | os.PathLike, option: str, what: str = "file") -
     return path
 
 
+def open_regular_file(path: str | os.PathLike) -> tuple[BinaryIO, int] | None:
+    """``path`` opened for reading, and its size in bytes; None when it is not a regular file.
+
+    The open does not block and the check is made on the open file, so a FIFO or device put in
+    the place of a file checked before cannot block the read.
+
+    Raises
+    ------
+    OSError
+        It cannot be opened.
+    """
+    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+    f = os.fdopen(fd, "rb")
+    st = os.fstat(fd)
+    if not stat.S_ISREG(st.st_mode):
+        f.close()
+        return None
+    return f, st.st_size
+
+
 def read_json_input(path: str | os.PathLike, option: str | None, what: str = "JSON file",
                     max_bytes: int = MAX_JSON_BYTES) -> Any:
     """The JSON value of a file the user named, read only if it is a regular file of at most ``max_bytes``.
@@ -210,14 +230,13 @@ def read_json_input(path: str | os.PathLike, option: str | None, what: str = "JS
     if problem is not None:
         raise JsonInputError(where, problem)
     try:
-        # Non-blocking: a FIFO put in its place since the check opens at once, and is refused below.
-        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
-        with os.fdopen(fd, "rb") as f:
-            st = os.fstat(f.fileno())
-            if not stat.S_ISREG(st.st_mode):
-                raise JsonInputError(where, "is not a file")
-            if st.st_size > max_bytes:
-                raise JsonInputError(where, f"{st.st_size:,} bytes, more than the {max_bytes:,} a {what} "
+        opened = open_regular_file(path)
+        if opened is None:
+            raise JsonInputError(where, "is not a file")
+        f, size = opened
+        with f:
+            if size > max_bytes:
+                raise JsonInputError(where, f"{size:,} bytes, more than the {max_bytes:,} a {what} "
                                      "may have (is it the right file?)")
             data = f.read(max_bytes + 1)
     except OSError as exc:

@@ -17,7 +17,6 @@
 from __future__ import annotations
 
 import os
-import stat
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -25,7 +24,7 @@ import numpy as np
 import trimesh
 from trimesh.resolvers import FilePathResolver
 
-from regnf.core.preflight import input_file_problem
+from regnf.core.preflight import input_file_problem, open_regular_file
 from regnf.neural_fields.mesh_repair import MeshError
 
 UNITS: dict[str, float] = {"m": 1.0, "cm": 0.01, "mm": 0.001}
@@ -86,17 +85,15 @@ class FolderResolver(FilePathResolver):
             if why is not None:
                 problem = problem or why
                 continue
-            # Non-blocking, and checked again on the open file: a FIFO put in its place
-            # after the check still cannot block the read.
             try:
-                fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+                opened = open_regular_file(path)
             except OSError as exc:
                 problem = problem or f"cannot be read ({exc.strerror or exc})"
                 continue
-            with os.fdopen(fd, "rb") as f:
-                if not stat.S_ISREG(os.fstat(fd).st_mode):
-                    problem = problem or "is not a file"
-                    continue
+            if opened is None:
+                problem = problem or "is not a file"
+                continue
+            with opened[0] as f:
                 return f.read()
         if problem and f"{clean} {problem}" not in self.skipped:
             self.skipped.append(f"{clean} {problem}")
