@@ -31,6 +31,7 @@ import numpy as np
 import trimesh
 
 from regnf.captures.depth_io import read_depth
+from regnf.captures.distortion import Distortion
 from regnf.captures.instance import Instance
 from regnf.core.preflight import JsonInputError, input_file_problem, read_json_input
 
@@ -213,6 +214,12 @@ class CaptureFrame:
     """Normalised units per unit stored in the depth file (1.0: stored normalised)."""
     mask_path: Path | None = None
     """Absolute path of the frame's mask image, if the capture has one (not used yet)."""
+    distortion: Distortion | None = None
+    """Lens distortion of the frame's camera; None: an ideal pinhole."""
+    confidence_path: Path | None = None
+    """Absolute path of a per-pixel depth confidence image (ARKit's 0, 1, 2), if the capture has one."""
+    rgb_intrinsics: np.ndarray | None = None
+    """(3, 3) float64 K of the colour image where its pixel grid is not the depth's (None: the same grid)."""
 
 
 @dataclass
@@ -237,6 +244,10 @@ class Capture:
     """The ``regnf`` block of ``meta_data.json`` or {}."""
     meta_name: str = META_NAME
     """Name of the metadata file in ``root`` (part of the training data's fingerprint)."""
+    up: np.ndarray | None = None
+    """(3,) unit up direction in the capture's metric world where the format documents one; None: unknown."""
+    poses_estimated: bool = False
+    """True where the poses are estimates (SLAM, COLMAP, a noisy render), False where they are exact."""
 
     @property
     def zero_depth_is_empty(self) -> bool:

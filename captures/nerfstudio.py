@@ -230,4 +230,6 @@ def read(path: str | Path) -> Capture:
         "near": NEAR,
         "far": far_plane((pose_arr[:, :3, 3] - c) / s),
     }
-    return Capture(root, width, height, frames, worldtogt, scene_box, [], meta, TRANSFORMS_NAME)
+    # nerfstudio documents no up axis for its world; its poses come from SLAM or COLMAP.
+    return Capture(root, width, height, frames, worldtogt, scene_box, [], meta, TRANSFORMS_NAME,
+                   up=None, poses_estimated=True)

@@ -39,6 +39,7 @@ from regnf.captures.instance import Instance
 from regnf.captures.model import (
     META_NAME,
     POSE_RTOL,
+    REGNF_GENERATOR_PREFIX,
     SPLITS,
     Capture,
     CaptureError,
@@ -194,7 +195,13 @@ def load_capture(path: str | Path) -> Capture:
         zero_depth_meaning(meta)
     except ValueError as exc:
         raise CaptureError(f"{meta_path}: {exc}") from exc
-    return Capture(root, width, height, frames, worldtogt, scene_box, instances, meta)
+    generator = meta.get("generator")
+    ours = isinstance(generator, str) and generator.startswith(REGNF_GENERATOR_PREFIX)
+    # regnf's renders are +Z up and their poses exact unless the noise block perturbed them.
+    up = np.array([0.0, 0.0, 1.0]) if ours else None
+    estimated = not ours or "noise" in meta
+    return Capture(root, width, height, frames, worldtogt, scene_box, instances, meta,
+                   up=up, poses_estimated=estimated)
 
 
 # ----------------------------------------------------------------------------- writing
