@@ -379,3 +379,121 @@ class BenchGpuCheck:
             write_text(self.markdown, text)
         console.print(text)
         console.print(f"results: {self.json}")
+
+
+@dataclass
+class BenchSensor:
+    """Fields, true-box registrations and discovery on room captures with sensor noise and pose error, four levels."""
+
+    json: Path = Path("out/bench_sensor.json")
+    """Where to write the rows, the summary and the verdicts (JSON); rewritten after each room."""
+    markdown: Path | None = None
+    """Also write the tables as Markdown here (e.g. docs/benchmarks_sensor.md)."""
+    levels: tuple[Literal["ideal", "sensor", "slam", "harsh"], ...] = ("ideal", "sensor", "slam", "harsh")
+    """Noise levels of the room captures (regnf synth --noise)."""
+    coverages: tuple[Literal["low", "full"], ...] = ("low", "full")
+    """Room captures: the low-coverage arc, the full trajectory, or both."""
+    rooms: tuple[Literal["ac-room", "atbl-room", "mix-room"], ...] = ("ac-room", "atbl-room", "mix-room")
+    """Rooms to run."""
+    objects: tuple[str, ...] = ()
+    """Only the true-box pairs of these library objects (and the wrong pairs into their boxes); empty: all."""
+    wrong_pairs: bool = True
+    """Also register every object into the boxes of the other class and every chair into every
+    other chair's box (a wrong object accepted fails the level)."""
+    discovery: bool = True
+    """Also discover each room's objects with no boxes and the whole mesh library."""
+    noise_seed: int = 0
+    """Seed of the sensor and pose noise of every noisy capture."""
+    size: Literal["full", "tiny"] = "full"
+    """``full``: the measured captures and presets. ``tiny``: small captures and briefly trained
+    fields (a smoke test; its figures mean nothing)."""
+    device: str = "cpu"
+    """Torch device."""
+    cache_dir: Path = dataclasses.field(default_factory=default_cache_dir)
+    """Cache directory (captures and fields are made there if missing)."""
+
+    def run(self) -> None:
+        check_outputs(self)
+        from regnf.benchmarks.sensor import check_selection, run_sensor_benchmark
+        from regnf.benchmarks.sensor_report import markdown_tables
+        from regnf.core.preflight import check_device
+
+        check_device(self.device)
+        check_selection(self.levels, self.coverages, self.rooms, self.objects)
+        command = (f"regnf bench sensor --json {self.json} --levels {' '.join(self.levels)} "
+                   f"--coverages {' '.join(self.coverages)} --rooms {' '.join(self.rooms)}"
+                   + (f" --objects {' '.join(self.objects)}" if self.objects else "")
+                   + ("" if self.wrong_pairs else " --no-wrong-pairs")
+                   + ("" if self.discovery else " --no-discovery")
+                   + (f" --noise-seed {self.noise_seed}" if self.noise_seed else "")
+                   + (f" --size {self.size}" if self.size != "full" else ""))
+        meta = {**run_meta(command, self.device), "size": self.size}
+        result = run_sensor_benchmark(
+            Cache(self.cache_dir, size=self.size), self.levels, self.coverages, self.rooms, self.objects,
+            with_wrong_pairs=self.wrong_pairs, with_discovery=self.discovery, noise_seed=self.noise_seed,
+            device=self.device, on_room=lambda done: write_json(self.json, {"meta": meta, **done}))
+        write_json(self.json, {"meta": meta, **result})
+        text = f"Command: `{command}`\n\n{markdown_tables(result)}"
+        if self.markdown:
+            from regnf.core.atomic_io import write_text
+
+            write_text(self.markdown, text)
+        console.print(text)
+        console.print(f"results: {self.json}")
+
+
+@dataclass
+class BenchCaptureScale:
+    """Time and peak memory of sample building and training against a capture's number of frames."""
+
+    json: Path = Path("out/bench_capture_scale.json")
+    """Where to write the measurements (JSON); rewritten after each run."""
+    markdown: Path | None = None
+    """Also write the table as Markdown here."""
+    frames: tuple[int, ...] = (100, 300, 600)
+    """Frame counts at which sample building is measured (each in a process of its own)."""
+    width: int = 640
+    """Image width of the capture, pixels."""
+    height: int = 480
+    """Image height of the capture, pixels."""
+    train_frames: int = 600
+    """Frames of the training run (room preset, a process of its own); 0: no training run."""
+    room: Literal["ac-room", "atbl-room", "mix-room"] = "ac-room"
+    """Room captured (full-coverage trajectory, every frame a training frame)."""
+    steps: int = 0
+    """Training steps; 0: the room preset's."""
+    memory_limit_gib: float = 0.0
+    """Address-space cap of each run, GiB (a run beyond it is reported out of memory); 0: 90 % of the
+    memory available when the run starts."""
+    pixel_stride: int = 1
+    """Samples from every this-many-th row and column of each frame, in every run."""
+    device: str = "cpu"
+    """Torch device of the training run."""
+    cache_dir: Path = dataclasses.field(default_factory=default_cache_dir)
+    """Cache directory (the capture is made there once)."""
+
+    def run(self) -> None:
+        check_outputs(self)
+        from regnf.benchmarks.capture_scale import check_plan, markdown_table, run_capture_scale
+        from regnf.core.preflight import check_device
+
+        check_device(self.device)
+        check_plan(self.frames, self.width, self.height, self.train_frames, self.steps, self.memory_limit_gib,
+                   self.pixel_stride)
+        command = (f"regnf bench capture-scale --json {self.json} --frames {' '.join(map(str, self.frames))} "
+                   f"--width {self.width} --height {self.height} --train-frames {self.train_frames}"
+                   + (f" --room {self.room}" if self.room != "ac-room" else "")
+                   + (f" --steps {self.steps}" if self.steps else "")
+                   + (f" --pixel-stride {self.pixel_stride}" if self.pixel_stride != 1 else ""))
+        meta = run_meta(command, self.device)
+        result = run_capture_scale(Cache(self.cache_dir), self.room, self.frames, self.width, self.height,
+                                   self.train_frames, self.device, self.steps, self.memory_limit_gib,
+                                   self.pixel_stride, on_row=lambda done: write_json(self.json, {"meta": meta, **done}))
+        write_json(self.json, {"meta": meta, **result})
+        text = f"Command: `{command}`\n\n{markdown_table(result)}"
+        if self.markdown:
+            from regnf.core.atomic_io import write_text
+
+            write_text(self.markdown, text)
+        console.print(text)
+        console.print(f"results: {self.json}")

@@ -1,6 +1,7 @@
 """Reading and writing captures: posed RGB-D frames in a capture's own metric world.
 
-One small module per format (:mod:`~regnf.captures.sdfstudio`, :mod:`~regnf.captures.nerfstudio`)
+One small module per format (:mod:`~regnf.captures.sdfstudio`, :mod:`~regnf.captures.nerfstudio`,
+:mod:`~regnf.captures.scannet`)
 behind one seam, :func:`read_capture` (:mod:`regnf.captures.formats`); all produce the same
 in-memory :class:`Capture` (:mod:`regnf.captures.model`).
 """

@@ -113,3 +113,44 @@ def read_depth(
             "z-depth must be >= 0, 0 meaning no depth"
         )
     return depth
+
+
+CONFIDENCE_LEVELS = 3
+"""Depth confidence values are 0 (low), 1 (medium) and 2 (high), as ARKit writes them."""
+
+
+def read_confidence(path: Path, height: int, width: int) -> np.ndarray:
+    """Per-pixel depth confidence of one frame, (H, W) uint8 in {0, 1, 2} (ARKit's levels).
+
+    Parameters
+    ----------
+    path : Path
+        A single-channel uint8 image (``.png``...) or a uint8 ``.npy``.
+    height, width : int
+        The size of the frame's depth, pixels.
+
+    Raises
+    ------
+    ValueError
+        Unreadable or pickled file, a dtype other than uint8, a size other than the depth's,
+        or a value above 2. The message names no file.
+    """
+    path = Path(path)
+    try:
+        if path.suffix.lower() == ".npy":
+            conf = np.load(path, allow_pickle=False, mmap_mode="r")
+        else:
+            # The extension hint stops imageio from probing every plugin on a corrupt file.
+            conf = iio.imread(path, extension=path.suffix or None)
+    except Exception as exc:  # numpy and imageio raise many types for unreadable files
+        raise ValueError(f"cannot read depth confidence ({exc})") from exc
+    if not isinstance(conf, np.ndarray) or conf.dtype != np.uint8:
+        dtype = conf.dtype if isinstance(conf, np.ndarray) else type(conf).__name__
+        raise ValueError(f"depth confidence has dtype {dtype}, expected uint8 (0 low, 1 medium, 2 high)")
+    if conf.shape != (height, width):
+        raise ValueError(f"depth confidence shape {conf.shape} does not match the depth's {height}x{width}")
+    conf = np.array(conf)
+    top = int(conf.max()) if conf.size else 0
+    if top >= CONFIDENCE_LEVELS:
+        raise ValueError(f"depth confidence has values up to {top}; expected 0 (low), 1 (medium) or 2 (high)")
+    return conf

@@ -12,7 +12,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-from regnf.captures import nerfstudio, sdfstudio
+from regnf.captures import nerfstudio, scannet, sdfstudio
 from regnf.captures.model import META_NAME, Capture, CaptureError
 
 
@@ -33,6 +33,7 @@ class CaptureFormat:
 FORMATS: tuple[CaptureFormat, ...] = (
     CaptureFormat("sdfstudio", META_NAME, sdfstudio.detect, sdfstudio.load_capture),
     CaptureFormat("nerfstudio", nerfstudio.TRANSFORMS_NAME, nerfstudio.detect, nerfstudio.read),
+    CaptureFormat("scannet", scannet.INTRINSIC_DEPTH, scannet.detect, scannet.read),
 )
 """Every format, in the order detection reports them."""
 

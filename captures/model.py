@@ -31,8 +31,10 @@ import numpy as np
 import trimesh
 
 from regnf.captures.depth_io import read_depth
+from regnf.captures.depth_uncertainty import DEPTH_NOISE_KEY, DepthNoiseModel, parse_depth_noise
 from regnf.captures.distortion import Distortion
 from regnf.captures.instance import Instance
+from regnf.captures.resample import resample_to_grid
 from regnf.core.preflight import JsonInputError, input_file_problem, read_json_input
 
 META_NAME = "meta_data.json"
@@ -248,6 +250,8 @@ class Capture:
     """(3,) unit up direction in the capture's metric world where the format documents one; None: unknown."""
     poses_estimated: bool = False
     """True where the poses are estimates (SLAM, COLMAP, a noisy render), False where they are exact."""
+    read_files: list[Path] = field(default_factory=list)
+    """Absolute paths of the files the reader read besides :attr:`meta_name` and the frames' images and depth (pose and intrinsics files); part of the training data's fingerprint."""
 
     @property
     def zero_depth_is_empty(self) -> bool:
@@ -267,18 +271,45 @@ class Capture:
             raise CaptureError(f"{self.root / self.meta_name}: {exc}") from exc
 
     @property
+    def depth_noise(self) -> DepthNoiseModel | None:
+        """The noise model of the capture's depth; None where the depth is exact.
+
+        None where a zero depth means the ray hit nothing (:attr:`zero_depth_is_empty`: regnf's
+        own ideal renders), the default :class:`~regnf.captures.depth_uncertainty.DepthNoiseModel`
+        (Nguyen et al.'s Kinect) for every other capture; ``regnf.depth_noise`` in the metadata
+        overrides it (``"none"``, or an object of the model's fields).
+
+        Raises
+        ------
+        CaptureError
+            An invalid ``regnf.depth_noise`` or :data:`ZERO_DEPTH_KEY`; the message names the
+            metadata file.
+        """
+        if DEPTH_NOISE_KEY in self.meta:
+            try:
+                return parse_depth_noise(self.meta[DEPTH_NOISE_KEY])
+            except ValueError as exc:
+                raise CaptureError(f"{self.root / self.meta_name}: {exc}") from exc
+        return None if self.zero_depth_is_empty else DepthNoiseModel()
+
+    @property
     def scale(self) -> float:
         """Metres per normalised unit (uniform scale of ``worldtogt``)."""
         return float(np.cbrt(abs(np.linalg.det(self.worldtogt[:3, :3]))))
 
     def rgb(self, i: int) -> np.ndarray:
-        """Colour of frame ``i`` as (H, W, 3) float32 in [0, 1].
+        """Colour of frame ``i`` as (H, W, 3) float32 in [0, 1], on the capture's pixel grid.
+
+        A frame with :attr:`CaptureFrame.rgb_intrinsics` has its colour on another grid (of any
+        size, checked by the reader); it is resampled bilinearly onto the capture's grid
+        (:func:`regnf.captures.resample.resample_to_grid`).
 
         Raises
         ------
         CaptureError
             Unreadable file, a dtype other than uint8 / uint16, or a shape other than
-            (H, W), (H, W, 3) or (H, W, 4); the message names the file and the frame.
+            (H, W), (H, W, 3) or (H, W, 4) (any (h, w) for a colour grid of its own); the
+            message names the file and the frame.
         """
         path = self.frames[i].rgb_path
         where = f"{path}: frame {i}"
@@ -291,12 +322,19 @@ class Capture:
             raise CaptureError(f"{where}: image has dtype {img.dtype}, expected uint8 or uint16")
         if img.ndim == 2:
             img = np.repeat(img[..., None], 3, axis=2)
-        if img.ndim != 3 or img.shape[:2] != (self.height, self.width) or img.shape[2] not in (3, 4):
+        K_rgb = self.frames[i].rgb_intrinsics
+        if K_rgb is not None and (img.ndim != 3 or img.shape[2] not in (3, 4)):
+            # A colour grid of its own: its size was checked by the reader (all frames alike).
+            raise CaptureError(f"{where}: image shape {img.shape} is not RGB(A)")
+        if K_rgb is None and (img.ndim != 3 or img.shape[:2] != (self.height, self.width) or img.shape[2] not in (3, 4)):
             raise CaptureError(
                 f"{where}: image shape {img.shape} does not match {self.height}x{self.width} RGB(A)"
             )
         scale = 65535.0 if img.dtype == np.uint16 else 255.0
-        return (img[..., :3].astype(np.float32) / np.float32(scale)).astype(np.float32)
+        colour = (img[..., :3].astype(np.float32) / np.float32(scale)).astype(np.float32)
+        if K_rgb is None:
+            return colour
+        return resample_to_grid(colour, K_rgb, self.frames[i].intrinsics, self.height, self.width)
 
     def depth(self, i: int) -> np.ndarray | None:
         """Sensor z-depth of frame ``i``, (H, W) float32 in normalised units; None if absent.

@@ -7,13 +7,19 @@ Layout (what ``ns-process-data`` writes)::
     depth/frame_00001.png     optional: uint16 depth in ``depth_unit_scale_factor`` metres
                               (default 1e-3: millimetres), or a float ``.npy`` in metres
     masks/frame_00001.png     optional mask (recorded, not used yet)
+    confidence/frame_00001.png optional ``confidence_path``: uint8 depth confidence, ARKit's
+                              0 low (the depth is unknown), 1 medium, 2 high
 
 ``transform_matrix`` is camera-to-world in metres with OpenGL camera axes (x right, y up,
 looking down -z); it is turned to the project's OpenCV axes (x right, y down, z forward) by
 flipping the camera's y and z. Intrinsics ``fl_x, fl_y, cx, cy, w, h`` are read from the frame,
 else from the top level; nerfstudio's pixel centres are at ``u + 0.5``, as the project's.
-``camera_model`` PINHOLE is read as is; OPENCV and OPENCV_FISHEYE only when every distortion
-coefficient is 0 (distortion is refused, never ignored).
+``camera_model`` PINHOLE is read as is (non-zero distortion coefficients refused); OPENCV
+(``k1, k2, k3, p1, p2``; ``k4`` must be 0) and OPENCV_FISHEYE (equidistant ``k1..k4``; ``p1, p2``
+must be 0) give each frame a :class:`~regnf.captures.distortion.Distortion`, global or per
+frame, that every pixel -> ray and point -> pixel applies; a model that folds over inside the
+image is refused (:func:`~regnf.captures.distortion.check_invertible`). Where every coefficient
+is 0 the frame is a plain pinhole (``distortion`` None), exactly as a PINHOLE one.
 
 World: the poses stay in the world ``transform_matrix`` is written in (the one nerfstudio shows
 and exports in, Z up for COLMAP data); ``applied_transform``, the rigid map ``ns-process-data``
@@ -21,14 +27,16 @@ applied to the original poses, is not undone but kept in ``Capture.meta["applied
 (4x4), so a result can be taken back to the original reconstruction's world. The capture gives
 no scene box: ``worldtogt`` is built from its cameras and depth (:mod:`regnf.captures.metric`).
 
-Checked before any depth is read: the JSON, the camera model, distortion, every pose rigid,
+Checked before any depth is read: the JSON, the camera model, distortion (coefficients the
+model has, and invertible over the image), every pose rigid,
 every ``K`` valid, every file inside the folder and present, every image of size ``w x h``.
 Then each depth file is read once for the bounds: an 8-bit depth PNG and a median depth beyond
-:data:`MAX_MEDIAN_DEPTH_M` (a wrong ``depth_unit_scale_factor``) are refused there.
+:data:`~regnf.captures.metric.MAX_MEDIAN_DEPTH_M` (a wrong ``depth_unit_scale_factor``) are refused there.
 """
 
 from __future__ import annotations
 
+import functools
 import math
 import os
 from pathlib import Path
@@ -38,7 +46,8 @@ import imageio.v3 as iio
 import numpy as np
 
 from regnf.captures.depth_io import PNG_SUFFIXES, read_depth
-from regnf.captures.metric import SCENE_MARGIN, depth_points, metric_bounds
+from regnf.captures.distortion import Distortion, check_invertible
+from regnf.captures.metric import check_median_depth, depth_points, normalise_metric_frames
 from regnf.captures.model import (
     Capture,
     CaptureError,
@@ -47,8 +56,6 @@ from regnf.captures.model import (
     capture_file,
     check_intrinsics,
     check_rigid_pose,
-    far_plane,
-    normalisation,
     pad_pose,
     parse_matrix,
     read_metadata,
@@ -58,19 +65,17 @@ TRANSFORMS_NAME = "transforms.json"
 """File name of a nerfstudio capture's metadata."""
 
 CAMERA_MODELS = ("PINHOLE", "OPENCV", "OPENCV_FISHEYE")
-"""Camera models read (the distorted ones only with zero distortion)."""
+"""Camera models read."""
+
+UNUSED_COEFFICIENTS = {"PINHOLE": ("k1", "k2", "k3", "k4", "p1", "p2"), "OPENCV": ("k4",),
+                       "OPENCV_FISHEYE": ("p1", "p2")}
+"""Per camera model, the coefficients it does not have: non-zero ones are refused, never ignored."""
 
 DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
 """Distortion coefficients of OPENCV / OPENCV_FISHEYE; a missing one is 0."""
 
 DEFAULT_DEPTH_UNIT = 1e-3
 """Metres per unit of a depth PNG when ``depth_unit_scale_factor`` is absent (millimetres)."""
-
-MAX_MEDIAN_DEPTH_M = 50.0
-"""Largest median valid depth of a frame, in metres, accepted as a sensor's (a unit check)."""
-
-NEAR = 0.05
-"""Near plane of the scene box, in normalised units (as the sdfstudio writer's default)."""
 
 OPENGL_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
 """Right factor turning an OpenGL-axes camera-to-world into an OpenCV-axes one."""
@@ -88,8 +93,9 @@ def _number(value: Any, where: str) -> float:
     return float(value)
 
 
-def _camera(data: dict, frame: dict, model: str, meta_path: Path, i: int) -> tuple[np.ndarray, int, int]:
-    """``K`` (3, 3), width and height of frame ``i`` (its own keys first, then the top level)."""
+def _camera(data: dict, frame: dict, model: str, meta_path: Path,
+            i: int) -> tuple[np.ndarray, int, int, Distortion | None]:
+    """``K`` (3, 3), width, height and distortion of frame ``i`` (its own keys first, then the top level)."""
     where = f"{meta_path}: frames[{i}]"
     got = {}
     for key in ("fl_x", "fl_y", "cx", "cy", "w", "h"):
@@ -100,19 +106,33 @@ def _camera(data: dict, frame: dict, model: str, meta_path: Path, i: int) -> tup
     w, h = got["w"], got["h"]
     if w != int(w) or h != int(h) or w <= 0 or h <= 0:
         raise CaptureError(f"{where}: w and h must be positive integers, got {w:g} x {h:g}")
-    distortion = {k: _number(frame.get(k, data.get(k, 0.0)), f"{where}.{k}") for k in DISTORTION_KEYS}
-    nonzero = {k: v for k, v in distortion.items() if v != 0.0}
-    if nonzero:
-        coeffs = ", ".join(f"{k}={v:g}" for k, v in nonzero.items())
-        # Name the top level when no coefficient is the frame's own: every frame has them.
-        owner = where if any(k in frame for k in nonzero) else str(meta_path)
-        raise CaptureError(
-            f"{owner} has {coeffs} (camera_model {model}): distortion is not supported yet; "
-            "undistort the images and set the coefficients to 0"
-        )
+    coeffs = {k: _number(frame.get(k, data.get(k, 0.0)), f"{where}.{k}") for k in DISTORTION_KEYS}
+    nonzero = {k: v for k, v in coeffs.items() if v != 0.0}
     K = np.array([[got["fl_x"], 0.0, got["cx"]], [0.0, got["fl_y"], got["cy"]], [0.0, 0.0, 1.0]])
     apply_rule(check_intrinsics, K, where)
-    return K, int(w), int(h)
+    if not nonzero:
+        return K, int(w), int(h), None
+    listed = ", ".join(f"{k}={v:g}" for k, v in nonzero.items())
+    # Name the top level when no coefficient is the frame's own: every frame has them.
+    owner = where if any(k in frame for k in nonzero) else str(meta_path)
+    unused = [k for k in nonzero if k in UNUSED_COEFFICIENTS[model]]
+    if unused:
+        raise CaptureError(
+            f"{owner} has {listed} (camera_model {model}): {model} has no {', '.join(unused)}; "
+            "set it to 0 or name the camera_model whose coefficients these are"
+        )
+    distortion = Distortion(model, **{k: coeffs[k] for k in DISTORTION_KEYS if k not in UNUSED_COEFFICIENTS[model]})
+    try:
+        _check_lens(distortion, tuple(K.ravel().tolist()), int(w), int(h))
+    except ValueError as exc:
+        raise CaptureError(f"{owner}: {exc}") from exc
+    return K, int(w), int(h), distortion
+
+
+@functools.lru_cache(maxsize=64)
+def _check_lens(distortion: Distortion, K: tuple[float, ...], width: int, height: int) -> None:
+    """:func:`check_invertible` once per camera (frames share their coefficients and ``K``)."""
+    check_invertible(distortion, np.reshape(K, (3, 3)), width, height)
 
 
 def _check_image_size(path: Path, width: int, height: int, where: str) -> None:
@@ -135,10 +155,11 @@ def read(path: str | Path) -> Capture:
     ------
     CaptureError
         One line naming the file (and ``frames[i]``): bad JSON, an unknown camera model,
-        non-zero distortion, a missing key, a non-rigid pose, a bad ``K``, a file missing or
+        a distortion coefficient the camera model has not, a lens model that folds over
+        inside the image, a missing key, a non-rigid pose, a bad ``K``, a file missing or
         outside the folder, an image of another size than ``w x h``, a depth file that
         :func:`regnf.captures.depth_io.read_depth` refuses (an 8-bit PNG...), a median depth
-        beyond :data:`MAX_MEDIAN_DEPTH_M`, or no depth at all.
+        beyond :data:`~regnf.captures.metric.MAX_MEDIAN_DEPTH_M`, or no depth at all.
     """
     path = Path(path)
     meta_path = path if path.suffix == ".json" and not path.is_dir() else path / TRANSFORMS_NAME
@@ -171,7 +192,7 @@ def read(path: str | Path) -> Capture:
         for key in ("file_path", "transform_matrix"):
             if key not in f:
                 raise CaptureError(f"{where} is missing key {key!r}")
-        K, w, h = _camera(data, f, model, meta_path, i)
+        K, w, h, distortion = _camera(data, f, model, meta_path, i)
         sizes.add((w, h))
         if len(sizes) > 1:
             raise CaptureError(f"{where}: frames of different sizes {sorted(sizes)} are not supported")
@@ -180,12 +201,15 @@ def read(path: str | Path) -> Capture:
         rgb = capture_file(root, f["file_path"], f"{where}.file_path")
         depth = f.get("depth_file_path")
         mask = f.get("mask_path")
+        confidence = f.get("confidence_path")
         frames.append(CaptureFrame(
             rgb_path=rgb,
             depth_path=None if depth is None else capture_file(root, depth, f"{where}.depth_file_path"),
             camtoworld=gl @ OPENGL_TO_OPENCV,
             intrinsics=K,
+            distortion=distortion,
             mask_path=None if mask is None else capture_file(root, mask, f"{where}.mask_path"),
+            confidence_path=None if confidence is None else capture_file(root, confidence, f"{where}.confidence_path"),
         ))
         poses.append(gl @ OPENGL_TO_OPENCV)
         Ks.append(K)
@@ -207,29 +231,12 @@ def read(path: str | Path) -> Capture:
             depth = read_depth(fr.depth_path, height, width, to_metres)
         except ValueError as exc:
             raise CaptureError(f"{fr.depth_path}: frame {i}: {exc}") from exc
-        valid = depth[depth > 0]
-        median = float(np.median(valid)) if valid.size else 0.0
-        if median > MAX_MEDIAN_DEPTH_M:
-            raise CaptureError(
-                f"{fr.depth_path}: frame {i}: median depth {median:.4g} m is beyond "
-                f"{MAX_MEDIAN_DEPTH_M:g} m with depth_unit_scale_factor {unit:g}: is the "
-                "depth_unit_scale_factor right?"
-            )
-        points.append(depth_points(depth, Ks[i], poses[i]))
+        check_median_depth(depth, f"{fr.depth_path}: frame {i}",
+                           f"with depth_unit_scale_factor {unit:g}: is the depth_unit_scale_factor right?")
+        points.append(depth_points(depth, Ks[i], poses[i], fr.distortion))
         fr.depth_scale = to_metres  # metres per file unit, normalised below
 
-    pose_arr = np.stack(poses)
-    worldtogt = normalisation(metric_bounds(pose_arr[:, :3, 3], np.concatenate(points)), SCENE_MARGIN)
-    s, c = float(worldtogt[0, 0]), worldtogt[:3, 3]
-    for fr in frames:
-        fr.camtoworld = fr.camtoworld.copy()
-        fr.camtoworld[:3, 3] = (fr.camtoworld[:3, 3] - c) / s
-        fr.depth_scale = fr.depth_scale / s
-    scene_box = {
-        "aabb": np.array([[-1.0] * 3, [1.0] * 3]),
-        "near": NEAR,
-        "far": far_plane((pose_arr[:, :3, 3] - c) / s),
-    }
+    worldtogt, scene_box = normalise_metric_frames(frames, np.concatenate(points))
     # nerfstudio documents no up axis for its world; its poses come from SLAM or COLMAP.
     return Capture(root, width, height, frames, worldtogt, scene_box, [], meta, TRANSFORMS_NAME,
                    up=None, poses_estimated=True)

@@ -34,8 +34,15 @@ from typing import Any
 import imageio.v3 as iio
 import numpy as np
 
-from regnf.captures.depth_io import PNG_SUFFIXES
+from regnf.captures.depth_io import PNG_SUFFIXES, read_depth
+from regnf.captures.depth_uncertainty import DEPTH_NOISE_KEY, parse_depth_noise
 from regnf.captures.instance import Instance
+from regnf.captures.metric import (
+    check_median_depth,
+    depth_points,
+    metric_bounds,
+    normalise_metric_frames,
+)
 from regnf.captures.model import (
     META_NAME,
     POSE_RTOL,
@@ -126,6 +133,59 @@ def _load_instance(root: Path, data: Any, where: str) -> Instance:
     )
 
 
+POSES_KEY = "poses"
+"""Key of the ``regnf`` block that says whether the poses are ``exact`` or ``estimated``."""
+
+
+def poses_are_estimates(meta: dict, ideal: bool) -> bool:
+    """Whether an sdfstudio capture's poses are estimates (refined in training by default).
+
+    :data:`POSES_KEY` says so where present; otherwise the poses of an ideal capture (one whose
+    zero depth means empty: regnf's own noiseless renders, or a capture that says so) are exact
+    and every other capture's are estimates, as a real scan's are.
+
+    Raises
+    ------
+    ValueError
+        :data:`POSES_KEY` with a value other than ``exact`` or ``estimated``.
+    """
+    value = meta.get(POSES_KEY)
+    if value is None:
+        return not ideal
+    if value not in ("exact", "estimated"):
+        raise ValueError(f"regnf.{POSES_KEY} must be 'exact' or 'estimated', got {value!r}")
+    return value == "estimated"
+
+
+def _unboxed_bounds(frames: list[CaptureFrame], width: int, height: int, meta_path: Path,
+                    scene_box: dict, meta: dict) -> tuple[np.ndarray, dict]:
+    """``worldtogt`` and scene box of a capture that states neither (poses and depth in metres).
+
+    Such a capture is taken as it stands (the identity, the unit box) when its cameras and the
+    robust bounds of its depth (:func:`regnf.captures.metric.metric_bounds`) fit in the unit box,
+    as a capture already normalised does; otherwise it is in metres, and it is normalised from
+    those bounds (:func:`regnf.captures.metric.normalise_metric_frames`) rather than cropped to
+    a 2 m cube.
+    """
+    unknown = zero_depth_meaning(meta) == "unknown"
+    points = []
+    for i, fr in enumerate(frames):
+        if fr.depth_path is None:
+            continue
+        try:
+            depth = read_depth(fr.depth_path, height, width, fr.depth_scale, unknown)
+        except ValueError as exc:
+            raise CaptureError(f"{fr.depth_path}: frame {i}: {exc}") from exc
+        check_median_depth(depth, f"{fr.depth_path}: frame {i}", "read as metres: is the depth in metres?")
+        points.append(depth_points(depth, fr.intrinsics, fr.camtoworld))
+    pts = np.concatenate(points) if points else np.zeros((0, 3))
+    centres = np.stack([fr.camtoworld[:3, 3] for fr in frames])
+    bounds = metric_bounds(centres, pts)
+    if float(np.abs(bounds).max()) <= 1.0:
+        return np.eye(4), scene_box
+    return normalise_metric_frames(frames, pts)
+
+
 def load_capture(path: str | Path) -> Capture:
     """Load and validate a capture folder (or its ``meta_data.json``).
 
@@ -192,14 +252,18 @@ def load_capture(path: str | Path) -> Capture:
     if meta.get("gt_mesh_path"):
         capture_file(root, meta["gt_mesh_path"], f"{meta_path}: regnf.gt_mesh_path", must_exist=False)
     try:
-        zero_depth_meaning(meta)
+        zeros = zero_depth_meaning(meta)
+        estimated = poses_are_estimates(meta, ideal=zeros == "empty")
+        if DEPTH_NOISE_KEY in meta:
+            parse_depth_noise(meta[DEPTH_NOISE_KEY])
     except ValueError as exc:
         raise CaptureError(f"{meta_path}: {exc}") from exc
+    if data.get("worldtogt") is None and not data.get("scene_box"):
+        worldtogt, scene_box = _unboxed_bounds(frames, width, height, meta_path, scene_box, meta)
     generator = meta.get("generator")
     ours = isinstance(generator, str) and generator.startswith(REGNF_GENERATOR_PREFIX)
-    # regnf's renders are +Z up and their poses exact unless the noise block perturbed them.
+    # regnf's renders are +Z up.
     up = np.array([0.0, 0.0, 1.0]) if ours else None
-    estimated = not ours or "noise" in meta
     return Capture(root, width, height, frames, worldtogt, scene_box, instances, meta,
                    up=up, poses_estimated=estimated)
 

@@ -6,7 +6,10 @@ poses in its normalised frame and the pinhole ``K`` of its images (pixel centres
 to metres, the frame of a scene field trained from that capture. Both conventions are the
 compositor's own (:mod:`regnf.neural_fields.camera`), so nothing is flipped here. Resizing scales the
 rows of ``K`` by the size ratios: with pixel-centre sampling this keeps every ray through the
-same point of the image plane.
+same point of the image plane. A frame's lens distortion
+(:attr:`~regnf.captures.model.CaptureFrame.distortion`) is not rendered: a
+:class:`~regnf.neural_fields.camera.Camera` is a pinhole, so a distorted capture's views render
+undistorted (the pinhole image of the same ``K`` and pose).
 """
 
 from __future__ import annotations

@@ -34,10 +34,11 @@ import json
 import logging
 import os
 import re
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Literal, TypeVar
 
+import numpy as np
 import trimesh
 
 from regnf.captures.model import Capture
@@ -60,6 +61,7 @@ from regnf.neural_fields.distill import (
     mesh_source,
 )
 from regnf.neural_fields.field import FieldInfo, Symmetry
+from regnf.neural_fields.pose_refinement import PoseRefineConfig
 from regnf.neural_fields.presets import object_mesh_preset, object_rgbd_preset, scene_rgbd_preset
 from regnf.neural_fields.training import (
     TRAIN_VERSION,
@@ -153,10 +155,26 @@ def capture_info(capture: Capture, room: bool = True) -> FieldInfo:
 
 
 def capture_files(capture: Capture) -> list[Path]:
-    """Every image and depth file the capture's frames name (absolute paths, frame order)."""
+    """Every image, depth and depth confidence file the capture's frames name (absolute paths,
+    frame order), then every other file its reader read
+    (:attr:`~regnf.captures.model.Capture.read_files`: poses, intrinsics), so that a change to
+    any input changes the fingerprint."""
     return [
-        Path(p) for f in capture.frames for p in (f.rgb_path, f.depth_path) if p is not None
-    ]
+        Path(p) for f in capture.frames for p in (f.rgb_path, f.depth_path, f.confidence_path) if p is not None
+    ] + [Path(p) for p in capture.read_files]
+
+
+def selected_frames(capture: Capture, indices: Sequence[int] | None) -> list[int] | None:
+    """``indices`` as a list of ints, or None when they are None or every training frame in order."""
+    if indices is None:
+        return None
+    frames = [int(i) for i in indices]
+    return None if frames == capture.train_indices() else frames
+
+
+def rounded_up(up: Sequence[float]) -> list[float]:
+    """An up direction as recorded in a field's provenance and key: 3 floats rounded to 1e-6."""
+    return [round(float(v), 6) + 0.0 for v in up]  # + 0.0: no -0.0 in the JSON
 
 
 def entry_stem(name: str, fallback: str) -> str:
@@ -282,27 +300,60 @@ class Cache:
         check_entry_writable(folder)
         return capture_room(name, folder, dataclasses.replace(cfg, progress=self.progress))
 
-    def rgbd_entry(self, capture: Capture, config: RGBDTrainConfig) -> tuple[Path, str]:
+    def rgbd_entry(self, capture: Capture, config: RGBDTrainConfig, indices: Sequence[int] | None = None,
+                   up: Sequence[float] | None = None) -> tuple[Path, str]:
         """The cache file of the field trained on ``capture`` with ``config``, and the data hash.
 
         The key hashes the bytes of the capture's metadata file and of every image and depth (see
         :func:`regnf.neural_fields.training.capture_fingerprint`), so it is the same for any
-        spelling of the capture's path and differs as soon as one input file does.
+        spelling of the capture's path and differs as soon as one input file does. It holds the
+        training frames ``indices`` unless they are every training frame, and the ``up``
+        recorded in the field's provenance unless it is the format's own (``Capture.up``), so
+        that the fields of every training frame of regnf's captures keep their keys. The pose
+        refinement settings count only where refinement is on for this capture
+        (``config.pose_refine``): a capture with exact poses keeps its key.
         """
         fingerprint = capture_fingerprint(capture.root, capture_files(capture), capture.meta_name)
         stem = entry_stem(capture_info(capture).name, "capture")
         # A capture whose zero depth is unknown trains differently from one whose zeros were
         # once taken as empty: its key says so (an ideal capture's key stays as it was).
-        parts = (config, fingerprint, TRAIN_VERSION) + (() if capture.zero_depth_is_empty else ("zero-depth-unknown",))
+        # The pose refinement settings count only where they apply ("auto" and "on" then key alike);
+        # where it is off the key is the one of a config without them.
+        refine = config.pose_refine.enabled(capture.poses_estimated)
+        keyed = dataclasses.replace(config, pose_refine=PoseRefineConfig())
+        parts = (keyed, fingerprint, TRAIN_VERSION) + (() if capture.zero_depth_is_empty else ("zero-depth-unknown",))
+        if refine:
+            parts += ({"pose_refine": dataclasses.asdict(dataclasses.replace(config.pose_refine, mode="on"))},)
+        # Depth weighted by a noise model trains differently from exact depth (same rule).
+        noise = capture.depth_noise
+        parts += () if noise is None else ({"depth_noise": dataclasses.asdict(noise)},)
+        frames = selected_frames(capture, indices)
+        if frames is not None:
+            parts += ({"train_indices": frames},)
+        if up is not None and not (capture.up is not None and np.allclose(up, capture.up, rtol=0.0, atol=1e-9)):
+            parts += ({"up": rounded_up(up)},)
         return self.root / "fields" / f"{stem}-rgbd-{config_key(*parts)}.safetensors", fingerprint
 
-    def rgbd_field(self, capture: Capture, config: RGBDTrainConfig) -> Path:
+    def rgbd_field(self, capture: Capture, config: RGBDTrainConfig, indices: Sequence[int] | None = None,
+                   up: Sequence[float] | None = None) -> Path:
         """Checkpoint of a field trained on ``capture`` with ``config`` (trained if missing or damaged).
 
         An intact entry without the visibility grid that ``config`` asks for (trained before
         fields recorded one) gets it from ``capture`` and is re-saved, not retrained.
+
+        Parameters
+        ----------
+        capture : Capture
+        config : RGBDTrainConfig
+        indices : sequence of int, optional
+            Training frames (:func:`regnf.captures.selection.select_frames`); None: every
+            training frame. A subset is recorded in the provenance as ``train_indices``.
+        up : (3,) float, optional
+            The capture's up in its metric world (:mod:`regnf.captures.up_axis`), recorded in
+            the provenance as ``up``; it does not change what is trained.
         """
-        path, fingerprint = self.rgbd_entry(capture, config)
+        path, fingerprint = self.rgbd_entry(capture, config, indices, up)
+        frames = selected_frames(capture, indices)
         if reusable(path, {"data_sha256": fingerprint}):
             if config.visibility_resolution > 0 and read_header(path).get(VISIBILITY_KEY) is None:
                 log.info("adding the visibility grid to cached field %s", path)
@@ -311,13 +362,17 @@ class Cache:
                 # on: the grid is the one training would have attached.
                 attach_visibility(
                     path, capture, resolution=config.visibility_resolution,
-                    margin=config.visibility_margin, device=config.device,
+                    margin=config.visibility_margin, device=config.device, indices=indices,
                 )
             return path
         check_entry_writable(path)
         info = capture_info(capture, room=config.architecture.inside_out)
         info.provenance = {"source": "rgbd", "capture": str(capture.root), "data_sha256": fingerprint}
-        field, _ = train_rgbd(capture, config, info=info, progress=self.progress)
+        if frames is not None:
+            info.provenance["train_indices"] = frames
+        if up is not None:
+            info.provenance["up"] = rounded_up(up)
+        field, _ = train_rgbd(capture, config, info=info, indices=indices, progress=self.progress)
         return save_field(field, path)
 
     def object_field(self, name: str, source: str = "rgbd", device: str = "cpu") -> Path:
@@ -362,7 +417,9 @@ class Cache:
             field, _ = distill_mesh(mesh, config, info=info, progress=self.progress, targets=targets)
             return save_field(field, path)
 
-    def scene_field(self, name: str, coverage: str = "full", device: str = "cpu") -> Path:
-        """Checkpoint of room ``name`` trained from its ``coverage`` capture."""
-        capture = self.room_capture(name, RoomCaptureConfig(coverage=coverage))
+    def scene_field(self, name: str, coverage: str = "full", device: str = "cpu", noise: str = "ideal",
+                    noise_seed: int = 0) -> Path:
+        """Checkpoint of room ``name`` trained from its ``coverage`` capture made at sensor and
+        pose noise level ``noise`` with seed ``noise_seed`` (:class:`RoomCaptureConfig`)."""
+        capture = self.room_capture(name, RoomCaptureConfig(coverage=coverage, noise=noise, noise_seed=noise_seed))
         return self.rgbd_field(capture, self._train_config(scene_rgbd_preset(device)))

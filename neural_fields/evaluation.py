@@ -18,6 +18,7 @@ from scipy.spatial import cKDTree
 from regnf.neural_fields.camera import Camera
 from regnf.neural_fields.field import Field
 from regnf.neural_fields.meshing import extract_mesh
+from regnf.neural_fields.rgbd_samples import capture_where
 from regnf.neural_fields.sphere_tracer import SphereTracerConfig, render
 
 
@@ -116,12 +117,27 @@ def heldout_psnr(
     box filtered) because the ground-truth colour images are multisample anti-aliased. Each
     view is rendered by :func:`~regnf.neural_fields.sphere_tracer.render` from the frame's
     camera in metres (so any field of the object, in any frame, can be measured).
+
+    Raises
+    ------
+    ValueError
+        No held-out frame, a bad ``supersample``, or a held-out frame with lens distortion:
+        :class:`~regnf.neural_fields.camera.Camera` is a pinhole, so its render and the
+        distorted photo would not line up (refused rather than scored wrong).
     """
     idx = list(capture.test_indices() if indices is None else indices)
     if not idx:
         raise ValueError("the capture has no held-out frames")
     if int(supersample) != supersample or supersample < 1:
         raise ValueError(f"supersample must be a positive integer, got {supersample}")
+    distorted = [i for i in idx if getattr(capture.frames[i], "distortion", None) is not None]
+    if distorted:
+        i = distorted[0]
+        raise ValueError(
+            f"{capture_where(capture)}: held-out frame {i} has lens distortion "
+            f"({capture.frames[i].distortion.describe()}); held-out PSNR renders pinhole views and "
+            "cannot compare them with distorted images: undistort the capture's images first"
+        )
     s, w, h = int(supersample), capture.width, capture.height
     config = SphereTracerConfig(background=tuple(background), check_camera=False)
     # Rendering s times larger with K scaled by s samples each pixel (u, v) at the centres of an

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import torch
 from tqdm import tqdm
@@ -13,14 +13,17 @@ from regnf.neural_fields.neural_sdf import NeuralSDF
 
 
 def make_optimizer(
-    field: NeuralSDF, lr_grid: float, lr_mlp: float, grid_decay: float = 0.0
+    field: NeuralSDF, lr_grid: float, lr_mlp: float, grid_decay: float = 0.0,
+    extra_groups: Sequence[dict] = (),
 ) -> torch.optim.AdamW:
     """AdamW with a larger learning rate for the feature grids than for the MLPs.
 
     Grid features are touched by few samples each step, so they need bigger steps than the
     MLP weights that every sample updates. ``grid_decay`` (decoupled weight decay on the
     grids only) pulls features that no loss constrains back to zero, which removes the
-    small floaters that fine-grid noise otherwise leaves in free space.
+    small floaters that fine-grid noise otherwise leaves in free space. ``extra_groups``
+    are further parameter groups trained alongside the field (the pose corrections of
+    :mod:`regnf.neural_fields.pose_refinement`), each with its own ``lr``.
     """
     grid_params = list(field.encoding.parameters())
     grid_ids = {id(p) for p in grid_params}
@@ -29,6 +32,7 @@ def make_optimizer(
         [
             {"params": grid_params, "lr": lr_grid, "weight_decay": grid_decay},
             {"params": mlp_params, "lr": lr_mlp, "weight_decay": 0.0},
+            *extra_groups,
         ],
         betas=(0.9, 0.99), eps=1e-15,
         # One fused kernel per step instead of a dozen passes over millions of grid
@@ -66,6 +70,7 @@ def optimise(
     desc: str = "train",
     progress: bool = True,
     postfix: dict[str, str] | None = None,
+    extra_groups: Sequence[dict] = (),
 ) -> list[dict[str, float]]:
     """The training loop of RGB-D training and mesh distillation: AdamW (:func:`make_optimizer`)
     on the schedule :func:`lr_factor`, one step per call of ``loss_at``.
@@ -88,6 +93,8 @@ def optimise(
         The progress bar's label, and whether it is shown.
     postfix : dict of str to str, optional
         Shown on the bar: label -> a logged term's name.
+    extra_groups : sequence of dict
+        Further parameter groups (:func:`make_optimizer`), on the same schedule.
 
     Returns
     -------
@@ -96,7 +103,7 @@ def optimise(
     """
     if not (math.isfinite(lr_final) and 0.0 <= lr_final <= 1.0):
         raise ValueError(f"lr_final is a fraction of the learning rates, in [0, 1]; got {lr_final}")
-    opt = make_optimizer(field, lr_grid, lr_mlp, grid_decay)
+    opt = make_optimizer(field, lr_grid, lr_mlp, grid_decay, extra_groups)
     base_lrs = [g["lr"] for g in opt.param_groups]
     log: list[dict[str, float]] = []
     bar = tqdm(range(steps), desc=desc, disable=not progress, leave=False)

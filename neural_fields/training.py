@@ -25,6 +25,19 @@ every scale:
 - optionally (``w_volume_color > 0``), NeuS volume rendering: L1 between the colour
   volume-rendered along a training ray (near its observed depth) and the pixel.
 
+Depth with a noise model (:attr:`regnf.captures.model.Capture.depth_noise`, every capture but
+regnf's ideal renders) is trusted by how noisy it is: the surface, near-surface, normal and colour
+terms are means weighted by each sample's ``RGBDSamples.weights``, and free space (the samples on
+observed rays and what a view sees free) stops ``max(free_margin_m, free_sigma_multiple x
+sigma)`` before the depth (:func:`free_stop`). Exact depth keeps the unweighted means and the
+fixed margin, bit for bit.
+
+Where the capture's poses are estimates (``RGBDTrainConfig.pose_refine``), each training frame's
+pose gets a small rigid correction trained with the field: from ``pose_refine.start`` on, every
+sample a frame saw moves with its frame (:mod:`regnf.neural_fields.pose_refinement`), and the
+corrections applied are in ``TrainLog.pose_refinement`` and the field's provenance. Exact poses
+train as they always did.
+
 The trained field records where its training views observed space: ``field.visibility``,
 a :class:`regnf.neural_fields.visibility.VisibilityGrid` over its bounds (see
 ``RGBDTrainConfig.visibility_resolution``), saved with it by :mod:`regnf.neural_fields.checkpoint`.
@@ -44,6 +57,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from regnf.captures.depth_uncertainty import DepthNoiseModel
 from regnf.captures.model import META_NAME, CaptureError, capture_file
 from regnf.neural_fields.field import FieldInfo
 from regnf.neural_fields.floater_pool import FloaterPool
@@ -54,13 +68,16 @@ from regnf.neural_fields.neural_sdf import (
     tetrahedral_points,
 )
 from regnf.neural_fields.optim import finest_voxel, optimise
+from regnf.neural_fields.pose_refinement import PoseCorrections, PoseRefineConfig, PoseReport
 from regnf.neural_fields.rgbd_samples import (
     CaptureLike,
     RGBDSamples,
     build_samples,
     capture_where,
+    measured_depth,
     ray_box_interval,
 )
+from regnf.neural_fields.view_lenses import ViewLenses
 from regnf.neural_fields.visibility import DEFAULT_MARGIN, DEFAULT_RESOLUTION, build_visibility
 from regnf.neural_fields.volume_render import render_rays_neus
 
@@ -103,7 +120,11 @@ class RGBDTrainConfig:
     near_band_m: tuple[float, float] = (0.006, 0.02)
     """Near-surface offsets, metres: up to this far inside and outside (thin parts >= 1.2 cm)."""
     free_margin_m: float = 0.02
-    """Free-space samples stop this many metres before the observed surface."""
+    """Free-space samples stop this many metres before the observed surface (at least; see ``free_sigma_multiple``)."""
+    free_sigma_multiple: float = 3.0
+    """Free space stops max(free_margin_m, this x the pixel's depth sigma) before the observed surface (depth with a noise model; docs/decisions/depth-weights.md)."""
+    pixel_stride: int = 1
+    """Sample every this-many-th pixel in u and v of each training frame (:func:`regnf.neural_fields.rgbd_samples.build_samples`)."""
     w_surface: float = 1.0
     """Weight of the surface loss."""
     w_near: float = 1.0
@@ -218,6 +239,9 @@ class RGBDTrainConfig:
     """Voxels behind each observed surface that the visibility grid counts as observed."""
     architecture: NeuralSDFConfig = field(default_factory=NeuralSDFConfig)
     """Architecture of the field."""
+    pose_refine: PoseRefineConfig = field(default_factory=PoseRefineConfig)
+    """Joint refinement of the training frames' poses (by default only where the capture's poses
+    are estimates; :mod:`regnf.neural_fields.pose_refinement`)."""
 
 
 @dataclass
@@ -227,34 +251,54 @@ class TrainLog:
     seconds: float = 0.0
     steps: int = 0
     losses: list[dict] = field(default_factory=list)
+    pose_refinement: PoseReport | None = None
+    """The size of the pose corrections applied (None: refinement off)."""
+    corrected_poses: np.ndarray | None = None
+    """(n, 4, 4) float64 corrected camtoworld of the training frames, in their order (normalised
+    frame; None: refinement off)."""
 
 
 class _ViewStack:
     """Depth images of the training views on the device, for projective free-space tests."""
 
-    def __init__(self, depth: torch.Tensor, K: torch.Tensor, w2c: torch.Tensor) -> None:
-        self.depth, self.K, self.w2c = depth, K, w2c
+    noise: DepthNoiseModel | None = None
+    """The capture's depth noise model (None: exact depth, the margin as given)."""
+    scale: float = 1.0
+    """Metres per normalised unit of the capture."""
+    sigma_multiple: float = 3.0
+    """Free space stops max(margin, this x the pixel's depth sigma) before its depth."""
+
+    def __init__(self, depth: torch.Tensor, K: torch.Tensor, w2c: torch.Tensor,
+                 lenses: ViewLenses | None = None) -> None:
+        self.depth, self.K, self.w2c, self.lenses = depth, K, w2c, lenses
         self.count = depth.shape[0]
 
     @staticmethod
-    def build(capture: CaptureLike, indices: Sequence[int], device: torch.device) -> _ViewStack:
-        depth = np.stack([capture.depth(i) for i in indices]).astype(np.float32)
+    def build(capture: CaptureLike, indices: Sequence[int], device: torch.device,
+              sigma_multiple: float = 3.0) -> _ViewStack:
+        """The stack of frames ``indices``; ``sigma_multiple``: see :attr:`sigma_multiple`."""
+        depth = np.stack([measured_depth(capture, i) for i in indices]).astype(np.float32)
         if not capture.zero_depth_is_empty:
             # NaN fails both tests of seen_free: a pixel of unknown depth sees nothing free.
             depth = np.where(depth > 0, depth, np.float32(np.nan))
         K = np.stack([np.asarray(capture.frames[i].intrinsics, np.float64) for i in indices])
         c2w = np.stack([np.asarray(capture.frames[i].camtoworld, np.float64) for i in indices])
         w2c = np.linalg.inv(c2w)
-        return _ViewStack(
+        distortions = [capture.frames[i].distortion for i in indices]
+        stack = _ViewStack(
             torch.from_numpy(depth).to(device),
             torch.from_numpy(K).float().to(device),
             torch.from_numpy(w2c).float().to(device),
+            ViewLenses.build(distortions, K, depth.shape[2], depth.shape[1], device),
         )
+        stack.noise, stack.scale, stack.sigma_multiple = capture.depth_noise, float(capture.scale), sigma_multiple
+        return stack
 
-    def seen_free(self, x: torch.Tensor, margin: float, view: torch.Tensor) -> torch.Tensor:
-        """(n,) float: 1 where view ``view[i]`` sees point ``x[i]`` in front of its surface.
+    def pixel_of(self, x: torch.Tensor, view: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Pixel coordinates ``(u, v)`` and z-depth ``z`` (n,) of points ``x`` (n, 3) in views ``view`` (n,).
 
-        A pixel with depth 0 sees its whole ray free; one with NaN (unknown) sees nothing.
+        Through each view's lens where the stack has distortion (``u = v = -1`` for a point
+        beyond the radius holding its image); a view without distortion is a pinhole.
         """
         R, t, K = self.w2c[view, :3, :3], self.w2c[view, :3, 3], self.K[view]
         pc = (R @ x[:, :, None]).squeeze(-1) + t
@@ -262,12 +306,25 @@ class _ViewStack:
         zs = z.clamp_min(1e-6)
         u = K[:, 0, 0] * pc[:, 0] / zs + K[:, 0, 2]
         v = K[:, 1, 1] * pc[:, 1] / zs + K[:, 1, 2]
+        if self.lenses is not None:
+            ud, vd, distorted = self.lenses.pixels(pc[:, :2] / zs[:, None], view, K)
+            u, v = torch.where(distorted, ud, u), torch.where(distorted, vd, v)
+        return u, v, z
+
+    def seen_free(self, x: torch.Tensor, margin: float, view: torch.Tensor) -> torch.Tensor:
+        """(n,) float: 1 where view ``view[i]`` sees point ``x[i]`` in front of its surface.
+
+        A pixel with depth 0 sees its whole ray free; one with NaN (unknown) sees nothing.
+        """
+        u, v, z = self.pixel_of(x, view)
         h, w = self.depth.shape[1:]
         inside = (z > 1e-6) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
         ui = u.clamp(0, w - 1).long()
         vi = v.clamp(0, h - 1).long()
         d = self.depth[view, vi, ui]
-        free = inside & ((d <= 0) | (z < d - margin))
+        # The depth's sigma at normal incidence (the stack keeps no normals), in normalised units.
+        sigma = None if self.noise is None else self.noise.sigma_normal(d * self.scale) / self.scale
+        free = inside & ((d <= 0) | (z < free_stop(d, sigma, margin, self.sigma_multiple)))
         return free.float()
 
 
@@ -323,6 +380,19 @@ def capture_fingerprint(root: str | os.PathLike, files: Sequence[str | os.PathLi
     return h.hexdigest()
 
 
+def free_stop(t: torch.Tensor, sigma: torch.Tensor | None, margin: float, multiple: float) -> torch.Tensor:
+    """Where free space in front of an observed depth ``t`` (n,) stops: ``t - max(margin, multiple * sigma)``.
+
+    ``sigma`` (n,) is the depth's noise in the same unit; None (exact depth): ``t - margin``.
+    """
+    return t - (margin if sigma is None else torch.clamp_min(multiple * sigma, margin))
+
+
+def _weighted_mean(x: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    """sum(w x) / sum(w) of per-sample terms ``x`` (n,) and weights ``w`` (n,) > 0."""
+    return (x * w).sum() / w.sum()
+
+
 def fit_bounds(samples: RGBDSamples, margin: float, limit: torch.Tensor | None) -> torch.Tensor:
     """(2, 3) bounds around the observed points, grown by ``margin`` of the extent per side."""
     lo = samples.points.min(0).values
@@ -365,7 +435,7 @@ def train_rgbd(
         indices = capture.train_indices()
     if len(indices) == 0:
         raise CaptureError(f"{capture_where(capture)}: the capture has no training frames")
-    samples = build_samples(capture, indices)
+    samples = build_samples(capture, indices, cfg.pixel_stride)
     if samples.points.shape[0] < 100:
         raise CaptureError(
             f"{capture_where(capture)}: only {samples.points.shape[0]} valid depth pixels in "
@@ -384,7 +454,10 @@ def train_rgbd(
     margin = cfg.free_margin_m / scale
 
     s = RGBDSamples(*(t.to(device) for t in samples))
-    views = _ViewStack.build(capture, indices, device)
+    views = _ViewStack.build(capture, indices, device, cfg.free_sigma_multiple)
+    # Depth with a noise model: its samples are weighted and free space keeps off its sigma;
+    # exact depth keeps the unweighted arithmetic.
+    weighted = capture.depth_noise is not None
     ok_idx = torch.nonzero(s.normal_ok).squeeze(1)
     if ok_idx.numel() == 0:
         raise ValueError("no depth pixel has a reliable normal; is the depth image constant?")
@@ -402,6 +475,14 @@ def train_rgbd(
         margin=cfg.visibility_margin, device=device, indices=indices,
     ) if cfg.visibility_resolution > 0 else None
     pool = FloaterPool(_POOL_CAPACITY, device) if cfg.carve_every > 0 else None
+    # Pose corrections move the samples of each frame. The view stack and the visibility grid keep
+    # the poses as given: a view's free-space test takes the point back to where that view saw
+    # it, and the grid only says where anything was observed.
+    poses = PoseCorrections(
+        torch.from_numpy(np.stack([np.asarray(capture.frames[i].camtoworld, np.float64) for i in indices])),
+        scale, cfg.pose_refine,
+    ).to(device) if cfg.pose_refine.enabled(getattr(capture, "poses_estimated", False)) else None
+    refine_start = int(cfg.pose_refine.start * cfg.steps)
     carve_start = int(cfg.carve_from * cfg.steps)
     carve_spacing = cfg.carve_spacing_m / scale
 
@@ -411,20 +492,34 @@ def train_rgbd(
     def randint(high: int, n: int) -> torch.Tensor:
         return torch.randint(high, (n,), generator=gen).to(device)
 
-    def seen_free(x: torch.Tensor, view: torch.Tensor) -> torch.Tensor:
-        return views.seen_free(x, margin, view)
-
     def loss_at(step: int) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        # Every sample seen by a frame moves with that frame's pose correction, once it applies;
+        # a view's free-space test takes the point back to where the view saw it as given.
+        maps = poses.world_maps() if poses is not None and step >= refine_start else None
+
+        def moved(x: torch.Tensor, frame: torch.Tensor) -> torch.Tensor:
+            return x if maps is None else poses.points(x, frame, maps)
+
+        def seen_free(x: torch.Tensor, view: torch.Tensor) -> torch.Tensor:
+            if maps is not None:
+                with torch.no_grad():
+                    x = poses.points_back(x, view, maps)
+            return views.seen_free(x, margin, view)
+
         carving = pool is not None and step >= carve_start
         if carving and (step - carve_start) % cfg.carve_every == 0:
             pool.mine(model.sdf, bounds_d, carve_spacing, rand(3) * carve_spacing, seen_free,
                       views.count, visibility.observed if visibility is not None else None)
         # -- draw the batch -----------------------------------------------------------------
+
         ns = cfg.batch_surface
         si = ok_idx[randint(ok_idx.numel(), ns)]
-        xs, nrm, col = s.points[si], s.normals[si], s.colors[si]
+        xs, nrm, col = moved(s.points[si], s.frame[si]), s.normals[si], s.colors[si]
+        if maps is not None:
+            nrm = poses.directions(nrm, s.frame[si], maps)
         # Surface points without a trusted normal still pin the zero level set.
-        xs_all = s.points[randint(m, ns)]
+        sa = randint(m, ns)
+        xs_all = moved(s.points[sa], s.frame[sa])
         e = rand(ns) * (band_in + band_out) - band_in
         xn = xs + e[:, None] * nrm
 
@@ -432,9 +527,9 @@ def train_rgbd(
         o, p, td = s.origins[fi], s.points[fi], s.ray_t[fi]
         d = (p - o) / td[:, None]
         t_in, _ = ray_box_interval(o, d, bounds_d)
-        t_hi = td - margin
+        t_hi = free_stop(td, s.sigma[fi] if weighted else None, margin, cfg.free_sigma_multiple)
         t = t_in + rand(cfg.batch_free) * (t_hi - t_in).clamp_min(0.0)
-        xf, ub = o + t[:, None] * d, td - t
+        xf, ub = moved(o + t[:, None] * d, s.frame[fi]), td - t
         keep_f = (t_hi > t_in).float()
 
         if k > 0 and cfg.batch_empty > 0:
@@ -442,7 +537,7 @@ def train_rgbd(
             eo, ed = s.free_origins[ei], s.free_dirs[ei]
             t0, t1 = ray_box_interval(eo, ed, bounds_d)
             te = t0 + rand(cfg.batch_empty) * (t1 - t0).clamp_min(0.0)
-            xe_free = eo + te[:, None] * ed
+            xe_free = moved(eo + te[:, None] * ed, s.free_frame[ei])
             keep_e = (t1 > t0).float()
         else:
             xe_free = torch.zeros(0, 3, device=device)
@@ -455,12 +550,17 @@ def train_rgbd(
             lo = torch.maximum(gt - edge_before, g0)
             hi = torch.minimum(torch.minimum(gt + edge_after, s.edge_limit[gi] - margin), g1)
             xg = go + (lo + rand(cfg.batch_edge) * (hi - lo).clamp_min(0.0))[:, None] * gd
+            xg = moved(xg, s.edge_frame[gi])
             keep_g = (hi > lo).float()
         else:
             xg = torch.zeros(0, 3, device=device)
             keep_g = torch.zeros(0, device=device)
 
-        xo = s.points[outline_idx[randint(outline_idx.numel(), n_outline)]] if n_outline else xs[:0]
+        if n_outline:
+            oi = outline_idx[randint(outline_idx.numel(), n_outline)]
+            xo = moved(s.points[oi], s.frame[oi])
+        else:
+            xo = xs[:0]
 
         xu = bounds_d[0] + rand(cfg.batch_eikonal * 3).view(-1, 3) * (bounds_d[1] - bounds_d[0])
         if carving and len(pool) > 0:
@@ -485,8 +585,13 @@ def train_rgbd(
         if xu_fd:
             f_u = f_mean[ns:]
 
-        loss_surface = (f_s.abs().mean() + f_sa.abs().mean()) * 0.5 / ell
-        loss_near = (f_n - e).abs().mean() / ell
+        if weighted:
+            w_s = s.weights[si]
+            loss_surface = (_weighted_mean(f_s.abs(), w_s) + _weighted_mean(f_sa.abs(), s.weights[sa])) * 0.5 / ell
+            loss_near = _weighted_mean((f_n - e).abs(), w_s) / ell
+        else:
+            loss_surface = (f_s.abs().mean() + f_sa.abs().mean()) * 0.5 / ell
+            loss_near = (f_n - e).abs().mean() / ell
         free_terms = (F.relu(-f_f) + F.relu(f_f - ub)) * keep_f
         loss_free = free_terms.mean() / ell
         if f_e.numel():
@@ -495,17 +600,21 @@ def train_rgbd(
         loss_eik = ((gnorm[: (ns if cfg.eikonal_surface_only else None)] - 1.0) ** 2).mean()
         # Uniform points seen as empty by a random view must not be inside anything.
         view_u = randint(views.count, xu.shape[0])
-        free_u = views.seen_free(xu, margin, view_u)
+        free_u = seen_free(xu, view_u)
         loss_free = loss_free + (F.relu(-f_u) * free_u).mean() / ell
         if carving:
             found = (f_u.detach().reshape(-1) < 0) & (free_u > 0)
             pool.add(xu[found], view_u[found])
         if xc.shape[0]:
-            loss_free = loss_free + (F.relu(-f_c) * views.seen_free(xc, margin, vc)).mean() / ell
+            loss_free = loss_free + (F.relu(-f_c) * seen_free(xc, vc)).mean() / ell
         loss_edge = (F.relu(-f_g) * keep_g).mean() / ell if n_edge > 0 else torch.zeros((), device=device)
-        loss_normal = (1.0 - F.cosine_similarity(g_s, nrm, dim=-1)).mean()
         rgb = model.color_from(feat_s, F.normalize(g_s.detach(), dim=-1), None)
-        loss_color = (rgb - col).abs().mean()
+        if weighted:
+            loss_normal = _weighted_mean(1.0 - F.cosine_similarity(g_s, nrm, dim=-1), w_s)
+            loss_color = _weighted_mean((rgb - col).abs().mean(-1), w_s)
+        else:
+            loss_normal = (1.0 - F.cosine_similarity(g_s, nrm, dim=-1)).mean()
+            loss_color = (rgb - col).abs().mean()
         loss = (
             cfg.w_surface * loss_surface + cfg.w_near * loss_near + cfg.w_free * loss_free
             + cfg.w_eikonal * loss_eik + cfg.w_normal * loss_normal + cfg.w_color * loss_color
@@ -520,6 +629,8 @@ def train_rgbd(
             vi = randint(m, cfg.volume_rays)
             vo, vp, vt = s.origins[vi], s.points[vi], s.ray_t[vi]
             vd = (vp - vo) / vt[:, None]
+            if maps is not None:
+                vo, vd = poses.rays(vo, vd, s.frame[vi], maps)
             band = cfg.volume_band_m / scale
             rendered, _ = render_rays_neus(
                 model, vo, vd, (vt - band).clamp_min(0.0), vt + band, cfg.volume_samples,
@@ -527,13 +638,18 @@ def train_rgbd(
             )
             loss_volume = (rendered - s.colors[vi]).abs().mean()
             loss = loss + cfg.w_volume_color * loss_volume
-        return loss, {"surface": loss_surface, "near": loss_near, "free": loss_free, "eikonal": loss_eik,
-                      "normal": loss_normal, "color": loss_color, "volume_color": loss_volume, "edge": loss_edge,
-                      "outline": loss_outline}
+        parts = {"surface": loss_surface, "near": loss_near, "free": loss_free, "eikonal": loss_eik,
+                 "normal": loss_normal, "color": loss_color, "volume_color": loss_volume, "edge": loss_edge,
+                 "outline": loss_outline}
+        if poses is not None:
+            parts["pose"] = poses.regulariser() if maps is not None else torch.zeros((), device=device)
+            loss = loss + parts["pose"]
+        return loss, parts
 
     log.losses = optimise(model, cfg.steps, loss_at, cfg.lr_grid, cfg.lr_mlp, cfg.grid_decay, cfg.lr_final,
                           desc=f"train {info.name or 'field'}", progress=progress,
-                          postfix={"surf": "surface", "col": "color"})
+                          postfix={"surf": "surface", "col": "color"},
+                          extra_groups=[poses.param_group()] if poses is not None else ())
     if visibility is not None:
         # Built by the same function as for a checkpoint that lacks it (Cache, attach_visibility),
         # so a field trained now and one given its grid later carry the same counts.
@@ -547,5 +663,11 @@ def train_rgbd(
         "train_seconds": round(log.seconds, 3),
         "train_frames": len(indices),
     }
+    if poses is not None:
+        log.pose_refinement = poses.report()
+        log.corrected_poses = poses.camtoworld().detach().cpu().numpy()
+        model.info.provenance["pose_refinement"] = {
+            k: round(v, 4) if isinstance(v, float) else v for k, v in log.pose_refinement._asdict().items()
+        }
     model.eval()
     return model, log

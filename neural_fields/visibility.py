@@ -15,7 +15,8 @@ observed), and, where the pixel has no depth hit (depth 0) in a capture whose ze
 empty, up to where the ray leaves the bounds; where zeros mean unknown (a sensor's missing
 return, :attr:`regnf.captures.model.Capture.zero_depth_is_empty`) such a ray observes nothing.
 Space behind a surface by more than the margin (occluded), outside the frustum
-(including behind the camera) or outside the bounds is not observed. A view counts once per
+(including behind the camera) or outside the bounds is not observed. A view with lens
+distortion projects through its lens (:class:`~regnf.neural_fields.view_lenses.FrameLens`). A view counts once per
 voxel however many of its rays cross it, so ``counts`` is the number of training views that
 observed the voxel (independent of the image size and of ``pixel_stride``); unobserved
 voxels have count 0.
@@ -53,9 +54,11 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from regnf.captures.distortion import Distortion, check_invertible, image_outline_rays
 from regnf.captures.model import CaptureError
 from regnf.neural_fields.dense_grid import grid_shape
-from regnf.neural_fields.rgbd_samples import CaptureLike, capture_where
+from regnf.neural_fields.rgbd_samples import CaptureLike, capture_where, measured_depth
+from regnf.neural_fields.view_lenses import FrameLens
 
 DEFAULT_RESOLUTION = 128
 """Voxels along the longest axis of the bounds (shorter axes get proportionally fewer)."""
@@ -335,14 +338,17 @@ def _frame_lookup(
     """(H + 2, W + 2) float32: per pixel, the deepest z-depth its ray observes; a ring of -inf.
 
     A hit at depth ``d`` observes up to ``d + margin``, a pixel without one (0) up to ``inf``
-    where ``zeros_empty`` (the ray hit nothing) and nothing (``-inf``) where zeros are unknown;
+    where ``zeros_empty`` (the ray hit nothing) and nothing (``-inf``) where zeros are unknown,
+    as does a NaN pixel (one the samples dropped: a flying pixel, confidence 0);
     with ``stride > 1`` every pixel of an s x s block takes the block's nearest hit, the
     conservative choice: a coarser stride never marks more space observed than stride 1. The
     ring of ``-inf`` around the image is where projections outside the frustum are sent, so
     that the observation test needs no separate frustum test.
     """
     d = torch.from_numpy(np.array(depth, dtype=np.float32)).to(device)
-    reach = torch.where(d > 0, d + margin, torch.full_like(d, math.inf if zeros_empty else -math.inf))
+    # NaN (a pixel the samples dropped) is unknown even where zeros are empty.
+    empty = (d == 0) if zeros_empty else torch.zeros_like(d, dtype=torch.bool)
+    reach = torch.where(d > 0, d + margin, torch.where(empty, math.inf, -math.inf))
     if stride > 1:
         h, w = reach.shape
         pooled = -F.max_pool2d(-reach[None, None], stride, stride, ceil_mode=True)[0, 0]
@@ -433,17 +439,23 @@ def build_visibility(
     zeros_empty = bool(capture.zero_depth_is_empty)
     views = 0
     for i in indices:
-        depth = capture.depth(i)
-        if depth is None:
+        if capture.frames[i].depth_path is None:
             continue
+        # The depth as the samples use it: the pixels they drop observe nothing either.
+        depth = measured_depth(capture, i)
         views += 1
         frame = capture.frames[i]
         h, w = depth.shape
-        cells = _frustum_cells(frame.camtoworld, frame.intrinsics, w, h, box, shape)
+        lens = _lens(frame.distortion, frame.intrinsics, w, h)
+        cells = _frustum_cells(frame.camtoworld, frame.intrinsics, w, h, box, shape, frame.distortion)
         if cells is not None:
             lookup = _frame_lookup(depth, pixel_stride, margin_units, device, zeros_empty)
-            proj = _projection(frame.intrinsics, frame.camtoworld).to(device)
-            counts[cells] += _observed_by(lookup, proj, [axes[a][cells[a]] for a in range(3)])
+            if lens is None:
+                proj = _projection(frame.intrinsics, frame.camtoworld).to(device)
+            else:
+                # Camera coordinates: the lens takes them to pixels.
+                proj = torch.from_numpy(np.linalg.inv(np.asarray(frame.camtoworld, np.float64))[:3, :4]).to(device)
+            counts[cells] += _observed_by(lookup, proj, [axes[a][cells[a]] for a in range(3)], lens)
     if views == 0:
         raise CaptureError(
             f"{capture_where(capture)}: none of the {len(indices)} frames has depth: nothing says "
@@ -469,6 +481,16 @@ def _projection(K: np.ndarray, camtoworld: np.ndarray) -> torch.Tensor:
     return torch.from_numpy(shifted @ w2c[:3, :4])
 
 
+def _lens(distortion: Distortion | None, K: np.ndarray, width: int, height: int) -> FrameLens | None:
+    """The view's lens onto the pixels of :func:`_frame_lookup` (shifted by one); None: a pinhole."""
+    if distortion is None:
+        return None
+    K = np.asarray(K, dtype=np.float64)
+    shifted = K.copy()
+    shifted[:2, 2] += 1.0
+    return FrameLens(distortion, check_invertible(distortion, K, width, height), shifted)
+
+
 def _frustum_cells(
     camtoworld: np.ndarray,
     K: np.ndarray,
@@ -476,12 +498,14 @@ def _frustum_cells(
     height: int,
     box: np.ndarray,
     shape: Sequence[int],
+    distortion: Distortion | None = None,
 ) -> tuple[slice, slice, slice] | None:
     """Voxel index ranges (x, y, z) holding every voxel centre the view's frustum can contain.
 
     The frustum cut at the largest z-depth of the box's corners contains all of the box it
-    sees; the AABB of its apex and four far corners bounds the work per view. None: the box
-    lies behind the camera.
+    sees; the AABB of its apex and four far corners (with a ``distortion``: its far outline,
+    :func:`~regnf.captures.distortion.image_outline_rays`) bounds the work per view. None: the
+    box lies behind the camera.
     """
     c2w = np.asarray(camtoworld, dtype=np.float64)
     w2c = np.linalg.inv(c2w)
@@ -491,8 +515,11 @@ def _frustum_cells(
     z_far = float((corners @ w2c[:3, :3].T + w2c[:3, 3])[:, 2].max())
     if z_far <= 0:
         return None
-    pix = np.array([[0.0, 0.0, 1.0], [width, 0.0, 1.0], [0.0, height, 1.0], [width, height, 1.0]])
-    rays = pix @ np.linalg.inv(np.asarray(K, dtype=np.float64)).T  # z-depth 1
+    if distortion is None:
+        pix = np.array([[0.0, 0.0, 1.0], [width, 0.0, 1.0], [0.0, height, 1.0], [width, height, 1.0]])
+        rays = pix @ np.linalg.inv(np.asarray(K, dtype=np.float64)).T  # z-depth 1
+    else:
+        rays = image_outline_rays(distortion, K, width, height)
     far = (rays * z_far) @ c2w[:3, :3].T + c2w[:3, 3]
     pts = np.vstack([c2w[:3, 3], far])
     size = (box[1] - box[0]) / np.asarray(shape, dtype=np.float64)
@@ -505,7 +532,7 @@ def _frustum_cells(
 
 
 def _observed_by(
-    lookup: torch.Tensor, proj: torch.Tensor, axes: Sequence[torch.Tensor]
+    lookup: torch.Tensor, proj: torch.Tensor, axes: Sequence[torch.Tensor], lens: FrameLens | None = None
 ) -> torch.Tensor:
     """(n_x, n_y, n_z) bool: whether the view observes the voxel centre at ``(i, j, k)``.
 
@@ -514,7 +541,7 @@ def _observed_by(
     lookup : (H + 2, W + 2) float32
         The view's :func:`_frame_lookup`.
     proj : (3, 4) float64
-        The view's :func:`_projection`.
+        The view's :func:`_projection`; with a ``lens``, its world -> camera ``[R | t]``.
     axes : three (n_a,) float64
         Voxel-centre coordinates per axis: centre ``(i, j, k)`` is
         ``(axes[0][i], axes[1][j], axes[2][k])``.
@@ -536,8 +563,12 @@ def _observed_by(
         front = qz > 1e-6
         inv_z = torch.where(front, qz, 1.0).reciprocal_()
         # Outside the image, or behind the camera: the -inf ring (index 0), never observed.
-        u = qx.mul_(inv_z).floor_().clamp_(0, wp - 1)
-        v = qy.mul_(inv_z).floor_().clamp_(0, hp - 1)
+        if lens is None:
+            u = qx.mul_(inv_z).floor_().clamp_(0, wp - 1)
+            v = qy.mul_(inv_z).floor_().clamp_(0, hp - 1)
+        else:
+            u, v = lens.pixels(qx.mul_(inv_z), qy.mul_(inv_z))
+            u, v = u.floor_().clamp_(0, wp - 1), v.floor_().clamp_(0, hp - 1)
         pixel = torch.where(front, v.mul_(wp).add_(u), 0.0).to(torch.int32)
         # index_select with int32 indices: 4 times faster than advanced indexing (int64).
         out[xs] = qz <= flat_lookup.index_select(0, pixel.view(-1)).view_as(qz)

@@ -43,6 +43,7 @@ EXIT_INTERRUPTED = 130
 def _commands() -> dict[str, type]:
     # Imported lazily so that `regnf --help` answers at once.
     from regnf.benchmarks.cli import (
+        BenchCaptureScale,
         BenchDiscover,
         BenchDistill,
         BenchEncodings,
@@ -50,8 +51,10 @@ def _commands() -> dict[str, type]:
         BenchGpuCheck,
         BenchRegistration,
         BenchRender,
+        BenchSensor,
         BenchViewer,
     )
+    from regnf.commands_capture import InspectCapture
     from regnf.commands_demo import Demo
     from regnf.commands_discover import Discover
     from regnf.commands_fields import Distill, Mesh, Synth, Train
@@ -65,6 +68,7 @@ def _commands() -> dict[str, type]:
         "demo": Demo,
         "generate": Generate,
         "synth": Synth,
+        "inspect-capture": InspectCapture,
         "train": Train,
         "distill": Distill,
         "mesh": Mesh,
@@ -85,6 +89,8 @@ def _commands() -> dict[str, type]:
         "bench discover": BenchDiscover,
         "bench viewer": BenchViewer,
         "bench gpu-check": BenchGpuCheck,
+        "bench sensor": BenchSensor,
+        "bench capture-scale": BenchCaptureScale,
     }
 
 

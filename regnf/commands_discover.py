@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -9,6 +10,7 @@ from pathlib import Path
 from rich.console import Console
 from rich.markup import escape
 
+from regnf.captures.up_axis import UpChoice
 from regnf.core.preflight import (
     PreflightError,
     check_input_file,
@@ -16,6 +18,7 @@ from regnf.core.preflight import (
     check_output_file,
 )
 from regnf.neural_fields.checkpoint import load_field
+from regnf.neural_fields.field import Field
 from regnf.registration.discovery import DiscoveryConfig
 
 console = Console(stderr=True)
@@ -65,6 +68,11 @@ class Discover:
     stage: Path | None = None
     """Write every identified instance into this stage, with how it was found as its
     provenance; made from --scene and --library if it does not exist."""
+    up: UpChoice = "auto"
+    """Up axis of the scene in metres: the candidates stand on it and the registration's upright
+    prior uses it (``--discovery.candidates.up`` and ``--discovery.registration.scene-sampling.up``
+    at once); auto: the up the scene field's training recorded (``regnf train --up``), else +z,
+    unless those options are given."""
     discovery: DiscoveryConfig = field(default_factory=DiscoveryConfig)
     """Candidates, the short registration's shortlist and the registration itself."""
     device: str = "cpu"
@@ -74,6 +82,20 @@ class Discover:
     allow_outside: bool = False
     """Open asset paths of an existing stage that lie outside its folder (refused by default: a
     stage is a self-contained folder, and a path out of it may name anybody's file)."""
+
+    def scene_up_config(self, scene: Field) -> DiscoveryConfig:
+        """``--discovery`` with ``--up`` applied to the candidates and the registration (printed)."""
+        from regnf.field_up import scene_up, set_apart, with_scene_up
+
+        cfg = self.discovery
+        if self.up == "auto" and set_apart(cfg.candidates.up, cfg.registration.scene_sampling.up):
+            console.print("up: as given by --discovery.candidates.up and --discovery.registration.scene-sampling.up",
+                          soft_wrap=True)
+            return cfg
+        up = scene_up(scene, self.up)
+        console.print(escape(up.line), soft_wrap=True)
+        candidates = dataclasses.replace(cfg.candidates, up=tuple(float(v) for v in up.metres))
+        return dataclasses.replace(cfg, candidates=candidates, registration=with_scene_up(cfg.registration, scene, up.metres))
 
     def run(self) -> None:
         from regnf.core.atomic_io import write_json
@@ -108,6 +130,7 @@ class Discover:
                 check_output_file(self.stage, "--stage")
         inspect_output_dir(self.out, DISCOVER_KIND, self.reuse).require_free(ENTRIES)
         scene = load_field(self.scene, device=self.device)
+        config = self.scene_up_config(scene)
         library, paths = {}, {}
         for path in self.library:
             f = load_field(path, device=self.device)
@@ -119,7 +142,7 @@ class Discover:
             # What the previous run made here, by its own record: only that may be removed.
             previous = recorded_files(claimed.path / "discovery.json") if claimed.owns("discovery.json") else set()
             folder = claimed.reserve(ENTRIES)
-            result = discover(scene, library, self.discovery, progress=True,
+            result = discover(scene, library, config, progress=True,
                               files=FieldFiles(self.scene, dict(paths)))
             payloads = instance_payloads(result, scene, library, self.scene, paths)
             files = [registration_file(index) for index, _ in payloads]

@@ -10,8 +10,12 @@ from typing import Literal
 
 import torch
 from rich.console import Console
+from rich.markup import escape
 
+from regnf.capture_plan import plan_training
 from regnf.captures.formats import read_capture
+from regnf.captures.selection import select_frames
+from regnf.captures.up_axis import UpChoice, up_line
 from regnf.core.atomic_io import write_bytes
 from regnf.core.preflight import (
     PreflightError,
@@ -21,10 +25,11 @@ from regnf.core.preflight import (
     check_output_file,
 )
 from regnf.neural_fields.cache import Cache, capture_info, default_cache_dir
-from regnf.neural_fields.checkpoint import load_field
+from regnf.neural_fields.checkpoint import load_field, read_header
 from regnf.neural_fields.field import FieldInfo, Symmetry
 from regnf.neural_fields.mesh_writing import written_rounding
 from regnf.neural_fields.meshing import MESH_FORMATS, extract_mesh, save_mesh
+from regnf.neural_fields.pose_refinement import pose_refine_line
 from regnf.neural_fields.presets import object_mesh_preset, object_rgbd_preset, scene_rgbd_preset
 from regnf.synthetic.capture import (
     ObjectCaptureConfig,
@@ -117,12 +122,24 @@ class Train:
     capture: Path
     """Capture folder: meta_data.json (ours, or a real sdfstudio / ONR download) or a nerfstudio
     transforms.json (Record3D, Polycam, ARKit, COLMAP); the format is detected from the folder."""
-    capture_format: Literal["auto", "sdfstudio", "nerfstudio"] = "auto"
+    capture_format: Literal["auto", "sdfstudio", "nerfstudio", "scannet"] = "auto"
     """Capture layout; auto detects it from the folder's metadata file."""
     out: Path | None = None
     """Also copy the checkpoint here (.safetensors); it is kept in the cache either way."""
-    preset: Literal["object", "scene"] = "object"
-    """Architecture and schedule: a library object or a room seen from inside."""
+    preset: Literal["auto", "object", "scene"] = "auto"
+    """Architecture and schedule: a library object or a room seen from inside; auto: the capture's
+    metadata says which (regnf's own captures), else scene when most cameras stand inside the
+    box of the observed depth, object when they look in from outside (printed, with why)."""
+    up: UpChoice = "auto"
+    """Up axis of the capture's metric world, recorded in the field (``regnf discover`` uses it);
+    auto: the format's convention (regnf's captures, ScanNet: +z), else estimated from the floor
+    plane, else from the cameras' mean up vector (printed, with how)."""
+    stride: int = 1
+    """Train on every N-th training frame."""
+    max_frames: int | None = None
+    """Train on at most N training frames, evenly spaced (after --stride)."""
+    pixel_stride: int | None = None
+    """Sample every N-th pixel in each image direction (``RGBDTrainConfig.pixel_stride``); default: the preset's."""
     steps: int | None = None
     """Override the preset's number of optimisation steps."""
     edge_weight: float | None = None
@@ -136,6 +153,10 @@ class Train:
     carve_every: int | None = None
     """Override the preset's steps between the floater pool's mining passes (0: no pool; the
     room preset uses 50, the object preset 0; ``RGBDTrainConfig.carve_every``)."""
+    pose_refine: Literal["auto", "on", "off"] = "auto"
+    """Refine each training frame's pose jointly with the field (a small rigid correction per
+    frame); auto: where the capture's poses are estimates (SLAM, COLMAP, any capture but regnf's
+    exact renders). The corrections applied are printed."""
     seed: int = 0
     """Seed of initialisation and sampling (training is deterministic on CPU)."""
     device: str = "cpu"
@@ -153,10 +174,23 @@ class Train:
             raise SystemExit(f"--outline-weight must be a finite number >= 0, got {self.outline_weight}")
         if self.carve_every is not None and self.carve_every < 0:
             raise SystemExit(f"--carve-every must be at least 0, got {self.carve_every}")
+        if self.pixel_stride is not None and self.pixel_stride < 1:
+            raise PreflightError(f"--pixel-stride must be at least 1, got {self.pixel_stride}")
+        select_frames((), self.stride, self.max_frames)  # refuses a bad --stride or --max-frames now
         capture, fmt = read_capture(self.capture, self.capture_format)
         console.print(f"capture {capture.root}: {fmt} format, {len(capture.frames)} frames")
-        preset = object_rgbd_preset if self.preset == "object" else scene_rgbd_preset
-        cfg = preset(self.device, self.seed)
+        presets = {"object": object_rgbd_preset, "scene": scene_rgbd_preset}
+        # Before the preset is known, memory is checked at the finer stride either may use.
+        pixel_stride = self.pixel_stride or min(
+            presets[p]().pixel_stride for p in (presets if self.preset == "auto" else (self.preset,)))
+        plan = plan_training(capture, self.up, self.preset, self.stride, self.max_frames, pixel_stride)
+        if len(plan.indices) != len(capture.train_indices()):
+            console.print(f"frames: {len(plan.indices)} of {len(capture.train_indices())} training frames")
+        console.print(escape(up_line(plan.up)), soft_wrap=True)
+        console.print(escape(f"preset: {plan.kind.kind} ({plan.kind.reason})"), soft_wrap=True)
+        cfg = presets[plan.kind.kind](self.device, self.seed)
+        if self.pixel_stride is not None:
+            cfg = dataclasses.replace(cfg, pixel_stride=self.pixel_stride)
         if self.steps is not None:
             cfg = dataclasses.replace(cfg, steps=self.steps)
         if self.edge_weight is not None:
@@ -165,8 +199,12 @@ class Train:
             cfg = dataclasses.replace(cfg, w_outline=self.outline_weight)
         if self.carve_every is not None:
             cfg = dataclasses.replace(cfg, carve_every=self.carve_every)
-        path = Cache(self.cache_dir).rgbd_field(capture, cfg)
+        cfg = dataclasses.replace(cfg, pose_refine=dataclasses.replace(cfg.pose_refine, mode=self.pose_refine))
+        path = Cache(self.cache_dir).rgbd_field(capture, cfg, plan.indices, plan.up.direction)
         console.print(f"field {capture_info(capture).name!r}: {path}")
+        console.print(escape(pose_refine_line(cfg.pose_refine, capture.poses_estimated,
+                                              read_header(path)["provenance"].get("pose_refinement"))),
+                      soft_wrap=True)
         copy_out(path, self.out)
 
 
@@ -186,9 +224,9 @@ class Distill:
     """Metres per unit of the mesh file, for other units (0.0254: inches); instead of --units."""
     out: Path | None = None
     """Also copy the checkpoint here (.safetensors); it is kept in the cache either way."""
-    up: Literal["z", "y", "x", "-z", "-y", "-x"] = "z"
-    """Up axis of the mesh file; it is turned to +Z, the library's up (y: a Y-up file, as many
-    OBJ and glTF exporters write, +X forward kept)."""
+    up: Literal["z", "y", "x", "-z", "-y", "-x", "+z", "+y", "+x"] = "z"
+    """Up axis of the mesh file; it is turned to +Z, the library's up (y or +y: a Y-up file, as
+    many OBJ and glTF exporters write, +X forward kept)."""
     label: str = "object"
     """Semantic class, e.g. chair."""
     name: str = ""
@@ -222,7 +260,7 @@ class Distill:
         size = extent_warning(mesh, scale, str(self.mesh), units_given=self.scale is not None or self.units != "m")
         for line in [*loaded.warnings, *([size] if size else [])]:
             console.print(f"[yellow]warning[/]: {escape(line)}", soft_wrap=True)
-        cfg = dataclasses.replace(object_mesh_preset(self.device), up=self.up, scale=scale)
+        cfg = dataclasses.replace(object_mesh_preset(self.device), up=self.up.lstrip("+"), scale=scale)
         if self.steps is not None:
             cfg = dataclasses.replace(cfg, steps=self.steps)
         units = {"units": self.units} if self.scale is None else {}

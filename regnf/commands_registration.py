@@ -10,6 +10,7 @@ from rich.console import Console
 from rich.markup import escape
 from scipy.spatial.transform import Rotation
 
+from regnf.captures.up_axis import UpChoice
 from regnf.core.atomic_io import write_json
 from regnf.core.preflight import check_output_file, read_json_input
 from regnf.neural_fields.checkpoint import load_field
@@ -80,6 +81,10 @@ class Register:
     allow_outside: bool = False
     """Open asset paths of the stage that lie outside its folder (refused by default: a stage is
     a self-contained folder, and a path out of it may name anybody's file)."""
+    up: UpChoice = "auto"
+    """Up axis of the scene in metres, for the upright prior (``--registration.scene-sampling.up``
+    in the field frame); auto: the up the scene field's training recorded (``regnf train --up``),
+    else +z, unless that option is given."""
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
     """Every setting of the registration, with its unit (docs/design.md section 3): for example
     ``--registration.init.top-k 1`` (the paper's single hypothesis), ``--registration.no-upright``
@@ -108,6 +113,7 @@ class Register:
         return np.asarray(inst.box_corners, dtype=np.float64)
 
     def run(self) -> None:
+        from regnf.field_up import scene_up, set_apart, with_scene_up
         from regnf.neural_fields.oriented_box import OrientedBox
         from regnf.registration.field_roles import check_roles
         from regnf.registration.pipeline import register
@@ -124,7 +130,14 @@ class Register:
         check_roles((self.scene, scene.label), [(self.library, library.label)])
         S = scene.to_world.detach().cpu().double().numpy()
         proposal = OrientedBox.from_corners(corners).transformed(np.linalg.inv(S))
-        result = register(scene, library, proposal, self.registration)
+        config = self.registration
+        if self.up == "auto" and set_apart(config.scene_sampling.up):
+            console.print("up: as given by --registration.scene-sampling.up (field frame)")
+        else:
+            up = scene_up(scene, self.up)
+            console.print(escape(up.line), soft_wrap=True)
+            config = with_scene_up(config, scene, up.metres)
+        result = register(scene, library, proposal, config)
         payload = registration_payload(result, scene, library, self.scene, self.library)
         write_json(self.out, payload)
         t = result.transform

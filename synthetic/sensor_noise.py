@@ -9,8 +9,9 @@ The depth pieces, applied in this order to a rendered z-depth image by
    theta)`` pixels (:func:`lateral_sigma_px`);
 2. axial noise (Nguyen, Izadi, Lovell 2012, "Modeling Kinect Sensor Noise for Improved 3D
    Reconstruction and Tracking"): Gaussian with ``sigma_z(z, theta) = 0.0012 + 0.0019 (z -
-   0.4)^2 + 0.0001 / sqrt(z) * theta^2 / (pi/2 - theta)^2`` metres (:func:`axial_sigma`), z in
-   metres and theta the angle between the ray and the surface normal;
+   0.4)^2 + 0.0001 / sqrt(z) * theta^2 / (pi/2 - theta)^2`` metres
+   (:func:`regnf.captures.depth_uncertainty.axial_sigma`, the model training weights its depth
+   terms by), z in metres and theta the angle between the ray and the surface normal;
 3. disparity quantisation (ICL-NUIM): ``d = b f / z`` rounded to a fraction of a pixel, then
    back to depth;
 4. millimetre quantisation of the reported depth;
@@ -34,15 +35,13 @@ from pathlib import Path
 
 import numpy as np
 
+from regnf.captures.depth_uncertainty import MAX_THETA, axial_sigma
 from regnf.core.atomic_io import write_json
 from regnf.synthetic.pose_noise import PoseNoiseConfig, perturb_poses
 
 TRUE_POSES_NAME = "poses_true.json"
 """File beside a noisy capture's ``meta_data.json`` with the poses its images were rendered
 from (for evaluation; training reads only ``meta_data.json``)."""
-
-MAX_THETA = math.radians(89.9)
-"""Largest incidence angle the closed forms are evaluated at, radians (they diverge at 90)."""
 
 
 @dataclass(frozen=True)
@@ -107,25 +106,6 @@ NOISE_LEVELS: dict[str, SensorNoiseConfig] = {
     ),
 }
 """The capture noise levels by name: ideal, sensor, slam, harsh."""
-
-
-def axial_sigma(z: np.ndarray, theta: np.ndarray) -> np.ndarray:
-    """Nguyen et al.'s axial depth noise sigma_z(z, theta), metres.
-
-    Parameters
-    ----------
-    z : (...) float
-        Depth, metres.
-    theta : (...) float
-        Angle between the ray and the surface normal, radians (clamped to :data:`MAX_THETA`).
-
-    Returns
-    -------
-    (...) float64
-    """
-    z = np.maximum(np.asarray(z, dtype=np.float64), 1e-6)
-    theta = np.minimum(np.asarray(theta, dtype=np.float64), MAX_THETA)
-    return 0.0012 + 0.0019 * (z - 0.4) ** 2 + 0.0001 / np.sqrt(z) * theta**2 / (np.pi / 2 - theta) ** 2
 
 
 def lateral_sigma_px(theta: np.ndarray) -> np.ndarray:
