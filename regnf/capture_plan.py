@@ -82,3 +82,25 @@ def plan_training(capture: Capture, up: str = "auto", preset: str = "auto", stri
     check_training_memory(str(capture.root), len(indices), capture.height, capture.width, pixel_stride)
     resolved, kind = up_and_kind(capture, up, preset)
     return TrainingPlan(indices, resolved, kind)
+
+
+CELL_WARN_M = 0.04
+"""Finest grid cell, metres, beyond which ``regnf train`` warns that the capture is too large
+for one field (the rooms regnf is measured on get about 2 cm)."""
+
+
+def cell_size_warning(capture: Capture, finest_resolution: int) -> str | None:
+    """A warning line when the field's finest cell over ``capture`` would exceed :data:`CELL_WARN_M`.
+
+    The extent is the largest side of the capture's scene box in metres, which the field's
+    bounds never exceed; ``finest_resolution`` is the preset's cells along it.
+    """
+    aabb = np.asarray(capture.scene_box["aabb"], dtype=np.float64)
+    extent = capture.scale * float(np.max(aabb[1] - aabb[0]))
+    cell = extent / finest_resolution
+    if cell <= CELL_WARN_M:
+        return None
+    return (f"{capture.root}: the capture is {extent:.1f} m across; {finest_resolution} finest cells make "
+            f"cells of {100 * cell:.1f} cm (the rooms regnf is measured on get about 2 cm), so parts "
+            f"thinner than about {200 * cell:.0f} cm blur; train a part of it (--max-frames, or a capture "
+            "of one room) for a finer field")

@@ -12,7 +12,7 @@ import torch
 from rich.console import Console
 from rich.markup import escape
 
-from regnf.capture_plan import plan_training
+from regnf.capture_plan import cell_size_warning, plan_training
 from regnf.captures.formats import read_capture
 from regnf.captures.selection import select_frames
 from regnf.captures.up_axis import UpChoice, up_line
@@ -117,11 +117,12 @@ class Synth:
 
 @dataclass
 class Train:
-    """Train a neural SDF from a posed RGB-D capture (sdfstudio or nerfstudio layout)."""
+    """Train a neural SDF from a posed RGB-D capture (sdfstudio, nerfstudio or ScanNet layout)."""
 
     capture: Path
-    """Capture folder: meta_data.json (ours, or a real sdfstudio / ONR download) or a nerfstudio
-    transforms.json (Record3D, Polycam, ARKit, COLMAP); the format is detected from the folder."""
+    """Capture folder: meta_data.json (ours, or a real sdfstudio / ONR download), a nerfstudio
+    transforms.json (Record3D, Polycam, ARKit, COLMAP) or a ScanNet export (color/, depth/,
+    pose/, intrinsic/); the format is detected from the folder."""
     capture_format: Literal["auto", "sdfstudio", "nerfstudio", "scannet"] = "auto"
     """Capture layout; auto detects it from the folder's metadata file."""
     out: Path | None = None
@@ -189,6 +190,9 @@ class Train:
         console.print(escape(up_line(plan.up)), soft_wrap=True)
         console.print(escape(f"preset: {plan.kind.kind} ({plan.kind.reason})"), soft_wrap=True)
         cfg = presets[plan.kind.kind](self.device, self.seed)
+        coarse = cell_size_warning(capture, cfg.architecture.finest_resolution)
+        if coarse:
+            console.print(f"[yellow]warning[/]: {escape(coarse)}", soft_wrap=True)
         if self.pixel_stride is not None:
             cfg = dataclasses.replace(cfg, pixel_stride=self.pixel_stride)
         if self.steps is not None:

@@ -81,6 +81,7 @@ def test_a_nerfstudio_capture_trains_end_to_end(tmp_path: Path, capsys: pytest.C
                                  "--cache-dir", str(tmp_path / "cache")])
     assert code == 0, err
     assert "nerfstudio format, 8 frames" in err
+    assert "preset: scene (cameras inside the observed space" in err
     assert list((tmp_path / "cache" / "fields").glob("ns-rgbd-*.safetensors"))
 
 
@@ -88,7 +89,8 @@ def test_a_distorted_nerfstudio_capture_trains_end_to_end(tmp_path: Path, capsys
     # Per-frame lenses of both kinds of view (with and without distortion) in one training stack.
     write_nerfstudio(tmp_path / "ns", extra={"k1": -0.05, "p2": 0.001})
     _edit(tmp_path / "ns", lambda d: d["frames"][3].update(k1=0.0, p2=0.0))
-    code, err = run_cli(capsys, ["train", "--capture", str(tmp_path / "ns"), "--steps", "3",
+    # The object preset: the room preset's set-up is what the end-to-end test above runs.
+    code, err = run_cli(capsys, ["train", "--capture", str(tmp_path / "ns"), "--steps", "3", "--preset", "object",
                                  "--cache-dir", str(tmp_path / "cache")])
     assert code == 0, err
     assert list((tmp_path / "cache" / "fields").glob("ns-rgbd-*.safetensors"))
@@ -158,7 +160,7 @@ def test_a_bad_scannet_capture_is_one_line_and_exit_1(tmp_path: Path, capsys: py
 
 def test_a_scannet_capture_trains_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     write_scannet(tmp_path / "scene")
-    code, err = run_cli(capsys, ["train", "--capture", str(tmp_path / "scene"), "--steps", "1",
+    code, err = run_cli(capsys, ["train", "--capture", str(tmp_path / "scene"), "--steps", "1", "--preset", "object",
                                  "--cache-dir", str(tmp_path / "cache")])
     assert code == 0, err
     assert f"scannet format, {N_FRAMES - 1} frames" in err
