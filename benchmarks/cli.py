@@ -404,6 +404,8 @@ class BenchSensor:
     """Also discover each room's objects with no boxes and the whole mesh library."""
     noise_seed: int = 0
     """Seed of the sensor and pose noise of every noisy capture."""
+    pose_refine: Literal["auto", "on", "off"] = "auto"
+    """Pose refinement of the noisy rooms' fields (``regnf train --pose-refine``)."""
     size: Literal["full", "tiny"] = "full"
     """``full``: the measured captures and presets. ``tiny``: small captures and briefly trained
     fields (a smoke test; its figures mean nothing)."""
@@ -426,12 +428,14 @@ class BenchSensor:
                    + ("" if self.wrong_pairs else " --no-wrong-pairs")
                    + ("" if self.discovery else " --no-discovery")
                    + (f" --noise-seed {self.noise_seed}" if self.noise_seed else "")
+                   + (f" --pose-refine {self.pose_refine}" if self.pose_refine != "auto" else "")
                    + (f" --size {self.size}" if self.size != "full" else ""))
         meta = {**run_meta(command, self.device), "size": self.size}
         result = run_sensor_benchmark(
             Cache(self.cache_dir, size=self.size), self.levels, self.coverages, self.rooms, self.objects,
             with_wrong_pairs=self.wrong_pairs, with_discovery=self.discovery, noise_seed=self.noise_seed,
-            device=self.device, on_room=lambda done: write_json(self.json, {"meta": meta, **done}))
+            device=self.device, on_room=lambda done: write_json(self.json, {"meta": meta, **done}),
+            pose_refine=self.pose_refine)
         write_json(self.json, {"meta": meta, **result})
         text = f"Command: `{command}`\n\n{markdown_tables(result)}"
         if self.markdown:

@@ -166,11 +166,13 @@ def register_room(room: str, coverage: str, scene: Field, capture, library: dict
 def run_sensor_benchmark(cache: Cache, levels: tuple[str, ...] = LEVELS, coverages: tuple[str, ...] = COVERAGES,
                          rooms: tuple[str, ...] = ROOMS, objects: tuple[str, ...] = (),
                          with_wrong_pairs: bool = True, with_discovery: bool = True, noise_seed: int = 0,
-                         device: str = "cpu", on_room: Callable[[dict], None] | None = None) -> dict:
+                         device: str = "cpu", on_room: Callable[[dict], None] | None = None,
+                         pose_refine: str = "auto") -> dict:
     """Every row of the benchmark (see the module) and its summary per level and coverage.
 
     ``objects`` restricts the true-box pairs (and the wrong pairs into their boxes) to those
-    library objects; empty: every pair of the rooms. ``on_room`` is called with the result so
+    library objects; empty: every pair of the rooms. ``pose_refine`` (auto, on, off) is how the
+    noisy rooms' fields refine their poses. ``on_room`` is called with the result so
     far after each room (to write it as it grows).
     """
     check_selection(levels, coverages, rooms, objects)
@@ -188,7 +190,7 @@ def run_sensor_benchmark(cache: Cache, levels: tuple[str, ...] = LEVELS, coverag
         # cached ones the other benchmarks use.
         seed = noise_seed if level != "ideal" else 0
         capture = cache.room_capture(room, RoomCaptureConfig(coverage=coverage, noise=level, noise_seed=seed))
-        scene_path = cache.scene_field(room, coverage, device, noise=level, noise_seed=seed)
+        scene_path = cache.scene_field(room, coverage, device, noise=level, noise_seed=seed, pose_refine=pose_refine)
         scene = load_field(scene_path, device=device)
         surface = surface_error(scene, [instance_mesh(inst) for inst in capture.instances])
         t_reg = time.perf_counter()

@@ -418,8 +418,11 @@ class Cache:
             return save_field(field, path)
 
     def scene_field(self, name: str, coverage: str = "full", device: str = "cpu", noise: str = "ideal",
-                    noise_seed: int = 0) -> Path:
+                    noise_seed: int = 0, pose_refine: str = "auto") -> Path:
         """Checkpoint of room ``name`` trained from its ``coverage`` capture made at sensor and
-        pose noise level ``noise`` with seed ``noise_seed`` (:class:`RoomCaptureConfig`)."""
+        pose noise level ``noise`` with seed ``noise_seed`` (:class:`RoomCaptureConfig`), its
+        poses refined as ``pose_refine`` says (:class:`~regnf.neural_fields.pose_refinement.PoseRefineConfig`)."""
         capture = self.room_capture(name, RoomCaptureConfig(coverage=coverage, noise=noise, noise_seed=noise_seed))
-        return self.rgbd_field(capture, self._train_config(scene_rgbd_preset(device)))
+        config = self._train_config(scene_rgbd_preset(device))
+        config = dataclasses.replace(config, pose_refine=dataclasses.replace(config.pose_refine, mode=pose_refine))
+        return self.rgbd_field(capture, config)
