@@ -14,6 +14,8 @@ from pathlib import Path
 import imageio.v3 as iio
 import numpy as np
 
+from tests.captures.ns_helpers import opencv_pose
+
 ROOM = np.array([[0.5, -1.0, 0.0], [4.5, 2.0, 2.5]])
 """(2, 3) min and max corner of the room, metres."""
 DIAG = float(np.linalg.norm(ROOM[1] - ROOM[0]))
@@ -33,18 +35,6 @@ N_FRAMES = 12
 """Frames written, ids 0..11 (so that numerical and lexical order differ)."""
 BAD_FRAME = 5
 """The frame whose pose is written as -inf."""
-
-
-def opencv_pose(yaw: float, pitch: float, centre: np.ndarray) -> np.ndarray:
-    """(4, 4) OpenCV camera-to-world looking along (yaw about +Z, pitch up), Z up."""
-    f = np.array([np.cos(pitch) * np.cos(yaw), np.cos(pitch) * np.sin(yaw), np.sin(pitch)])
-    x = np.cross(f, [0.0, 0.0, 1.0])
-    x /= np.linalg.norm(x)
-    y = np.cross(f, x)  # down
-    out = np.eye(4)
-    out[:3, :3] = np.stack([x, y, f], axis=1)
-    out[:3, 3] = centre
-    return out
 
 
 def truth_poses() -> np.ndarray:
