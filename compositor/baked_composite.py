@@ -164,9 +164,7 @@ def baked_tracing(config: SphereTracerConfig) -> SphereTracerConfig:
 
     The grid skips empty space with one look-up where a network would be evaluated; a baked
     field's value is a look-up already, and the grid's steps only add to the steps the field's
-    own distances take. Measured on ``regnf generate``'s variants of the demo's stage (8 views
-    of 256 x 192, one thread): 5.08 s a variant with the 32-cell grid, 4.42 s without
-    (docs/generation.md).
+    own distances take (docs/decisions/rendering-speed.md).
     """
     return dataclasses.replace(config, grid_resolution=0)
 

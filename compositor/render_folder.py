@@ -92,9 +92,9 @@ class RenderConfig:
     renderer: Literal["sphere", "volume", "baked"] = "sphere"
     """``sphere``: the sphere tracer (fast, exact hits); ``volume``: NeuS-style integration;
     ``baked``: the sphere tracer on the fields baked into grids once for these views
-    (:func:`regnf.compositor.baked_composite.bake_for_views`; measured on the composite room
-    at 256x192: 3.0x faster a view, 36.1 dB against the neural render, about 38 s to bake on 2
-    cores, so it pays from about 20 views on; its evaluations per pixel count grid look-ups)."""
+    (:func:`regnf.compositor.baked_composite.bake_for_views`; its evaluations per pixel count
+    grid look-ups): faster a view once baked, so it pays for many views
+    (docs/decisions/rendering-speed.md)."""
     sphere: SphereTracerConfig = field(default_factory=lambda: SphereTracerConfig(footprint_fraction=0.05))
     """Settings of the sphere tracer: hits to 5 % of a pixel's footprint (the tracer's own
     default, 1e-4, is for exact depth; 0.05 costs 18 % fewer evaluations at the same PSNR,

@@ -37,10 +37,8 @@ def _numpy(a: torch.Tensor | np.ndarray) -> np.ndarray:
 
 
 PNG_COMPRESS_LEVEL = 1
-"""zlib level of the PNGs written (OpenCV's default too). Measured on a 256 x 192 view of a
-generated variant: level 1 encodes its colour in 2.3 ms (44 KB) and its depth in 1.5 ms (30 KB),
-Pillow's default 6 in 9.7 ms (37 KB) and 6.8 ms (24 KB): a data set's images took 7 % of its
-variants' time for files a fifth smaller (a variant's 0.64 MB against 0.78 MB)."""
+"""zlib level of the PNGs written, 0-9 (OpenCV's default too): faster to encode than Pillow's
+default 6 for files a fifth larger (docs/decisions/rendering-speed.md)."""
 
 
 def _encode(image: Image.Image, f: BinaryIO) -> None:

@@ -33,11 +33,9 @@ class BakeConfig:
     """How :func:`bake` samples a field."""
 
     cell_pixels: float = 0.5
-    """Grid cell as a multiple of the cameras' pixel footprint (:func:`bake_cell`). Measured on
-    4 views of the composite room at 256x192 (``regnf bench render``), PSNR against the neural
-    render: half a footprint with at most 2^25 nodes (the room's 1.5 cm cells), 35.3-37.8 dB; a
-    whole footprint with 2^24 nodes (1.9 cm), 31.9-35.2 dB, lost at silhouettes and on the
-    chairs' thin parts."""
+    """Grid cell as a multiple of the cameras' pixel footprint (:func:`bake_cell`): half a
+    footprint keeps silhouettes and thin parts that a whole one loses
+    (docs/decisions/rendering-speed.md)."""
     max_nodes: int = 2**25
     """Most grid nodes of one field (distance and colour, 4 x float32 a node: 512 MB at the
     default); a coarser cell is taken when the footprint would need more."""

@@ -66,18 +66,15 @@ class DistillConfig:
     lr_mlp: float = 2e-3
     """Learning rate of the MLPs."""
     lr_final: float = 0.01
-    """The learning rates at the last step, as a fraction of ``lr_grid`` and ``lr_mlp``; 0.1
-    until 2026-12-05 (see :attr:`regnf.neural_fields.training.RGBDTrainConfig.lr_final`)."""
+    """The learning rates at the last step, as a fraction of ``lr_grid`` and ``lr_mlp`` (as
+    :attr:`regnf.neural_fields.training.RGBDTrainConfig.lr_final`;
+    docs/decisions/field-training.md)."""
     w_eikonal: float = 0.1
     """Weight of the eikonal loss."""
     eikonal_uniform: bool = True
     """Apply the eikonal loss at the uniform samples too, not only at the surface samples. The
-    uniform samples have exact signed-distance targets anyway, and their finite differences
-    were a third of a step's points. Measured 2026-12-06 on the 8 library meshes (the mesh
-    preset, one run each, alone on 2 cores, one after the other): 8.3-11.7 s -> 5.4-7.6 s a
-    mesh, mean surface error 0.017-0.041 % -> 0.018-0.042 % (each within 0.0015 points; the
-    bar is 0.3 %). The mesh preset leaves it off (docs/benchmarks.md, "The eikonal term of the
-    meshes")."""
+    uniform samples have exact signed-distance targets anyway, and their finite differences are a
+    third of a step's points. The mesh preset leaves it off (docs/decisions/field-training.md)."""
     w_normal: float = 0.05
     """Weight of the normal loss at surface samples."""
     w_color: float = 1.0

@@ -1,18 +1,12 @@
 """Training presets: the settings a library object and a room field are trained with.
 
-They are measured defaults (docs/benchmarks.md, "Fields" and "Training steps against
-accuracy"). The step counts are where the surface error has converged: a fifth of the steps an
-earlier preset took for an RGB-D object (1000), half for a mesh (400), about a quarter for a
-room (1500), at the same or a lower surface error. On 2 CPU cores an RGB-D object then trains
-in 13-36 s, a mesh at 64 cells with 3072 samples a step in 5.5-8 s (the bar is 10) and a full-coverage room in 53-83 s,
-depending on the hour (this machine's speed drifts). The held-out PSNR is what
-a short schedule gives up (the colour converges more slowly than the geometry); every preset
-therefore feeds the grid features to the colour head as well
-(:attr:`~regnf.neural_fields.neural_sdf.NeuralSDFConfig.color_grid_features`, measured
-2026-12-05 on 4 held-out views with the same steps and time: the full-coverage ac-room 23.3 ->
-26.8 dB, the armchair ``fc`` from RGB-D 28.7 -> 30.0 dB). Every preset ends its learning-rate
-schedule at a hundredth of its start (``lr_final``, the configs' default): with a tenth the
-last steps of a short schedule still moved the rooms' surfaces by 1-2 mm.
+The step counts are where the surface error has converged. The held-out PSNR is what a short
+schedule gives up (the colour converges more slowly than the geometry); every preset therefore
+feeds the grid features to the colour head as well
+(:attr:`~regnf.neural_fields.neural_sdf.NeuralSDFConfig.color_grid_features`). Every preset ends
+its learning-rate schedule at a hundredth of its start (``lr_final``, the configs' default), so
+that the last steps of a short schedule do not move whole surfaces. The measurements behind
+each choice: docs/decisions/field-training.md.
 """
 
 from __future__ import annotations
@@ -30,16 +24,10 @@ def object_rgbd_preset(device: str = "cpu", seed: int = 0) -> RGBDTrainConfig:
 
 
 def object_mesh_preset(device: str = "cpu", seed: int = 0) -> DistillConfig:
-    """A library object distilled from its mesh: 200 steps (at 100 the demo's discovery left the
-    mc chair unmatched), the finest grid at 64 cells, not 128, and 3072 near-surface samples a
-    step, not 4096. Measured on 2 cores (docs/benchmarks.md, "Distilling at 64 cells"): 7-9 s a
-    chair where 128 took 10-12 s, the same surface error (fc 0.020 / 0.021 %, mc 0.018 / 0.020 %
-    mean), 0.5-1.2 dB less held-out PSNR, and the low-coverage registration benchmark with this
-    library the same (10 of 11 accepted, 9 within the bars, with either grid). The smaller batch
-    ("A smaller batch for the meshes"): fc 11.2 -> 8.7 s, mc 9.6 -> 7.9 s and t 8.3 -> 6.6 s in
-    one slow hour, mean surface error 0.021 -> 0.023 %, 0.019 -> 0.022 % and 0.028 -> 0.031 %
-    (the bar is 0.3 %); 160 steps instead saved as much and lost twice the accuracy. The
-    eikonal term at the surface samples only (:attr:`DistillConfig.eikonal_uniform`)."""
+    """A library object distilled from its mesh: 200 steps, the finest grid at 64 cells, 3072
+    near-surface samples a step and the eikonal term at the surface samples only
+    (:attr:`DistillConfig.eikonal_uniform`): faster than 128 cells and 4096 samples, at
+    nearly the same surface error (docs/decisions/field-training.md)."""
     return DistillConfig(steps=200, batch=3072, eikonal_uniform=False, device=device, seed=seed,
                          architecture=NeuralSDFConfig(finest_resolution=64, color_grid_features=True))
 

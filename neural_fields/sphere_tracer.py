@@ -130,10 +130,8 @@ class SphereTracerConfig:
     cone_tile: int = 3
     """Pixels per side of the square tiles whose rays :func:`render_many` first marches as one
     cone (:func:`cone_starts`): each pixel's ray then starts where its tile's cone came near a
-    surface, not at the camera. 0 or 1: every ray marches from the camera. Measured on 8 baked
-    views of a generated variant (256 x 192, one thread): 4.1 s without cones; tiles of 2, 3,
-    4, 5, 6 pixels 2.6, 2.4, 2.6-2.8, 2.7, 2.9 s (the cones of small tiles cost more, those of
-    large tiles stop sooner); tiles of 16 then 4, or 8 then 2, 5 % faster than 3 alone."""
+    surface, not at the camera. 0 or 1: every ray marches from the camera. The cones of small
+    tiles cost more, those of large tiles stop sooner (docs/decisions/rendering-speed.md)."""
 
     def __post_init__(self) -> None:
         if self.max_steps < 1 or self.max_refine < 0 or self.chunk < 1:

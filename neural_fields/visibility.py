@@ -30,12 +30,9 @@ the margin in field units. It is the rule training's free-space term applies (se
 than in front of the surface. Everything is vectorised over voxels; the only Python loops
 are over frames and over slabs of voxels (:data:`_SLAB_VOXELS`).
 
-Cost, measured on a room capture (``regnf synth --names ac-room --coverage low``: 27
-training frames of 256 x 192; bounds 2.0 x 1.6 x 0.9, a 128 x 103 x 59 grid of 778 k voxels):
-0.24 to 0.37 s single-threaded (``OMP_NUM_THREADS=1``; 0.9 to 1.3 s at resolution 256, 6.2 M
-voxels), on 2 CPU cores that a training job kept busy. With torch's default two intra-op
-threads on those busy cores it took 1.5 to 8 s (up to 30 s at times): there any torch
-workload ran 12 to 20 times slower with two threads than with one, training included.
+Cost: a fraction of a second for a room capture's grid on one thread; on cores another job
+keeps busy, torch's intra-op threads make it, like any torch workload, many times slower
+(docs/decisions/field-training.md).
 
 Storage: :func:`regnf.neural_fields.training.train_rgbd` attaches the grid of the capture it
 trained on to the field (``field.visibility``; None for analytic and mesh-distilled fields,

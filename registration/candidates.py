@@ -312,7 +312,7 @@ def find_candidates(scene_field: Field, config: CandidateConfig | None = None) -
 def box_iou(a: OrientedBox, b: OrientedBox, samples: int = 48) -> float:
     """Volume intersection over union of two oriented boxes in one frame.
 
-    The intersection is measured on a regular grid of ``samples``^3 cell centres in each box
+    The intersection is counted on a regular grid of ``samples``^3 cell centres in each box
     (the fraction of one box's cells inside the other, times its volume; averaged both ways),
     accurate to about 1 / ``samples`` of the smaller box.
     """

@@ -7,10 +7,8 @@ object can score well on the part it explains and say nothing about the rest. Co
 asks the question the box answers: what fraction of the library's own surface, mapped into the
 scene, falls inside the box the scene was sampled in.
 
-Measured on the low-coverage rooms with mesh-distilled libraries (``regnf bench registration``
-pairs, the wrong pairs included): every right pair's winner has containment 1.000; the chairs
-in the round table ``wt``'s box, accepted before at confidence 0.85 (``c``) and 0.82 (``dc``),
-have 0.19 and 0.26: their fit explains the table top and leaves most of the chair outside.
+A right pair's winner lies wholly inside its box; a wrong object whose fit explains part of the
+box leaves much of itself outside (docs/decisions/registration-acceptance.md).
 """
 
 from __future__ import annotations

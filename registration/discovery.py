@@ -93,90 +93,68 @@ class DiscoveryConfig:
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
     """How each shortlisted object is registered (its acceptance threshold decides)."""
     ranking_points: int = 1000
-    """Samples of the scene and of each library object in the short registration (a seeded
-    random subset of the registration's samples). Measured on the low-coverage ac-room (5
-    candidates x 8 objects, 2 cores): every sample, 111 s; 1000, 27 s, and the right object
-    still among the best two of every candidate (700: 13 s, but in the fc-nop box the right
-    object fell to second, 0.21 against 0.29)."""
+    """Samples of the scene and of each library object in the short registration (a seeded random
+    subset of the registration's samples). The fewest that keep the right object among the best two
+    of every candidate, at a quarter of the time of every sample
+    (docs/decisions/discovery-ranking.md)."""
     ranking_init: InitConfig = field(default_factory=_ranking_init)
-    """Initialisation of the short registration: one RANSAC run and 6 screened hypotheses
-    instead of 4 and 12 (27 s -> 19 s on the same room, the same order)."""
+    """Initialisation of the short registration: one RANSAC run and 6 screened hypotheses instead
+    of 4 and 12; the ranking comes out in the same order, sooner
+    (docs/decisions/discovery-ranking.md)."""
     shortlist: int = 2
-    """Library objects fully registered per candidate, best short-registration score first
-    (measured: the right object ranked first or second in every candidate of the low-coverage
-    ac-room; the two armchairs, with and without the pillow, always rank together), and any
-    other within :attr:`shortlist_margin` of the best."""
+    """Library objects fully registered per candidate, best short-registration score first,
+    and any other within :attr:`shortlist_margin` of the best. Two: the right object ranks
+    first or second (docs/decisions/discovery-ranking.md)."""
     shortlist_gap: float = 0.15
     """The objects after the best count towards :attr:`shortlist` only if their short-registration
-    score is within this of the best one's: further behind, the full registration has never
-    overturned the order. Measured on two discovery benchmark runs of 2026-12-05 (34 candidates:
-    three rooms at two coverages, and the ac-room without ``mc``): the full registrations
-    reversed the short one's order only where the two scored
-    within 0.08 of each other (the mix-room's armchairs, 0.005 apart; both rejected in the
-    low-coverage ac-room, 0.08; both far below acceptance in an empty box, 0.02), and the right
-    object never ranked behind another by more than 0.012. Each full registration spared is
-    1.6-4.7 s of one core: the demo's discovery registers 7 objects instead of 10. inf: the
-    count alone."""
+    score (a confidence, 0-1) is within this of the best one's: further behind, the full
+    registration does not overturn the order. inf: the count alone
+    (docs/decisions/discovery-ranking.md)."""
     shortlist_uncertain: float = 0.6
     """When the best short-registration score of a candidate is below this, every object within
     :attr:`shortlist_gap` of the best is fully registered, whatever :attr:`shortlist` says: a
-    best score that low means the short registration found no object's pose there, and the
-    order behind it is noise. Measured on the demo's low-coverage ac-room trained with the
-    outline loss (2026-12-06): in the box of the armchair without the pillow the short
-    registration scored ``mc`` 0.338, ``fc`` 0.303 and ``fc-nop`` 0.218 (the other boxes' right
-    objects 0.74-0.81); with two shortlisted ``fc-nop`` was never registered and ``fc`` was
-    written in its place. 0 keeps the count alone."""
+    best score that low means the short registration found no object's pose there, and the order
+    behind it is noise. A confidence, 0-1; 0 keeps the count alone
+    (docs/decisions/discovery-ranking.md)."""
     shortlist_margin: float = 0.05
-    """Objects whose short-registration score is within this of the best one's are fully
-    registered too, however many: their order is noise. Measured on the fields of
-    2026-12-05: in the low-coverage mix-room, ``fc-nop`` 0.583, ``mc`` 0.580 and ``fc`` 0.571
-    in ``fc``'s box; with two shortlisted, ``fc`` was never registered and ``fc-nop`` was
-    written where ``fc`` stands. The armchairs with and without the pillow score within 0.006
-    and 0.024 of each other in the demo's room; 0 keeps the count alone."""
+    """Objects whose short-registration score (a confidence, 0-1) is within this of the best
+    one's are fully registered too, however many: their order is noise. 0 keeps the count
+    alone (docs/decisions/discovery-ranking.md)."""
 
     unobserved_difference: float = 0.05
     """When the two best accepted objects of a candidate differ only where the views observed
     less than this (the mean observation weight of the surface where they differ, both at
     their registered poses, :func:`observed_difference`), the candidate is ambiguous and left
     unmatched instead of given a coin toss: no registration can rank them on that evidence
-    (measured: the armchairs with and without the pillow in the low-coverage mix-room, whose
-    pillow no view saw, 0.8808 against 0.8754 the wrong way round; in the low-coverage
-    ac-room, where the views saw the pillow, the right one wins by 0.024-0.033)."""
+    (docs/decisions/discovery-ranking.md)."""
     difference_tolerance: float = 0.01
     """Surface farther than this fraction of the object's diagonal from the other object's
     surface is where two objects differ (:func:`observed_difference`)."""
     join_overlap: float = 0.02
     """Two candidates whose boxes overlap by at least this IoU are examined first as one
     candidate (their points' union); 0 never joins. A part the views observed poorly can split
-    one object's surface in two: measured on the low-coverage ac-room trained with the
-    occluding-edge loss, the armchair ``fc`` became two candidates (IoU 0.48 and less with its
-    true box, their boxes' IoU 0.11) and neither matched on its own. The union replaces both
-    halves when its object explains each half's surface (:attr:`half_explained`); otherwise the
-    halves are examined on their own and the union replaces them only when neither is matched,
-    so two objects that touch, each matched on its own, stay two. Examining the union first
-    spares the two halves' examinations (measured there: 7 examinations -> 5; among the six
-    room captures of the benchmark, this is the only pair of overlapping boxes)."""
+    one object's surface in two, and neither half then matches on its own. The union replaces
+    both halves when its object explains each half's surface (:attr:`half_explained`);
+    otherwise the halves are examined on their own and the union replaces them only when
+    neither is matched, so two objects that touch, each matched on its own, stay two. Examining
+    the union first spares the two halves' examinations (docs/decisions/discovery-ranking.md)."""
     half_explained: float = 0.5
-    """The matched union's object explains a half when at least this fraction of the half's
-    surface points lie within :attr:`explained_distance` of its registered surface (measured
-    on the split ``fc``: 0.96 and 0.89 of the two halves with ``fc``, 0.87 and 0.89 with
-    ``fc-nop``; 0.00 of every other candidate of the room)."""
+    """The matched union's object explains a half when at least this fraction of the half's surface
+    points lie within :attr:`explained_distance` of its registered surface
+    (docs/decisions/discovery-ranking.md)."""
     explained_distance: float = 0.03
     """Scene metres (the candidates' meshing cell, :attr:`CandidateConfig.resolution`)."""
     refit_box: bool = True
     """Refine the chosen registration once more, from its pose, in the box of the registered
     object (its library samples' bounds at that pose) instead of the candidate's box, which
-    holds only what the views observed (measured: the low-coverage ac-room's ``fc``, Δt 1.23 %
-    and Δs 1.13 % in its candidate box, 0.59 % and 0.95 % after the refit, 2.6 s; in its true
-    box, 0.60 % and 0.94 %)."""
+    holds only what the views observed: the refit comes as close as a registration from the
+    true box (docs/decisions/discovery-ranking.md)."""
     workers: int = 0
-    """Worker processes that examine candidates side by side, when :func:`discover` is given
-    the fields' checkpoints (``files``); 0: one per usable core; 1: one after another in this
-    process. Every examination runs on one thread either way, so the result does not depend on
-    it (tested; worker processes, not threads: Open3D's RANSAC on a thread other than the main
-    one gave hypotheses that varied from run to run). Measured on the demo's low-coverage
-    ac-room (5 examinations, 2 cores, three runs each): 44-46 s one after another, 31.5 s with
-    two workers, the same bits."""
+    """Worker processes that examine candidates side by side, when :func:`discover` is given the
+    fields' checkpoints (``files``); 0: one per usable core; 1: one after another in this process.
+    Every examination runs on one thread either way, so the result does not depend on it (tested).
+    Worker processes, not threads: Open3D's RANSAC on a thread other than the main one gives
+    hypotheses that vary from one call to the next (docs/decisions/discovery-ranking.md)."""
 
     def __post_init__(self) -> None:
         if self.shortlist < 1:

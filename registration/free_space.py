@@ -13,10 +13,8 @@ pose puts in observed space (weighted by the visibility grid), whose scene SDF e
 margin: the fraction of the object's observed part that stands in free space. The
 confidence is multiplied by one less it (:func:`regnf.registration.pipeline.scored`).
 
-Measured on the low-coverage rooms (2026-12-06, the rooms trained with the outline loss and
-the floater pool; samples more than 2 cm in front of the scene's surface): the armchair ``fc``
-tipped over in the round table ``wt``'s box, accepted before at 0.680, has 0.23 of its
-observed samples there; the right pairs ``wt`` and ``et`` 0.000 and 0.012.
+A wrong object that fits part of a box puts a large share of its observed samples in seen free
+space, a right pair almost none (docs/decisions/registration-acceptance.md).
 """
 
 from __future__ import annotations

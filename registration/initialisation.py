@@ -94,9 +94,9 @@ class InitConfig:
     edge_length_ratio: float = 0.9
     """Edge-length checker similarity (*paper*: 0.9)."""
     mutual_filter: bool = True
-    """Keep only mutual nearest-neighbour feature matches (measured: with all matches run 0
-    found nothing for 4-5 of 8 seeds on two of three room pairs; mutual ones: 8 of 8 on all
-    three). When the mutual matches give nothing, all matches are tried."""
+    """Keep only mutual nearest-neighbour feature matches: with all matches the first RANSAC run
+    often finds nothing on the rooms. When the mutual matches give nothing, all matches are tried
+    (docs/decisions/registration-initialisation.md)."""
     ransac_max_iteration: int = 100_000
     """RANSAC iterations at most per run."""
     ransac_confidence: float = 0.999
@@ -116,16 +116,14 @@ class InitConfig:
     icp_coarse_voxels: float = 2.0
     """Every start is first refined by ICP on both clouds downsampled to this many voxels (and
     this correspondence distance), and only the ``candidates`` distinct coarse results again on
-    every sample; 0: every start on every sample. (Not in the paper, which has one start. Each
-    of about 30 starts refined on every sample took 1.4-5.2 s of a registration; measured on the
-    low-coverage ``ac-room``, ``fc-nop``: 1.8 s for all starts on every sample (about 4 900
-    scene samples), 0.3 s on the 1 700 left at 2 voxels, then 0.8 s for the 12 distinct results
-    on every sample, with the same best hypotheses.)"""
+    every sample; 0: every start on every sample. (Not in the paper, which has one start. The
+    same best hypotheses in less time than refining every start on every sample;
+    docs/decisions/registration-initialisation.md.)"""
     icp_coarse_relative_change: float = 1e-4
     """The coarse ICP stops when fitness and inlier RMSE change relatively less than this."""
     icp_relative_change: float = 1e-5
-    """ICP stops when fitness and inlier RMSE change relatively less than this. (From a coarse
-    result, 1e-6 took 40 % longer for fitnesses within 0.005.)"""
+    """ICP stops when fitness and inlier RMSE change relatively less than this (a fraction;
+    docs/decisions/registration-initialisation.md)."""
     max_scale_ratio: float = 2.0
     """Hypotheses whose scale differs from the pre-estimate by more than this factor go."""
     top_k: int = 4
@@ -141,9 +139,9 @@ class InitConfig:
     """With an upright prior (the object stands as its library model does,
     :mod:`regnf.registration.upright`), yaws this many to a turn also start ICP, over one
     period of the object's symmetry about its up axis only (a k-fold table gets ``24 / k``, a
-    round one 1); 0: RANSAC's starts only (*paper*: RANSAC only). (Measured on the
-    low-coverage ``ac-room``: RANSAC gave chair ``c`` no start within 120 degrees of the
-    truth.)"""
+    round one 1); 0: RANSAC's starts only (*paper*: RANSAC only). RANSAC alone can give an
+    object seen from one side no start near its true pose
+    (docs/decisions/registration-initialisation.md)."""
     candidates: int = 12
     """Distinct ICP results handed to the SDF screening (:mod:`regnf.registration.screening`), which
     keeps the ``top_k`` with the most observed-evidence inliers for refinement."""
@@ -407,14 +405,13 @@ def _select(cands: list[Hypothesis], config: InitConfig,
     """Best first (fitness, then RMSE), pairwise distinct poses.
 
     Two hypotheses are one pose when their rotations are less than ``min_rotation_deg`` apart
-    modulo the object's symmetry (two poses a symmetry maps onto each other are one: measured,
-    the round table ``wt`` refined 4 equal hypotheses, 22.5 s), their scales differ by less
+    modulo the object's symmetry (two poses a symmetry maps onto each other are one, else a
+    symmetric object refines the same pose several times), their scales differ by less
     than ``min_scale_change`` and they put the library's ``centre`` (3,) (library frame, on its
     symmetry axis) less than ``min_shift`` of the library's ``size`` apart in the scene.
     Rotation alone is not enough: ICP with scaling can shrink or grow a start onto part of
-    an object seen from one side, and that result, with the best fitness, then hid every
-    start of the same turn at the right size (measured on the low-coverage ``atbl-room``,
-    round table ``wt``: the kept hypothesis was 27 % too large, the yaw start beside it 2 %).
+    an object seen from one side, and that result, with the best fitness, then hides every
+    start of the same turn at the right size (docs/decisions/registration-initialisation.md).
     """
     cands = sorted(cands, key=lambda h: (-h.fitness, h.inlier_rmse))
     kept: list[Hypothesis] = []

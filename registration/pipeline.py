@@ -75,17 +75,14 @@ class RegistrationConfig:
     """A library sample the pose puts farther than this in front of the scene's surface, in
     space the scene's views observed, stands in seen free space; the confidence is multiplied
     by one less the fraction of observed samples that do (:mod:`regnf.registration.free_space`;
-    inf: never). 2 cm, the training's own free-space margin. Measured 2026-12-06 on the
-    low-coverage rooms: the armchair ``fc`` tipped over in the round table ``wt``'s box, accepted
-    at 0.680 before, has 0.23 of its observed samples there (0.523, rejected); right pairs
-    lost at most 0.029 of their confidence (docs/benchmarks.md, "Twentieth run")."""
+    inf: never). Metres; 2 cm, the training's own free-space margin
+    (docs/decisions/registration-acceptance.md)."""
     confident_score: float = 0.85
     """The best screened hypothesis is refined first, alone; when its confidence reaches this,
     the others are not refined (:func:`refine_hypotheses`). Above 1: every hypothesis is
-    refined. (Not in the paper, which refines one. On the full-coverage benchmark rooms the first
-    hypothesis won in 11 of 11 pairs, and refining the other 3 took 0.65 s of a 1.8 s median
-    registration; at 0.85 the first stops 9 of the 11, the median fell to 1.4 s, and every
-    low-coverage result stayed the same to the printed digit: docs/benchmarks.md.)"""
+    refined. (Not in the paper, which refines one. The first hypothesis wins in nearly every
+    benchmark pair, and the others' refinement is a third of a registration's time;
+    docs/decisions/registration-acceptance.md.)"""
     device: str | None = None
     """Torch device of the fields; None: the scene field's device."""
 

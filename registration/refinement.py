@@ -29,13 +29,9 @@ with tau free, starting at 0): the same 7 degrees of freedom as ``(w, l, t)``, b
 step no longer swings the object about the library origin, which would couple rotation and
 translation (library objects have their origin at the base, not the centre).
 
-Regulariser weight (measured on exact analytic fields, 2 x 2000 samples, 12-24 starts with
-0.15-0.8 rad rotation, 8-15 % translation and 10-15 % scale error, full and half coverage, with
-and without a 0.005 bump field on the scene SDF): w = 0, 0.1 and 1 reach the same basin (the
-SDF terms decide it), but at w = 1 the discrete nearest-neighbour distances, which do not vanish
-at the truth (about the sample spacing), bias the optimum (scale error 1-3e-3 against 1e-4 to
-1e-3, and the early stop is never reached). The default 0.1 keeps the paper's term at no
-measurable cost in accuracy.
+Regulariser weight: the default 0.1 keeps the paper's term at no measurable cost in accuracy;
+the SDF terms decide the basin, and a larger weight lets the nearest-neighbour distances, which
+do not vanish at the truth, bias the optimum (docs/decisions/registration-refinement.md).
 
 Two optimisers (``RefineConfig.optimizer``):
 
@@ -95,10 +91,9 @@ class RefineConfig:
     """
 
     max_iterations: int = 200
-    """Most Adam steps (*paper*: 200). (Learning rates stay constant, as in the paper. Measured
-    on the low-coverage ac-room: halving the pose rates every 40 steps cut chair c from 200 to
-    100 steps but raised its rotation error from 0.0045 to 0.0079 rad and its scale error from
-    0.28 to 0.56 %; fc-nop and dc took as many steps as before.)"""
+    """Most Adam steps (*paper*: 200). (Learning rates stay constant, as in the paper: a decay
+    saves steps on some objects at the cost of accuracy;
+    docs/decisions/registration-refinement.md.)"""
     lr_rotation: float = 0.02
     """Adam learning rate of the axis-angle rotation update, radians (*paper*: 0.02)."""
     lr_translation: float = 0.01
@@ -130,7 +125,8 @@ class RefineConfig:
     early_stop_residual: float = 0.0005
     """Stop when the mean residual of A is below this, *L* (*paper* text: 0.0005; its code: 0.001)."""
     regulariser_weight: float = 0.1
-    """Weight w of the trimmed scene -> library nearest-neighbour term (measured, module docstring)."""
+    """Weight w of the trimmed scene -> library nearest-neighbour term (module docstring;
+    docs/decisions/registration-refinement.md)."""
     trim_fraction: float = 0.8
     """The regulariser averages this fraction of the smallest squared distances."""
     inlier_threshold: float = 0.01
@@ -157,22 +153,16 @@ class RefineConfig:
     prune_margin: float = 0.1
     """See ``prune_after``."""
     level_set_offset: bool = True
-    """Learn a constant offset delta of the scene SDF: residuals use ``s S_scene + delta L``.
-    (Not in the paper. A neural scene field is often dilated or eroded by a few mm; without
-    delta the only way to absorb that is a wrong scale. Measured on ac-room/dc, refining from
-    the true pose: scale error 0.65 % without, 0.05-0.15 % with.)"""
+    """Learn a constant offset delta of the scene SDF: residuals use ``s S_scene + delta L``. (Not
+    in the paper. A neural scene field is often dilated or eroded by a few mm; without delta the
+    only way to absorb that is a wrong scale; docs/decisions/registration-refinement.md.)"""
     lr_offset: float = 0.003
     """Adam learning rate of delta, *L*."""
     max_offset: float = 0.01
     """Bound on |delta|, *L* (``delta = max_offset tanh(d)``; 0: unbounded). Delta is for a
     field dilated or eroded by a few mm; an object seen from one side leaves its depth along
     the view and delta free to trade against each other, and an unbounded delta takes that
-    freedom. Measured refining from the true pose on the low-coverage ac-room (translation,
-    scale error in % of the diagonal / %): fc-nop unbounded 1.08 / 0.00, 0.01: 0.68 / 0.44,
-    0.005: 0.44 / 0.63, no delta 0.14 / 0.66; dc unbounded 0.38 / 0.13, 0.01: 0.36 / 0.05,
-    0.005: 0.35 / 0.33, no delta 0.27 / 1.23. The scene SDF at the true observed surface of
-    the five chairs is -0.0004 to -0.0017 scene field units (medians; the field is dilated by
-    1.2-5.2 mm at the room's 3.16 m per unit)."""
+    freedom (docs/decisions/registration-refinement.md)."""
     use_visibility: bool = True
     """Weight every residual (both terms, and the confidence) by how well the scene field's
     training views observed the place of its sample (``scene_field.visibility``, recorded at
@@ -185,14 +175,10 @@ class RefineConfig:
     its weight is the visibility read this many grid voxels out along the library's outward
     normal, mapped into the scene at the current pose. 0 reads it at the sample itself.
     (Not in the paper. The grid counts space up to its margin, 2 voxels, behind an observed
-    surface as observed: about 100 mm on the rooms' 48 mm voxels. So the underside of the round
-    table's 40 mm top, which no low-coverage view saw, read as observed, and its library
-    samples, 41 mm inside the fill the scene field holds under the top, pulled on the pose.
-    Measured on the low-coverage atbl-room `wt` (mesh / RGB-D library): scale error 4.33 /
-    5.00 % read at the sample, 2.95 / 2.65 % with 3 voxels; translation 1.83 / 2.19 % to
-    1.55 / 1.52 %; the other low-coverage pairs within 0.1 points. Scene samples (A) are read
-    at the sample: read in front, the made-up surfaces bounding the fill, whose front is
-    observed free space, went from 0.014 to 0.25 of wt's scene weight.)"""
+    surface as observed, so the unseen underside of a thin top reads as observed at the
+    sample. Scene samples (A) are read at the sample: read in front, the made-up surfaces
+    bounding a field's fill, whose front is observed free space, would gain weight;
+    docs/decisions/registration-refinement.md.)"""
 
     optimizer: Literal["lm", "adam"] = "lm"
     """``lm``: Levenberg-Marquardt, the kernel's (alpha, c) fitted to the residuals at every
@@ -205,27 +191,20 @@ class RefineConfig:
     lm_resample_every: int = 3
     """Resample every this many LM iterations (Adam: ``resample_every``); 0 never resamples."""
     lm_resamples: int = 2
-    """Resampling rounds at most (then the hypothesis converges on fixed samples). (Measured on
-    the low-coverage ac-room's five chairs: with a round every 3 iterations and no limit, the
-    samples keep changing and the stop is rarely reached before the next round: 6-15
-    iterations; the confidence needs the rounds, 0.69-0.85 without against 0.70-0.89.)"""
+    """Resampling rounds at most (then the hypothesis converges on fixed samples): without a
+    limit the samples keep changing and the stop is rarely reached; without rounds the
+    confidence is lower (docs/decisions/registration-refinement.md)."""
     lm_prune_after: int = 6
-    """At this LM iteration stop hypotheses whose inlier fraction trails the best one (running
-    or already stopped: a best one that converged early still counts) by more than
-    ``prune_margin`` (Adam: ``prune_after``); 0 disables, merging too. (Measured on the low-coverage
-    atbl-room, round table ``wt``, from its true box: the start 2.6 % of the diagonal off went
-    through a confidence of 0.31 at iteration 3, trailing a start 27 % too large (0.58), and
-    ended at 0.84, Δt 0.61 %, Δs 0.02 %; pruned at 3 it was lost and the other ended at 0.74,
-    Δt 4.5 %. Pruning at 6 keeps it; at 10 the same result, 1.7 s slower.)"""
+    """At this LM iteration stop hypotheses whose inlier fraction trails the best one (running or
+    already stopped: a best one that converged early still counts) by more than ``prune_margin``
+    (Adam: ``prune_after``); 0 disables, merging too. A start that tilts before it settles can trail
+    for the first few iterations (docs/decisions/registration-refinement.md)."""
     lm_merge_rotation_deg: float = 5.0
     """From iteration ``lm_prune_after`` on, a hypothesis that comes this close in rotation
     (degrees, modulo the object's symmetry), ``lm_merge_scale`` in scale and ``lm_merge_shift``
     in where it maps the scene samples' centroid to a hypothesis with a higher inlier fraction
-    (running or stopped) stops: both are heading for one pose; 0 disables. (Not in the paper.
-    Measured on the low-coverage mix-room's table ``t``, RGB-D library: two of the four
-    hypotheses were the best one's pose, one of them half a turn off on the 2-fold table, within
-    0.01 degrees and 0.02 % once converged, and crept towards it for all 30 iterations: the
-    refinement took 4.0 s, 1.5 s with the merge and the pruning below.)"""
+    (running or stopped) stops: both are heading for one pose; 0 disables. (Not in the paper;
+    docs/decisions/registration-refinement.md.)"""
     lm_merge_scale: float = 0.05
     """See ``lm_merge_rotation_deg``: relative scale."""
     lm_merge_shift: float = 0.1
@@ -236,9 +215,9 @@ class RefineConfig:
     offset (*L*)."""
     lm_curvature: Literal["irls", "newton"] = "newton"
     """Curvature of each robust term in the LM system: ``irls`` the reweighting's ``rho'(x)/x``
-    (a majoriser: safe steps, but linear convergence; measured on the low-coverage ac-room's
-    chair c: 21 iterations); ``newton`` the loss's own ``max(rho''(x), 0)`` (5-6 iterations to
-    the same pose), falling back to ``irls`` for the next step after a rejected one."""
+    (a majoriser: safe steps, but linear convergence); ``newton`` the loss's own
+    ``max(rho''(x), 0)`` (a fraction of the iterations to the same pose), falling back to
+    ``irls`` for the next step after a rejected one (docs/decisions/registration-refinement.md)."""
     lm_damping: float = 1e-3
     """Initial Levenberg-Marquardt damping mu (relative to the diagonal), then Nielsen's update
     from the gain ratio (the loss's decrease over the decrease the model predicted)."""
@@ -963,9 +942,9 @@ class _Batch:
 
         For an object with a continuous ``symmetry`` a turn about its axis is no motion: the
         rotation is measured modulo those turns and the centroid by its height along the axis
-        and its distance from it (the axis through the library bounds' centre). (Measured on
-        the low-coverage atbl-room's round table ``wt``: the best hypothesis kept turning about
-        the axis at a constant loss and ran all 30 iterations.)"""
+        and its distance from it (the axis through the library bounds' centre): a round object
+        can turn about its axis at a constant loss for every iteration
+        (docs/decisions/registration-refinement.md)."""
         R0, c0, s0 = previous
         R1, c1, s1 = self.pose_snapshot()
         cos = ((R0.transpose(1, 2) @ R1).diagonal(dim1=1, dim2=2).sum(-1) - 1) / 2

@@ -36,12 +36,8 @@ SAMPLING_TRACE = SphereTracerConfig(
 SDF's slope (the renderer's, see :mod:`regnf.neural_fields.sphere_tracer`), at most 128 steps a
 ray, no empty-space grid (one trace per field and box: building a grid would cost more than it
 saves), bisection of a crossing to an absolute tolerance of 1e-5 field units: a surface point,
-not a pixel, is wanted. (Until 2026-12-06: plain steps of 0.9 of the SDF, for neural fields
-that overestimate their distance, and 256 steps. Measured on the preset's fields, full-coverage
-rooms, one thread: a scene box 0.34-0.41 s -> 0.26-0.27 s, a library object 0.21-0.25 s -> 0.15-0.17
-s; of the points, those more than 1 % of the diagonal from every point of the old sampling: at
-most 1 of up to 5 700 (no thin part skipped); those the old sampling had and the new lacks
-(grazing rays out of steps): 0-13, 36 of 3 676 for the end table's scene side.)"""
+not a pixel, is wanted. Faster than plain steps of a fraction of the SDF, with the same points
+but for a few grazing rays (docs/decisions/surface-sampling.md)."""
 
 
 @dataclass(frozen=True)
@@ -58,8 +54,8 @@ class SamplingConfig:
     single_view_zoom: float = 3.0
     """Narrows the single view's field of view by this factor (> 1: only part in frame). The
     paper's single views are "highly uninformative and/or partial" views picked per object; we
-    use one rule for every object: from -x, about the central third of the object in frame.
-    (Measured: a view from -y with zoom 2 or 3 still registered fc, et and wt well.)"""
+    use one rule for every object: from -x, about the central third of the object in frame
+    (docs/decisions/surface-sampling.md)."""
     rays_per_side: int = 64
     """Rays along each image axis (paper: every 8th pixel of a 512 image)."""
     distance_factor: float = 2.5
@@ -84,16 +80,10 @@ class SamplingConfig:
     """Plane hypotheses tried by the floor RANSAC before the least-squares refit."""
     underside_deg: float = 60.0
     """Scene side: hits whose normal lies within this many degrees of straight down (against
-    ``up``) are dropped, unless every hit faces down; 0 keeps them. A room is captured from above: the undersides of seats
-    and tabletops are seen at grazing angles, if at all, and the room fields place them up to
-    16 mm off where sides and tops are within 1.5 mm (median SDF at the instances' observed true
-    surfaces, full-coverage ac-room and mix-room: undersides -15.8 to +4.0 mm, chair `c` -15.8,
-    table `t` -14.6), so their residuals pulled the scale. (Measured on the preset's
-    fields, full coverage, the registration benchmark: medians 0.0011 rad, 0.058 %, 0.075 % (mesh
-    library) and 0.0012 rad, 0.069 %, 0.079 % (RGB-D) with them, 0.0009, 0.050, 0.052 and
-    0.0012, 0.056, 0.046 without; with only those within 37 degrees of down dropped (from the
-    returned samples, one check), 0.0010,
-    0.058, 0.062 and 0.0011, 0.066, 0.102; docs/benchmarks.md, "Eighteenth run".)"""
+    ``up``) are dropped, unless every hit faces down; 0 keeps them. A room is captured from
+    above: the room fields place the undersides of seats and tabletops, seen at grazing angles
+    if at all, far from their true surfaces, and their residuals pull the scale
+    (docs/decisions/surface-sampling.md)."""
     surface_tol_rel: float = 1e-4
     """A hit is kept only if |sdf| <= this fraction of the box diagonal (drops rays that
     start inside matter and unconverged brackets)."""

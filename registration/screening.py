@@ -2,13 +2,11 @@
 
 ICP's fitness counts scene samples near library samples; for an object seen from one side a
 pose that is half a turn off often fits the seen half as well as the true pose does, and ICP
-ranks the two alike (measured on the low-coverage ``ac-room``, chair ``c``: fitness 0.52 for
-a 180-degree flip, the best of four). The refinement's confidence at a pose, before any
-step, is the fraction of inlier SDF residuals in both directions, weighted by where the
-scene's views observed space: a flip puts library surface into observed free space and is
-charged for it (same chair: 0.17 against 0.55 at the true pose). It costs two field queries
-for all candidates together, so every ICP result can be screened and only the best few
-refined.
+ranks the two alike. The refinement's confidence at a pose, before any step, is the fraction
+of inlier SDF residuals in both directions, weighted by where the scene's views observed
+space: a flip puts library surface into observed free space and is charged for it
+(docs/decisions/registration-initialisation.md). It costs two field queries for all
+candidates together, so every ICP result can be screened and only the best few refined.
 """
 
 from __future__ import annotations

@@ -3,10 +3,9 @@
 Furniture stands on the floor the way its library model does: the scene -> library rotation
 maps the scene's up onto the library's up, and only the turn about it (the yaw) is unknown.
 FPFH + RANSAC searches all of SO(3) from local features, and on an object seen from one side
-it found no start near the true pose at all (measured on the low-coverage ``ac-room``: chair
-``c``, 4 RANSAC hypotheses, every one 120-180 degrees off; refined from the true pose the
-same objective reaches 0.006 rad). A sweep of evenly spaced yaws does not depend on features:
-one of them is always within half the spacing of the truth, inside ICP's basin.
+it can find no start near the true pose at all
+(docs/decisions/registration-initialisation.md). A sweep of evenly spaced yaws does not depend
+on features: one of them is always within half the spacing of the truth, inside ICP's basin.
 
 Each start: the library's up axis aligned with the scene's, the yaw, the scale from the ratio
 of the two clouds' vertical extents (an object seen from one side still shows its top and its

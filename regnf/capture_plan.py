@@ -86,7 +86,7 @@ def plan_training(capture: Capture, up: str = "auto", preset: str = "auto", stri
 
 CELL_WARN_M = 0.04
 """Finest grid cell, metres, beyond which ``regnf train`` warns that the capture is too large
-for one field (the rooms regnf is measured on get about 2 cm)."""
+for one field (the benchmark's rooms get about 2 cm)."""
 
 
 def cell_size_warning(capture: Capture, finest_resolution: int) -> str | None:
@@ -101,6 +101,6 @@ def cell_size_warning(capture: Capture, finest_resolution: int) -> str | None:
     if cell <= CELL_WARN_M:
         return None
     return (f"{capture.root}: the capture is {extent:.1f} m across; {finest_resolution} finest cells make "
-            f"cells of {100 * cell:.1f} cm (the rooms regnf is measured on get about 2 cm), so parts "
+            f"cells of {100 * cell:.1f} cm (the benchmark's rooms get about 2 cm), so parts "
             f"thinner than about {200 * cell:.0f} cm blur; train a part of it (--max-frames, or a capture "
             "of one room) for a finer field")

@@ -113,18 +113,16 @@ class ViewerConfig:
     device: str = "cpu"
     """Where the fields are loaded and rendered (``cpu`` or ``cuda``)."""
     coarse_pixels: int = 64 * 48
-    """Pixels of the image rendered as soon as the camera moves (0.3-0.5 s for the demo room's
-    substitution on 2 CPU cores; 96 x 72 took 1.0 s)."""
+    """Pixels of the image rendered as soon as the camera moves: a fraction of a second on 2 CPU
+    cores (docs/decisions/rendering-speed.md)."""
     refined_pixels: int = 320 * 240
-    """Pixels of the image rendered once the camera rests (3.6 s for the demo room)."""
+    """Pixels of the image rendered once the camera rests (docs/decisions/rendering-speed.md)."""
     rest_seconds: float = 0.4
     """The camera counts as resting when it has not moved for this long."""
     opening_rest_seconds: float = 3.0
-    """A newly opened page's first view is refined only after this long: the browser is still
-    building the page, and a render then takes the CPU from it (measured on the demo's stage,
-    2 cores, headless Chromium, the page's own record of when it listed the instances: waiting
-    3 s, the panel and first image at 2.2-2.4 s and the refined image at 11.3-12.3 s after the
-    page request; waiting 0.4 s, 2.3-3.3 s and 7.8-9.7 s)."""
+    """Seconds a newly opened page's first view waits before it is refined: the browser is still
+    building the page, and a render then takes the CPU from it
+    (docs/decisions/rendering-speed.md)."""
     opening_fov: float = 1.1
     """Vertical field of view (radians) of the camera a browser opens with (viser's default
     is 1.31: wider than a room needs)."""
