@@ -35,6 +35,7 @@ from regnf.captures.depth_uncertainty import CONFIDENCE_WEIGHTS, DepthNoiseModel
 from regnf.captures.distortion import Distortion, pixels_to_rays
 from regnf.captures.model import META_NAME, CaptureError
 from regnf.core.cameras import ray_aabb
+from regnf.neural_fields.depth_normals import EDGE_STEP_FOOTPRINTS, depth_normals, window_normals
 
 
 class CaptureLike(Protocol):
@@ -90,6 +91,9 @@ class RGBDSamples(NamedTuple):
     """(k,) int32 frame (index into ``indices``) of each free ray."""
     edge_frame: torch.Tensor | None = None
     """(e,) int32 frame (index into ``indices``) of each edge ray."""
+    ray_free_t: torch.Tensor | None = None
+    """(m,) distance along each point's ray up to which it is free (before the margin); None:
+    ``ray_t`` (exact depth; see :func:`free_depths` for a sensor's)."""
 
 
 def camera_rays(K: np.ndarray, h: int, w: int, distortion: Distortion | None = None) -> np.ndarray:
@@ -150,11 +154,6 @@ def backproject_frame(
     return points, dirs, valid
 
 
-EDGE_STEP_FOOTPRINTS = 8.0
-"""A depth step between neighbouring pixels larger than this many pixel footprints (z / f) is
-a discontinuity (an occluding edge), not a slanted surface."""
-
-
 def edge_depths(
     depth: np.ndarray, valid: np.ndarray, K: np.ndarray, zeros_empty: bool | np.ndarray = True
 ) -> np.ndarray:
@@ -208,43 +207,6 @@ def outline_pixels(
     farthest = np.stack([pad[1:-1, 2:], pad[1:-1, :-2], pad[2:, 1:-1], pad[:-2, 1:-1]]).max(0)
     step = EDGE_STEP_FOOTPRINTS * depth / K[0, 0]
     return valid & (farthest > depth + step)
-
-
-def depth_normals(
-    points: np.ndarray, depth: np.ndarray, valid: np.ndarray, K: np.ndarray, dirs: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """Normals (h, w, 3) from central differences of back-projected points, and a mask.
-
-    A pixel's normal is trusted only when its 4 neighbours have depth and no one-sided depth
-    step exceeds :data:`EDGE_STEP_FOOTPRINTS` pixel footprints (a discontinuity, not a slanted
-    surface).
-    """
-    h, w = depth.shape
-    normals = np.zeros_like(points)
-    ok = np.zeros((h, w), dtype=bool)
-    c = (slice(1, -1), slice(1, -1))
-    du = points[1:-1, 2:] - points[1:-1, :-2]
-    dv = points[2:, 1:-1] - points[:-2, 1:-1]
-    n = np.cross(du, dv)
-    norm = np.linalg.norm(n, axis=-1, keepdims=True)
-    n = n / np.maximum(norm, 1e-12)
-    # Face the camera: the normal and the viewing ray point against each other.
-    flip = (n * dirs[c]).sum(-1, keepdims=True) > 0
-    n = np.where(flip, -n, n)
-    z = depth
-    footprint = z[c] / K[0, 0]
-    steps = np.stack(
-        [
-            np.abs(z[1:-1, 2:] - z[c]), np.abs(z[c] - z[1:-1, :-2]),
-            np.abs(z[2:, 1:-1] - z[c]), np.abs(z[c] - z[:-2, 1:-1]),
-        ],
-        -1,
-    ).max(-1)
-    neigh = valid[c] & valid[1:-1, 2:] & valid[1:-1, :-2] & valid[2:, 1:-1] & valid[:-2, 1:-1]
-    good = neigh & (steps < EDGE_STEP_FOOTPRINTS * footprint) & (norm[..., 0] > 0)
-    normals[c] = np.where(good[..., None], n, 0.0)
-    ok[c] = good
-    return normals, ok
 
 
 MAX_INCIDENCE_DEG = 80.0
@@ -310,6 +272,40 @@ def frame_confidence(capture: CaptureLike, i: int) -> np.ndarray | None:
         raise CaptureError(f"{path}: frame {i}: {exc}") from exc
 
 
+FREE_WINDOW_RADIUS = 1
+"""Radius of the window whose nearest depth bounds a sensor pixel's free space, pixels."""
+
+
+def free_depths(depth: np.ndarray, valid: np.ndarray, radius: int = FREE_WINDOW_RADIUS) -> np.ndarray:
+    """(h, w) the nearest depth in each pixel's window: how far a sensor pixel's ray is free.
+
+    A sensor reads each pixel's depth at a position jittered by its lateral noise (ICL-NUIM:
+    half a pixel): beside an object's outline a ray that passes through the object may report
+    the wall behind it, and free space along it would carve the object. Its neighbours see the
+    object, so the ray is taken as free only up to the nearest depth of its ``(2 radius + 1)^2``
+    window (docs/decisions/depth-weights.md); on a smooth surface that is within a pixel's
+    slope of its own depth, which the free-space margin covers.
+
+    Parameters
+    ----------
+    depth : (h, w) float
+        z-depth.
+    valid : (h, w) bool
+        Pixels whose depth is used; the others are left out of every window.
+    radius : int
+
+    Returns
+    -------
+    (h, w) float64
+        ``inf`` where no pixel of the window has depth.
+    """
+    z = np.where(valid, depth, np.inf).astype(np.float64)
+    h, w = z.shape
+    pad = np.pad(z, radius, constant_values=np.inf)
+    size = 2 * radius + 1
+    return np.min([pad[i : i + h, j : j + w] for i in range(size) for j in range(size)], axis=0)
+
+
 class FramePixels(NamedTuple):
     """One frame's pixels as the samples use them, all (h, w) at full resolution."""
 
@@ -331,6 +327,8 @@ class FramePixels(NamedTuple):
     """float64 axial depth noise, normalised units; None where the depth is exact."""
     weight: np.ndarray | None
     """float64 weight of the pixel's depth in (0, 1]; None where the depth is exact."""
+    free_depth: np.ndarray | None
+    """float64 z-depth up to which the pixel's ray is free (:func:`free_depths`); None: ``depth``."""
 
 
 def frame_pixels(
@@ -375,13 +373,20 @@ def frame_pixels(
     n, ok = depth_normals(p, depth, valid, K, d)
     confidence = frame_confidence(capture, i)
     if noise is None and confidence is None:
-        return FramePixels(depth, p, d, valid, n, ok, zeros_empty, None, None)
+        return FramePixels(depth, p, d, valid, n, ok, zeros_empty, None, None, None)
     drop = np.zeros_like(valid)
-    if noise is not None:
-        theta = incidence(n, ok, d)
-        drop |= flying_pixels(depth, valid, K) | (theta > np.radians(MAX_INCIDENCE_DEG))
     if confidence is not None:
         drop |= confidence == 0
+    if noise is not None:
+        drop |= flying_pixels(depth, valid, K)
+        # Central differences of noisy depth are mostly noise: windows (depth_normals.py).
+        sigma0 = noise.sigma_normal(np.maximum(depth, 1e-12) * capture.scale) / capture.scale
+        n_w, ok_w = window_normals(p, depth, valid & ~drop, K, d, sigma0)
+        # The incidence from the window's normal, else the central difference's (as grazing
+        # surfaces step too far per pixel for a whole window).
+        theta = np.where(ok_w, incidence(n_w, ok_w, d), incidence(n, ok, d))
+        n, ok = n_w, ok_w
+        drop |= theta > np.radians(MAX_INCIDENCE_DEG)
     drop &= valid
     valid = valid & ~drop
     # depth_normals' neighbour rule on the new mask: a normal needs its 4 neighbours' depth.
@@ -393,24 +398,27 @@ def frame_pixels(
     # A dropped pixel is unknown, never a ray that hit nothing.
     empty = zeros_empty & ~drop
     if noise is None:
-        return FramePixels(depth, p, d, valid, n, ok, empty, None, None)
-    sigma_m = noise.sigma(depth * capture.scale, np.where(ok, theta, 0.0))
+        return FramePixels(depth, p, d, valid, n, ok, empty, None, None, None)
+    sigma_m = noise.sigma(depth * capture.scale, np.where(valid, theta, 0.0))
     factor = 1.0 if confidence is None else np.asarray(CONFIDENCE_WEIGHTS)[confidence]
-    return FramePixels(depth, p, d, valid, n, ok, empty, sigma_m / capture.scale, noise.weight(sigma_m) * factor)
+    weight = noise.weight(sigma_m) * factor
+    return FramePixels(depth, p, d, valid, n, ok, empty, sigma_m / capture.scale, weight, free_depths(depth, valid))
 
 
-def measured_depth(capture: CaptureLike, i: int) -> np.ndarray:
+def measured_depth(capture: CaptureLike, i: int, free: bool = False) -> np.ndarray:
     """(h, w) z-depth of frame ``i`` as the samples use it, for tests of what a view saw.
 
     The depth as read where it is exact and the frame has no confidence map. Otherwise the
     pixels :func:`frame_pixels` drops are NaN: unknown even where zeros are empty, so they see
-    nothing free and observe nothing.
+    nothing free and observe nothing. ``free``: each pixel's free depth instead of its depth
+    (:func:`free_depths`; the same where the depth is exact), for tests of what a view saw free.
     """
     noise = capture.depth_noise
     if noise is None and getattr(capture.frames[i], "confidence_path", None) is None:
         return capture.depth(i)
     px = frame_pixels(capture, i, bool(capture.zero_depth_is_empty), noise)
-    return np.where(px.valid, px.depth, np.where(px.empty, 0.0, np.nan))
+    depth = px.free_depth if free and px.free_depth is not None else px.depth
+    return np.where(px.valid, depth, np.where(px.empty, 0.0, np.nan))
 
 
 def capture_where(capture: CaptureLike) -> str:
@@ -448,7 +456,7 @@ def build_samples(capture: CaptureLike, indices: Sequence[int], pixel_stride: in
         raise ValueError(f"pixel_stride must be an integer >= 1, got {pixel_stride!r}")
     pts, cols, nrm, nok, org, tt, forg, fdir = [], [], [], [], [], [], [], []
     eorg, edir, et, elim, outl = [], [], [], [], []
-    wts, sig, frm, ffrm, efrm = [], [], [], [], []
+    wts, sig, frm, ffrm, efrm, ftt = [], [], [], [], [], []
     zeros_empty = bool(capture.zero_depth_is_empty)
     noise = capture.depth_noise
     for j, i in enumerate(indices):
@@ -464,13 +472,13 @@ def build_samples(capture: CaptureLike, indices: Sequence[int], pixel_stride: in
         outline = outline_pixels(depth, valid, K, px.empty)
         # z-depth to distance along the unit ray, as backproject_frame measures it.
         ray_len = np.linalg.norm(camera_rays(K, *depth.shape, frame.distortion) @ c2w[:3, :3].T, axis=-1)
-        weight, sigma = px.weight, px.sigma
+        weight, sigma, free_depth = px.weight, px.sigma, px.free_depth
         if pixel_stride > 1:
             sub = np.s_[::pixel_stride, ::pixel_stride]
             depth, p, d, valid, n, ok, rgb, free, z_edge, outline, ray_len = (
                 a[sub] for a in (depth, p, d, valid, n, ok, rgb, free, z_edge, outline, ray_len)
             )
-            weight, sigma = (None if a is None else a[sub] for a in (weight, sigma))
+            weight, sigma, free_depth = (None if a is None else a[sub] for a in (weight, sigma, free_depth))
         at_edge = z_edge > 0
         origin = c2w[:3, 3]
         count = int(valid.sum())
@@ -482,7 +490,9 @@ def build_samples(capture: CaptureLike, indices: Sequence[int], pixel_stride: in
         tt.append(np.linalg.norm(p[valid] - origin, axis=-1).astype(np.float32))
         forg.append(np.broadcast_to(origin.astype(np.float32), (int(free.sum()), 3)))
         fdir.append(d[free].astype(np.float32))
-        own = np.where(valid, depth * ray_len, np.inf)
+        own = np.where(valid, (depth if free_depth is None else free_depth) * ray_len, np.inf)
+        if free_depth is not None:
+            ftt.append((free_depth * ray_len)[valid].astype(np.float32))
         eorg.append(np.broadcast_to(origin.astype(np.float32), (int(at_edge.sum()), 3)))
         edir.append(d[at_edge].astype(np.float32))
         et.append((z_edge * ray_len)[at_edge].astype(np.float32))
@@ -513,7 +523,7 @@ def build_samples(capture: CaptureLike, indices: Sequence[int], pixel_stride: in
         edge_origins=cat(eorg), edge_dirs=cat(edir), edge_t=cat(et, None), edge_limit=cat(elim, None),
         outline=torch.from_numpy(np.concatenate(outl, 0)) if outl else torch.zeros(0, dtype=torch.bool),
         weights=cat(wts, None), sigma=cat(sig, None), frame=cat_int(frm), free_frame=cat_int(ffrm),
-        edge_frame=cat_int(efrm),
+        edge_frame=cat_int(efrm), ray_free_t=cat(ftt, None) if noise is not None else None,
     )
 
 

@@ -107,14 +107,8 @@ class RGBDTrainConfig:
     """Learning rate of the MLPs."""
     lr_final: float = 0.01
     """The learning rates at the last step, as a fraction of ``lr_grid`` and ``lr_mlp`` (cosine
-    decay after a 50-step warm-up, :func:`regnf.neural_fields.optim.lr_factor`). 0.1 until
-    2026-12-05: with the short presets the last steps still moved the surface by millimetres.
-    Measured on the three full-coverage rooms (room preset, 400 steps, the same time): the
-    SDF at the true floor (median over the floor away from the furniture) -0.6, +1.5 and
-    -1.7 mm at 0.1, within 0.07 mm at 0.01, its p10-p90 spread 2.5-4.9 mm -> 1.7-2.3 mm; the
-    11 full-coverage pairs registered with the RGB-D library, medians 0.0026 rad, 0.12 %,
-    0.12 % -> 0.0009 rad, 0.05 %, 0.08 % (0.001: 0.0010 rad, 0.05 %, 0.10 %; docs/benchmarks.md,
-    "The last steps' learning rate")."""
+    decay after a 50-step warm-up, :func:`regnf.neural_fields.optim.lr_factor`;
+    docs/decisions/field-training.md)."""
     grid_decay: float = 0.0
     """Decoupled weight decay of the grid features (removes free-space floaters)."""
     near_band_m: tuple[float, float] = (0.006, 0.02)
@@ -133,28 +127,9 @@ class RGBDTrainConfig:
     """Weight of the free-space loss."""
     w_edge: float = 0.0
     """Weight of the occluding-edge loss (0: off): S >= 0 on rays that pass just beside an
-    observed silhouette, near the occluder's depth (``RGBDSamples.edge_t``). The uniform
-    free-space samples almost never land within a pixel footprint of a thin part's outline,
-    so without them an outline seen against a far background can grow outward freely.
-    Measured on the three low-coverage rooms (room preset, `regnf train --preset scene
-    --edge-weight 1` against the preset, the 11 pairs registered with the mesh library from
-    their true boxes, 2026-12-03). Median SDF at each instance's observed true surface
-    (20 000 points on its mesh, kept where a training view's depth is within 1 cm of them):
-    -9.0 to +1.0 mm without, -2.6 to +3.5 mm with (thin parts no longer grow outward: `t` in
-    the atbl-room -9.0 -> -1.6 mm, `et` -3.1 -> -0.7 mm; in the ac-room and mix-room the
-    outlines now sit 1.6-3.5 mm inside instead of up to 3.7 mm outside). Registration: 10 of
-    11 pairs accepted and within the bars with the loss, 9 of 11 without (`et` 0.57, rejected,
-    -> 0.69, Δt 0.73 -> 0.09 %, Δs 1.70 -> 0.04 %); ac-room `fc` 0.0090 rad / 0.60 % / 0.94 %
-    -> 0.0022 / 0.06 / 0.07 %, `c` Δt 0.77 -> 0.14 %; mix-room `fc` Δs 0.03 -> 0.50 % (the
-    one pair clearly worse). The round table `wt` first got worse (Δt 1.65 -> 4.48 %, Δs
-    2.94 -> 2.14 %), but not because of the field: refined from its true pose on the field
-    with the loss it stays within 0.20 % and 0.07 % (without the loss it drifts to 1.49 %).
-    Its right start had been merged with a start 27 % too large and pruned early; with that
-    fixed (``InitConfig.min_scale_change``, ``RefineConfig.lm_prune_after``) it registers at
-    Δt 0.61 %, Δs 0.02 %, and all 11 low-coverage pairs are within the bars with either
-    library. Discovery found every instance of the ac-room and atbl-room with it (the armchair
-    ``fc`` once split in two candidates is joined again, ``DiscoveryConfig.join_overlap``).
-    Weight 1 in the room preset since 2026-12-03 (docs/benchmarks.md, "Occluding-edge loss")."""
+    observed silhouette, near the occluder's depth (``RGBDSamples.edge_t``); without it an
+    outline seen against a far background grows outward freely
+    (docs/decisions/room-training-losses.md)."""
     batch_edge: int = 2048
     """Samples per step on the rays that pass an occluding edge."""
     edge_band_m: tuple[float, float] = (0.02, 0.05)
@@ -162,41 +137,16 @@ class RGBDTrainConfig:
     along the passing ray (and never within ``free_margin_m`` of the ray's own hit)."""
     w_outline: float = 0.0
     """Weight of the outline loss (0: off): |S| at the points on the occluders' side of each
-    occluding edge (``RGBDSamples.outline``, the pixels whose neighbour is an edge ray). Those
-    points see a surface at a grazing angle, so few pixels hold it, and the surface loss, drawn
-    uniformly over pixels, reaches them seldom while the edge loss pushes the same outline
-    inward 2048 times a step: with the short room schedule (400 steps) the sides of the
-    low-coverage rooms' furniture end 3-6 mm inside the truth (800 steps: 0-2 mm). Measured
-    2026-12-06 on the three low-coverage rooms (room preset with weight 1, 400 steps; median
-    SDF at each instance's observed true surface, as in ``w_edge``, where its normal is within
-    30 degrees of horizontal): sides +0.4 to +6.3 mm -> -2.3 to +0.3 mm; the registration
-    benchmark at low coverage, 8 of 11 pairs accepted and within the bars with either library
-    -> 11 of 11, and at full coverage the RGB-D library's medians 0.0011 rad, 0.06 %, 0.08 %
-    -> 0.0005 rad, 0.04 %, 0.04 %; 2.7 % more time a step. Alone it also left floaters in
-    observed free space (points of a 2 cm grid that the room's visibility grid counts as
-    observed, away from every instance's box, with SDF < -3 mm): 0 -> 149 in the low-coverage
-    ac-room, 17 -> 75 at full coverage, 220 -> 365 in the low-coverage mix-room (23 -> 0 in
-    the atbl-room), visible as specks in the demo's renders, and the render benchmark's
-    replacement remnants 102 -> 560 pixels (docs/benchmarks.md, "Outlines"); so it was off in
-    every preset until the floater pool (``carve_every``) carved them. Weight 1 in the room
-    preset, with the pool, since 2026-12-06."""
+    occluding edge (``RGBDSamples.outline``, the pixels whose neighbour is an edge ray), which
+    few pixels hold while the edge loss pushes the same outline inward
+    (docs/decisions/room-training-losses.md)."""
     batch_outline: int = 1024
     """Outline points per step (drawn with replacement)."""
     carve_every: int = 0
     """Steps between the floater pool's mining passes (0: no pool;
     :class:`regnf.neural_fields.floater_pool.FloaterPool`): matter the field holds where a
     training view saw free space is found on a grid and kept, and every later step asks it to
-    be positive again, until it is gone. Measured 2026-12-06 with the outline loss at weight 1
-    (room preset, 400 steps, a pass every 50 from step 200; floaters counted as in
-    ``w_outline``): the low-coverage ac-room 149 -> 5 (0 without either), the atbl-room 0 ->
-    0, the mix-room 365 -> 253 (220 without either; of those 253 only 14 lie where a training
-    view saw free space, the rest just behind observed surfaces, inside the visibility grid's
-    margin), the full-coverage ac-room 75 -> 15 (17 without either). The 11 low-coverage pairs,
-    registered from their true boxes, all accepted and within the bars with either library
-    (8 of 11 without either). Training time: 58-60 s a low-coverage room, 77.5 s the
-    full-coverage ac-room (77.9 s without either; a pass evaluates the field at the observed
-    points of a 4 cm grid, about a second). Every 50 steps in the room preset
-    (docs/benchmarks.md, "Floaters, mined")."""
+    be positive again, until it is gone (docs/decisions/room-training-losses.md)."""
     carve_from: float = 0.5
     """The first mining pass, as a fraction of ``steps``; from it on the pool also keeps the
     uniform free-space points found negative, and each step draws ``batch_carve`` points."""
@@ -277,7 +227,7 @@ class _ViewStack:
     def build(capture: CaptureLike, indices: Sequence[int], device: torch.device,
               sigma_multiple: float = 3.0) -> _ViewStack:
         """The stack of frames ``indices``; ``sigma_multiple``: see :attr:`sigma_multiple`."""
-        depth = np.stack([measured_depth(capture, i) for i in indices]).astype(np.float32)
+        depth = np.stack([measured_depth(capture, i, free=True) for i in indices]).astype(np.float32)
         if not capture.zero_depth_is_empty:
             # NaN fails both tests of seen_free: a pixel of unknown depth sees nothing free.
             depth = np.where(depth > 0, depth, np.float32(np.nan))
@@ -453,7 +403,7 @@ def train_rgbd(
     band_in, band_out = cfg.near_band_m[0] / scale, cfg.near_band_m[1] / scale
     margin = cfg.free_margin_m / scale
 
-    s = RGBDSamples(*(t.to(device) for t in samples))
+    s = RGBDSamples(*(None if t is None else t.to(device) for t in samples))
     views = _ViewStack.build(capture, indices, device, cfg.free_sigma_multiple)
     # Depth with a noise model: its samples are weighted and free space keeps off its sigma;
     # exact depth keeps the unweighted arithmetic.
@@ -525,9 +475,10 @@ def train_rgbd(
 
         fi = randint(m, cfg.batch_free)
         o, p, td = s.origins[fi], s.points[fi], s.ray_t[fi]
+        t_free = td if s.ray_free_t is None else s.ray_free_t[fi]
         d = (p - o) / td[:, None]
         t_in, _ = ray_box_interval(o, d, bounds_d)
-        t_hi = free_stop(td, s.sigma[fi] if weighted else None, margin, cfg.free_sigma_multiple)
+        t_hi = free_stop(t_free, s.sigma[fi] if weighted else None, margin, cfg.free_sigma_multiple)
         t = t_in + rand(cfg.batch_free) * (t_hi - t_in).clamp_min(0.0)
         xf, ub = moved(o + t[:, None] * d, s.frame[fi]), td - t
         keep_f = (t_hi > t_in).float()

@@ -150,3 +150,27 @@ def analytic_sdf(points: np.ndarray) -> np.ndarray:
 
 def as_tensor(points: np.ndarray, dtype: torch.dtype = torch.float32) -> torch.Tensor:
     return torch.from_numpy(np.ascontiguousarray(points)).to(dtype)
+
+
+def pixel_dirs_camera(K: np.ndarray, h: int, w: int) -> np.ndarray:
+    """(h, w, 3) rays K^-1 [u + 0.5, v + 0.5, 1] (z component 1) in the camera frame."""
+    v, u = np.mgrid[0:h, 0:w] + 0.5
+    pix = np.stack([u, v, np.ones_like(u)], -1)
+    return pix @ np.linalg.inv(K).T
+
+
+def box_face_id(points: np.ndarray, tol: float = 1e-4) -> np.ndarray:
+    """(...) int: 0..5 for the box face (axis * 2 + (side > 0)) a point lies on, -1 otherwise.
+
+    A point counts only if it is on the union's surface there (outside the sphere).
+    """
+    q = points - BOX_CENTER
+    out = np.full(points.shape[:-1], -1)
+    on_box = np.all(np.abs(q) <= BOX_HALF + tol, axis=-1)
+    outside_sphere = np.linalg.norm(points - SPHERE_CENTER, axis=-1) > SPHERE_RADIUS + tol
+    for axis in range(3):
+        for side in (0, 1):
+            sign = 1.0 if side else -1.0
+            on = on_box & outside_sphere & (np.abs(q[..., axis] - sign * BOX_HALF[axis]) < tol)
+            out[on] = 2 * axis + side
+    return out

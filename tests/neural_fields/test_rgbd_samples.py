@@ -14,7 +14,6 @@ from regnf.captures.model import Capture
 from regnf.neural_fields.rgbd_samples import (
     backproject_frame,
     build_samples,
-    depth_normals,
     edge_depths,
     outline_pixels,
     ray_box_interval,
@@ -26,13 +25,13 @@ from .capture_helpers import (
     BOX_HALF,
     FOCAL,
     HEIGHT,
-    N_VIEWS,
     SPHERE_CENTER,
     SPHERE_COLOR,
     SPHERE_RADIUS,
     WIDTH,
     analytic_sdf,
     camera_poses,
+    pixel_dirs_camera,
     write_analytic_capture,
 )
 
@@ -40,30 +39,6 @@ from .capture_helpers import (
 @pytest.fixture(scope="module")
 def capture(tmp_path_factory: pytest.TempPathFactory) -> Capture:
     return write_analytic_capture(Path(tmp_path_factory.mktemp("analytic_capture")))
-
-
-def pixel_dirs_camera(K: np.ndarray, h: int, w: int) -> np.ndarray:
-    """(h, w, 3) rays K^-1 [u + 0.5, v + 0.5, 1] (z component 1) in the camera frame."""
-    v, u = np.mgrid[0:h, 0:w] + 0.5
-    pix = np.stack([u, v, np.ones_like(u)], -1)
-    return pix @ np.linalg.inv(K).T
-
-
-def box_face_id(points: np.ndarray, tol: float = 1e-4) -> np.ndarray:
-    """(...) int: 0..5 for the box face (axis * 2 + (side > 0)) a point lies on, -1 otherwise.
-
-    A point counts only if it is on the union's surface there (outside the sphere).
-    """
-    q = points - BOX_CENTER
-    out = np.full(points.shape[:-1], -1)
-    on_box = np.all(np.abs(q) <= BOX_HALF + tol, axis=-1)
-    outside_sphere = np.linalg.norm(points - SPHERE_CENTER, axis=-1) > SPHERE_RADIUS + tol
-    for axis in range(3):
-        for side in (0, 1):
-            sign = 1.0 if side else -1.0
-            on = on_box & outside_sphere & (np.abs(q[..., axis] - sign * BOX_HALF[axis]) < tol)
-            out[on] = 2 * axis + side
-    return out
 
 
 # -- back-projection ----------------------------------------------------------------------------
@@ -129,79 +104,6 @@ def test_backproject_frame_matches_a_closed_form_plane() -> None:
         dirs, r_world / np.linalg.norm(r_world, axis=-1, keepdims=True), atol=1e-12
     )
     assert np.isfinite(points).all()
-
-
-# -- normals ------------------------------------------------------------------------------------
-def test_depth_normals_match_the_analytic_normals_on_flat_faces(capture: Capture) -> None:
-    """Away from edges (the pixel and its 4 neighbours on one box face) depth normals are exact."""
-    checked = 0
-    for i in range(len(capture.frames)):
-        frame = capture.frames[i]
-        K, c2w = frame.intrinsics, frame.camtoworld
-        depth = capture.depth(i).astype(np.float64)
-        points, dirs, valid = backproject_frame(depth, K, c2w)
-        normals, ok = depth_normals(points, depth, valid, K, dirs)
-        face = np.where(valid, box_face_id(points), -1)
-        c = face[1:-1, 1:-1]
-        flat = np.zeros_like(valid)
-        flat[1:-1, 1:-1] = (
-            (c >= 0)
-            & (face[1:-1, 2:] == c)
-            & (face[1:-1, :-2] == c)
-            & (face[2:, 1:-1] == c)
-            & (face[:-2, 1:-1] == c)
-        )
-        axis, side = face[flat] // 2, face[flat] % 2
-        true_n = np.zeros((int(flat.sum()), 3))
-        true_n[np.arange(len(axis)), axis] = np.where(side == 1, 1.0, -1.0)
-        # A flat patch is no discontinuity unless seen at grazing incidence (a depth step of
-        # 8 pixel footprints is the rule's limit; |cos| > 0.25 keeps it under ~4).
-        facing = np.abs((dirs[flat] * true_n).sum(-1)) > 0.25
-        assert ok[flat][facing].all(), f"frame {i}: a flat face pixel was rejected"
-        trusted = ok[flat]
-        cos = (normals[flat][trusted] * true_n[trusted]).sum(-1)
-        assert cos.size == 0 or cos.min() > 0.999, f"frame {i}: worst cos {cos.min()}"
-        checked += int(trusted.sum())
-        # Normals face the camera and are unit length where trusted, zero elsewhere.
-        assert ((normals[ok] * dirs[ok]).sum(-1) < 0).all()
-        np.testing.assert_allclose(np.linalg.norm(normals[ok], axis=-1), 1.0, atol=1e-9)
-        assert (normals[~ok] == 0).all()
-    assert checked > 10 * N_VIEWS  # the test must have looked at many face pixels
-
-
-def test_depth_normals_of_a_slanted_plane_and_a_depth_step() -> None:
-    f, h, w = 20.0, 10, 14
-    K = np.array([[f, 0.0, w / 2], [0.0, f, h / 2], [0.0, 0.0, 1.0]])
-    R = Rotation.from_euler("zyx", [30.0, 10.0, -50.0], degrees=True).as_matrix()
-    c2w = np.eye(4)
-    c2w[:3, :3], c2w[:3, 3] = R, [1.0, 2.0, 3.0]
-    r = pixel_dirs_camera(K, h, w)
-
-    # A plane tilted 60 degrees from fronto-parallel: steep, but no discontinuity.
-    n_cam = np.array([0.0, math.sin(math.radians(60.0)), -math.cos(math.radians(60.0))])
-    depth = (n_cam @ np.array([0.0, 0.0, 4.0])) / (r @ n_cam)
-    assert (depth > 0).all()
-    points, dirs, valid = backproject_frame(depth, K, c2w)
-    normals, ok = depth_normals(points, depth, valid, K, dirs)
-    assert ok[1:-1, 1:-1].all()
-    assert not ok[0].any() and not ok[-1].any() and not ok[:, 0].any() and not ok[:, -1].any()
-    np.testing.assert_allclose(
-        normals[1:-1, 1:-1], np.broadcast_to(R @ n_cam, (h - 2, w - 2, 3)), atol=1e-9
-    )
-
-    # Two fronto-parallel planes, z = 1 (left) and z = 2 (right), and one missing pixel.
-    depth = np.where(np.arange(w)[None, :] < w // 2, 1.0, 2.0) * np.ones((h, 1))
-    depth[4, 3] = 0.0
-    points, dirs, valid = backproject_frame(depth, K, c2w)
-    normals, ok = depth_normals(points, depth, valid, K, dirs)
-    expect = np.zeros((h, w), bool)
-    expect[1:-1, 1:-1] = True
-    expect[:, w // 2 - 1 : w // 2 + 1] = False  # either side of the step
-    expect[4, 3] = expect[3, 3] = expect[5, 3] = expect[4, 2] = expect[4, 4] = False
-    np.testing.assert_array_equal(ok, expect)
-    np.testing.assert_allclose(
-        normals[ok], np.broadcast_to(R @ [0.0, 0.0, -1.0], (int(ok.sum()), 3)), atol=1e-9
-    )
 
 
 # -- free rays ----------------------------------------------------------------------------------

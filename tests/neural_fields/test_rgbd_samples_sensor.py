@@ -20,7 +20,12 @@ import torch
 from regnf.captures.depth_uncertainty import DepthNoiseModel
 from regnf.captures.model import Capture, CaptureError
 from regnf.captures.sdfstudio import load_capture, write_capture
-from regnf.neural_fields.rgbd_samples import MAX_INCIDENCE_DEG, build_samples, flying_pixels
+from regnf.neural_fields.rgbd_samples import (
+    MAX_INCIDENCE_DEG,
+    build_samples,
+    flying_pixels,
+    free_depths,
+)
 from regnf.neural_fields.training import _ViewStack, free_stop
 
 W, H = 24, 16
@@ -335,3 +340,34 @@ def test_a_capture_with_a_noise_model_trains(tmp_path: Path) -> None:
                           w_edge=1.0, batch_edge=32, visibility_resolution=0, architecture=tiny)
     _, log = train_rgbd(cap, cfg, progress=False)
     assert len(log.losses) > 0 and all(math.isfinite(v) for v in log.losses[-1].values())
+
+
+# -- lateral noise at outlines ---------------------------------------------------------------
+def test_a_rays_free_space_ends_at_the_nearest_depth_around_it(tmp_path: Path) -> None:
+    """A pixel of the box face that read the wall behind (lateral noise at the outline) is free
+    only up to the box face its neighbours saw; everywhere else up to its own depth."""
+    depth = step_depth()
+    depth[:, STEP : STEP + 2] = FAR  # no mixed pixels: a clean step
+    jittered = (5, STEP - 1)
+    depth[jittered] = FAR
+    z = depth / SCALE
+    expect = z.copy()
+    expect[:, STEP : STEP + 1] = NEAR / SCALE  # the wall's first column is beside the face
+    expect[4:7, STEP - 2 : STEP + 1] = NEAR / SCALE
+    np.testing.assert_array_equal(free_depths(z, z > 0), expect)
+    cap = write(tmp_path, [depth], None)
+    s = build_samples(cap, [0])
+    px = sample_pixels(s)
+    ray_len = (s.ray_t / torch.from_numpy(z[px[:, 0], px[:, 1]]).float()).double().numpy()
+    want = expect[px[:, 0], px[:, 1]] * ray_len
+    np.testing.assert_allclose(s.ray_free_t.double().numpy(), want, rtol=1e-6)
+    # The views' free-space test agrees: a point just in front of the wall along the jittered
+    # pixel's ray (inside the box face's extension) is not seen free.
+    views = _ViewStack.build(cap, [0], torch.device("cpu"))
+    ray = np.array([(jittered[1] + 0.5 - K[0, 2]) / F, (jittered[0] + 0.5 - K[1, 2]) / F, 1.0])
+    x = torch.tensor([ray * (FAR - 0.2) / SCALE, ray * (NEAR - 0.2) / SCALE], dtype=torch.float32)
+    got = views.seen_free(x, 0.02 / SCALE, torch.zeros(2, dtype=torch.long))
+    assert got.tolist() == [0.0, 1.0]
+    # Exact depth keeps each ray's own depth.
+    exact = build_samples(write(tmp_path / "e", [depth], {"depth_noise": "none"}), [0])
+    assert exact.ray_free_t is None
