@@ -102,6 +102,11 @@ class DepthNoiseModel:
         angular = self.angular_m15 / np.sqrt(z) * theta**2 / (np.pi / 2 - theta) ** 2
         return self.sigma_normal(z) + angular
 
+    def scaled(self, factor: float) -> DepthNoiseModel:
+        """The model with sigma multiplied by ``factor`` (> 0): its three terms scaled, its weights' constants kept."""
+        return dataclasses.replace(self, constant_m=self.constant_m * factor, quadratic_per_m=self.quadratic_per_m * factor,
+                                   angular_m15=self.angular_m15 * factor)
+
     def weight(self, sigma: np.ndarray) -> np.ndarray:
         """(...) float64: ``(reference_m / sigma)^2`` clipped to ``[min_weight, 1]`` (sigma in metres)."""
         return np.clip((self.reference_m / np.asarray(sigma, dtype=np.float64)) ** 2, self.min_weight, 1.0)

@@ -71,14 +71,18 @@ def summarise_depth(capture: Capture) -> DepthSummary:
     )
 
 
+def skipped_note(capture: Capture) -> str:
+    """``, 1 skipped by the reader`` where the reader skipped frames (ScanNet's invalid poses), else ``""``."""
+    skipped = capture.meta.get("skipped_frames")
+    if isinstance(skipped, int) and not isinstance(skipped, bool) and skipped > 0:
+        return f", {skipped} skipped by the reader"
+    return ""
+
+
 def frames_line(capture: Capture) -> str:
     """``12 (train 10, test 2), 1 skipped``: the frame counts, and frames the reader skipped."""
     train, test = len(capture.train_indices()), len(capture.test_indices())
-    line = f"{len(capture.frames)} (train {train}, test {test})"
-    skipped = capture.meta.get("skipped_frames")
-    if isinstance(skipped, int) and not isinstance(skipped, bool) and skipped > 0:
-        line += f", {skipped} skipped by the reader"
-    return line
+    return f"{len(capture.frames)} (train {train}, test {test})" + skipped_note(capture)
 
 
 def span(values: np.ndarray, digits: int = 1) -> str:

@@ -14,6 +14,7 @@ from rich.markup import escape
 
 from regnf.capture_plan import cell_size_warning, plan_training
 from regnf.captures.formats import read_capture
+from regnf.captures.inspection import skipped_note
 from regnf.captures.selection import select_frames
 from regnf.captures.up_axis import UpChoice, up_line
 from regnf.core.atomic_io import write_bytes
@@ -179,7 +180,7 @@ class Train:
             raise PreflightError(f"--pixel-stride must be at least 1, got {self.pixel_stride}")
         select_frames((), self.stride, self.max_frames)  # refuses a bad --stride or --max-frames now
         capture, fmt = read_capture(self.capture, self.capture_format)
-        console.print(f"capture {capture.root}: {fmt} format, {len(capture.frames)} frames")
+        console.print(f"capture {capture.root}: {fmt} format, {len(capture.frames)} frames{skipped_note(capture)}")
         presets = {"object": object_rgbd_preset, "scene": scene_rgbd_preset}
         # Before the preset is known, memory is checked at the finer stride either may use.
         pixel_stride = self.pixel_stride or min(

@@ -163,5 +163,5 @@ def test_a_scannet_capture_trains_end_to_end(tmp_path: Path, capsys: pytest.Capt
     code, err = run_cli(capsys, ["train", "--capture", str(tmp_path / "scene"), "--steps", "1", "--preset", "object",
                                  "--cache-dir", str(tmp_path / "cache")])
     assert code == 0, err
-    assert f"scannet format, {N_FRAMES - 1} frames" in err
+    assert f"scannet format, {N_FRAMES - 1} frames, 1 skipped by the reader" in err
     assert list((tmp_path / "cache" / "fields").glob("scene-rgbd-*.safetensors"))
