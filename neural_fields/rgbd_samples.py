@@ -283,8 +283,9 @@ def free_depths(depth: np.ndarray, valid: np.ndarray, radius: int = FREE_WINDOW_
     half a pixel): beside an object's outline a ray that passes through the object may report
     the wall behind it, and free space along it would carve the object. Its neighbours see the
     object, so the ray is taken as free only up to the nearest depth of its ``(2 radius + 1)^2``
-    window (docs/decisions/depth-weights.md); on a smooth surface that is within a pixel's
-    slope of its own depth, which the free-space margin covers.
+    window (docs/decisions/depth-weights.md). On a slanted surface that ends free space up to
+    one pixel's step early (a few footprints at grazing angles): free space is given up near
+    the surface, never invented.
 
     Parameters
     ----------
