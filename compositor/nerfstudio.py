@@ -6,7 +6,9 @@ are OpenCV (x right, y down, z forward). The two differ by a rotation of pi abou
 camera's x axis: ``c2w_gl = c2w_cv @ diag(1, -1, -1, 1)``. The pinhole intrinsics are the
 same numbers in both (nerfstudio also samples pixel centres at ``u + 0.5``). Depth images are
 16-bit millimetres (nerfstudio's default ``depth_unit_scale_factor`` of 1e-3 reads them as
-metres); masks are the instance images (0 = background, which nerfstudio ignores).
+metres). The instance images are not given as nerfstudio's ``mask_path``: nerfstudio
+leaves out every pixel whose mask is 0, and an instance image is 0 on the room itself; they
+are listed per frame as ``instance_file_path`` instead.
 """
 
 from __future__ import annotations
@@ -55,7 +57,7 @@ def transforms_json(cameras: Sequence[Camera], views: Sequence[ViewFiles], extra
         frame = {
             "file_path": files.rgb,
             "depth_file_path": files.depth,
-            "mask_path": files.instance,
+            "instance_file_path": files.instance,
             "transform_matrix": opencv_to_opengl(cam.camera_to_world).tolist(),
         }
         frames.append(frame if shared else {**i, **frame})

@@ -1,8 +1,8 @@
 """Render a field from many cameras into a folder: images, a contact sheet and ``render.json``.
 
 Per view ``k`` (4 digits): ``rgb_k.png`` (8-bit), ``depth_k.png`` (16-bit millimetres, 0 no
-hit) and ``instance_k.png`` (16-bit ``id + 1``: 0 background, 1 scene, ``i + 1`` instance
-``i``); see :mod:`regnf.core.image_io`. Then ``contact_sheet.png`` (the RGB views tiled),
+hit) and ``instance_k.png`` (16-bit: ``i`` where instance ``i`` is seen, 0 on the background and
+the scene's own surfaces); see :mod:`regnf.core.image_io`. Then ``contact_sheet.png`` (the RGB views tiled),
 optionally ``sequence.gif`` or ``sequence.mp4`` (the RGB views in order, see
 :mod:`regnf.compositor.sequence_io`), and ``render.json`` (cameras, settings, timings, field
 evaluations per pixel).
@@ -158,7 +158,7 @@ class ViewFiles(NamedTuple):
     depth: str
     """16-bit millimetre depth PNG (0: no hit)."""
     instance: str
-    """16-bit instance PNG storing id + 1."""
+    """16-bit instance PNG: instance id, 0 background."""
 
 
 class RenderReport(NamedTuple):
@@ -438,7 +438,7 @@ def _render_into(
         "field": {"name": field.name, "label": field.label, "to_world": field.to_world.tolist()},
         "files": {
             "depth_png": "uint16 millimetres of z-depth along the optical axis, 0 = no hit",
-            "instance_png": "uint16 id + 1: 0 background, 1 scene, i + 1 instance i",
+            "instance_png": "uint16 instance id i >= 1 where instance i is seen, 0 background and scene",
             "contact_sheet": CONTACT_SHEET,
             "sequence": config.sequence_name,
             "sequence_fps": config.sequence_fps if config.sequence_name else None,

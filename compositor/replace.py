@@ -236,7 +236,7 @@ def replace_and_render(
         report = render_views(field, cameras, dest, render, metadata)
         extra = {"seed": int(seed), "stage": LAYER_NAME, "selections": selections,
                  "instance_ids": comp.instance_ids,
-                 "mask": "instance PNG, uint16 id + 1 (0 background)", "depth_unit_scale_factor": 1e-3}
+                 "instance_png": "uint16 instance id, 0 background and scene", "depth_unit_scale_factor": 1e-3}
         write_json(dest / TRANSFORMS_NAME, transforms_json(cameras, report.views, extra))
     except BaseException:
         layer.unlink(missing_ok=True)

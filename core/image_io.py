@@ -5,8 +5,8 @@ Formats:
 - RGB: 8-bit, 3 channels (floats in [0, 1] are rounded; uint8 is written as is).
 - Depth: 16-bit grey, MILLIMETRES, rounded; 0 means no hit (so the range is 1 mm to
   65.535 m; a hit closer than 0.5 mm is stored as 1 mm, so it is not read back as a miss).
-- Instance id: 16-bit grey storing ``id + 1``: 0 background (id -1), 1 the scene (id 0),
-  ``i + 1`` instance ``i`` (so that 0 means "nothing", as in the depth image).
+- Instance id: 16-bit grey, ``i`` where instance ``i`` (1..n) is seen, 0 elsewhere (no hit
+  and the scene's own surfaces), as COCO and BOP tools expect.
 
 Every file is first written to a temporary file in the destination folder, flushed to
 disk and then renamed over the destination with ``os.replace`` (atomic on POSIX and
@@ -114,15 +114,20 @@ def write_depth_png(
 
 
 def write_instance_png(path: str | os.PathLike, instance_id: torch.Tensor | np.ndarray) -> Path:
-    """Write ``instance_id`` (h, w) ints in [-1, 65534] as a 16-bit PNG of ``id + 1``."""
+    """Write a renderer's ``instance_id`` (h, w) ints in [-1, 65535] as a 16-bit instance PNG.
+
+    The PNG holds the instance id (1..n) where an instance is seen and 0 elsewhere: the
+    renderer's -1 (no hit) and 0 (the scene's own surface) both become 0, the background of
+    every instance image regnf writes (COCO, BOP and nerfstudio tools read it so).
+    """
     ids = _numpy(instance_id)
     if ids.ndim != 2 or not np.issubdtype(ids.dtype, np.integer):
         raise ValueError(
             f"instance_id must be an (h, w) integer image, got {ids.shape} {ids.dtype}"
         )
-    if ids.size and (ids.min() < -1 or ids.max() > UINT16_MAX - 1):
-        raise ValueError(f"instance ids must lie in [-1, 65534], got [{ids.min()}, {ids.max()}]")
-    return _atomic_save(path, Image.fromarray((ids.astype(np.int64) + 1).astype(np.uint16)))
+    if ids.size and (ids.min() < -1 or ids.max() > UINT16_MAX):
+        raise ValueError(f"instance ids must lie in [-1, {UINT16_MAX}], got [{ids.min()}, {ids.max()}]")
+    return _atomic_save(path, Image.fromarray(np.maximum(ids.astype(np.int64), 0).astype(np.uint16)))
 
 
 def _read_gray16(path: str | os.PathLike) -> np.ndarray:
@@ -145,5 +150,5 @@ def read_depth_png(path: str | os.PathLike) -> np.ndarray:
 
 
 def read_instance_png(path: str | os.PathLike) -> np.ndarray:
-    """(h, w) int64 instance ids; -1 background, 0 scene."""
-    return _read_gray16(path) - 1
+    """(h, w) int64 instance ids: 1..n an instance, 0 background (see :func:`write_instance_png`)."""
+    return _read_gray16(path)

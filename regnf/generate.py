@@ -2,9 +2,12 @@
 
 Each variant is one seed. Its instances are swapped for random library objects of their
 class (:func:`regnf.compositor.replace.pick_replacements`), the composite is rendered from ``K``
-orbit cameras (RGB, depth, instance masks, a contact sheet, ``render.json``) and described
-by a nerfstudio ``transforms.json``; its replacement layer goes beside the base stage, and
-a row of ``manifest.jsonl`` records it (:mod:`regnf.manifest`). Layout of ``out``::
+orbit cameras (RGB, depth, instance masks, a contact sheet, ``render.json``), labelled with a
+class image per view and described by the formats asked for (``format``: a nerfstudio
+``transforms.json``, COCO annotations; :mod:`regnf.variant_labels`); its replacement layer goes
+beside the base stage, and a row of ``manifest.jsonl`` records it with each instance's 3D box
+(:mod:`regnf.manifest`). Instance images hold instance ids 1..n, 0 for the background and the
+room, in every format. Layout of ``out``::
 
     .regnf-output.json               marker: a folder made by regnf generate (regnf.core.output_dir)
     .regnf.lock                      the lock a run holds (regnf.core.file_lock)
@@ -12,7 +15,10 @@ a row of ``manifest.jsonl`` records it (:mod:`regnf.manifest`). Layout of ``out`
     manifest.jsonl                   one row per variant, sorted by seed
     stage/<name>.usda + assets       the base stage, exported once
     stage/variant_000007.usda        seed 7's replacement layer (over <name>.usda)
-    variants/000007/                 seed 7's views, contact_sheet.png, render.json, transforms.json
+    variants/000007/                 seed 7's views (rgb_k, depth_k, instance_k, class_k .png),
+                                     contact_sheet.png, render.json, transforms.json (nerfstudio),
+                                     coco.json (COCO: the variant's part)
+    coco/annotations.json            COCO: every finished variant's images and annotations
     errors/000007.txt                the traceback of a variant that failed
     baked/                           with the baked renderer: the grids every variant reads
                                      (index.json, scene.safetensors, object_*.safetensors)
@@ -88,6 +94,8 @@ from regnf.core.preflight import JsonInputError, read_json_input
 from regnf.neural_fields.camera import Camera
 
 from .generate_disk import check_generation_disk, variant_bytes
+from .variant_labels import instance_boxes, parse_formats, write_labels
+from .coco import COCO_DIR
 from .manifest import MANIFEST_NAME, append_row, read_manifest, sealed, sha256_file, write_manifest
 
 GENERATION_JSON = "generation.json"
@@ -104,7 +112,8 @@ UNHASHED = frozenset({RENDER_JSON})
 """Files of a variant left out of its row's digests: render.json holds timings."""
 CONTACT_SHEET = "contact_sheet.png"
 """The first view of the first finished variants, tiled (:func:`tile_sheet`)."""
-LAYOUT = (GENERATION_JSON, MANIFEST_NAME, STAGE_DIR, VARIANTS_DIR, ERRORS_DIR, CONTACT_SHEET, BAKED_DIR)
+LAYOUT = (GENERATION_JSON, MANIFEST_NAME, STAGE_DIR, VARIANTS_DIR, ERRORS_DIR, CONTACT_SHEET, BAKED_DIR,
+          COCO_DIR)
 """The top-level entries a run writes in its output folder (besides the marker and the lock)."""
 KIND = "generate"
 """Kind of command recorded in the output folder's marker."""
@@ -135,6 +144,9 @@ a variant per worker per batch."""
 class GenerateConfig:
     """What :func:`generate` makes and how it runs."""
 
+    format: str = "nerfstudio"
+    """Data set formats, comma separated: ``nerfstudio`` (a ``transforms.json`` per variant),
+    ``coco`` (``coco/annotations.json``). Every variant has its views, instance and class images."""
     variants: int = 10
     """Number of variants (seeds first_seed, first_seed + 1, ...): 1 to :data:`MAX_VARIANTS`
     (1,000,000; each run reads the whole manifest, so a larger data set is better split over
@@ -171,6 +183,7 @@ class GenerateConfig:
 
     def __post_init__(self) -> None:
         # Checked here, before any work: a huge request fails at once, not minutes in.
+        parse_formats(self.format)
         if isinstance(self.variants, bool) or not 1 <= self.variants <= MAX_VARIANTS:
             raise ValueError(f"variants must be between 1 and {MAX_VARIANTS:,}, got {self.variants} "
                              "(split a larger data set over several output folders with first_seed)")
@@ -179,6 +192,11 @@ class GenerateConfig:
         if self.cameras.n > MAX_VIEWS:
             raise ValueError(f"views per variant must be at most {MAX_VIEWS:,}, got {self.cameras.n}")
         check_image_size(self.cameras.width, self.cameras.height, "cameras: a view")
+
+    @property
+    def formats(self) -> tuple[str, ...]:
+        """The data set formats of :attr:`format`."""
+        return parse_formats(self.format)
 
     @property
     def seeds(self) -> range:
@@ -193,6 +211,7 @@ class GenerateConfig:
 
             render = dataclasses.replace(render, sphere=baked_tracing(render.sphere))
         return {
+            "formats": list(self.formats),
             "cameras": dataclasses.asdict(self.cameras),
             "jitter_cameras": self.jitter_cameras,
             "composite": dataclasses.asdict(dataclasses.replace(self.composite, mode="substitute")),
@@ -228,6 +247,8 @@ class VariantTask(NamedTuple):
     the system's temporary folder."""
     baked: str | None = None
     """Absolute path of the data set's ``baked/index.json`` (the baked renderer), or None."""
+    formats: tuple[str, ...] = ("nerfstudio",)
+    """The data set's formats (:data:`regnf.variant_labels.FORMATS`)."""
 
 
 class VariantOutput(NamedTuple):
@@ -240,9 +261,11 @@ class VariantOutput(NamedTuple):
     instance_ids: dict[str, int]
     """Instance id -> id in the instance images."""
     files: dict[str, bytes]
-    """File name -> content (views, contact sheet, render.json, transforms.json)."""
+    """File name -> content (views, class images, contact sheet, render.json, transforms.json, coco.json)."""
     seconds: float
     """Time the worker spent (loading, composing, rendering)."""
+    boxes: dict[str, Any] = {}
+    """Instance id -> its 3D box (:func:`regnf.variant_labels.instance_boxes`)."""
 
 
 class GenerationReport(NamedTuple):
@@ -340,15 +363,19 @@ def render_variant(task: VariantTask) -> VariantOutput:
                 "instance_ids": comp.instance_ids}
     with tempfile.TemporaryDirectory(prefix=f"{variant_name(task.seed)}-", dir=task.scratch) as tmp:
         report = render_views(field, task.cameras, tmp, task.render, metadata)
-        extra = {"seed": task.seed, "stage": rel_layer, "selections": selections,
-                 "instance_ids": comp.instance_ids,
-                 "mask": "instance PNG, uint16 id + 1 (0 background)", "depth_unit_scale_factor": 1e-3}
-        tj = transforms_json(task.cameras, report.views, extra)
-        (Path(tmp) / "transforms.json").write_text(json.dumps(tj, indent=2) + "\n")
+        if "nerfstudio" in task.formats:
+            extra = {"seed": task.seed, "stage": rel_layer, "selections": selections,
+                     "instance_ids": comp.instance_ids,
+                     "instance_png": "uint16 instance id, 0 background and scene", "depth_unit_scale_factor": 1e-3}
+            tj = transforms_json(task.cameras, report.views, extra)
+            (Path(tmp) / "transforms.json").write_text(json.dumps(tj, indent=2) + "\n")
+        write_labels(Path(tmp), len(task.cameras), scene, selections, comp.instance_ids,
+                     f"{VARIANTS_DIR}/{variant_name(task.seed)}", task.formats)
         # Hidden entries are bookkeeping (the render folder's lock), not the variant's files.
         files = {p.name: p.read_bytes() for p in sorted(Path(tmp).iterdir())
                  if p.is_file() and not p.name.startswith(".")}
-    return VariantOutput(task.seed, selections, comp.instance_ids, files, time.perf_counter() - t0)
+    return VariantOutput(task.seed, selections, comp.instance_ids, files, time.perf_counter() - t0,
+                         instance_boxes(scene, selections, comp.instance_ids))
 
 
 def _with_data_set_grids(comp: Any, selections: dict[str, str], index: Path, device: str) -> Any:
@@ -535,7 +562,7 @@ def commit_variant(out: Path, base: Path, output: VariantOutput, key: str) -> di
         "seed": output.seed, "status": "ok", "config_key": key,
         "variant": f"{VARIANTS_DIR}/{name}", "layer": str(layer.relative_to(out)),
         "layer_sha256": sha256_file(layer), "selections": output.selections,
-        "instance_ids": output.instance_ids, "views": views, "files": files,
+        "instance_ids": output.instance_ids, "boxes": output.boxes, "views": views, "files": files,
     })
 
 
@@ -609,6 +636,8 @@ def generate(
         if todo:
             _make_variants(out, base, key, config, todo, rows, made, failed, progress, on_variant, timings)
             write_manifest(out, rows.values())  # sorted by seed again
+        if "coco" in config.formats:
+            write_coco(out, rows, config.cameras.n, source)
     return GenerationReport(out, out / MANIFEST_NAME, sorted(made), done, failed, state.problems,
                             time.perf_counter() - t0, timings.get("bake", 0.0))
 
@@ -664,7 +693,7 @@ def _run_variants(out: Path, base: Path, key: str, config: GenerateConfig, todo:
     with staging_dir(out, WORK_LABEL) as scratch:
         for first in range(0, len(todo), TASKS_PER_BATCH):
             tasks = [VariantTask(str(base), s, variant_cameras(bounds, config, s), layer_name(s), config.composite,
-                                 render, config.device, str(scratch), baked)
+                                 render, config.device, str(scratch), baked, config.formats)
                      for s in todo[first:first + TASKS_PER_BATCH]]
             # Later batches in pools of their own: a worker that died (killed, out of memory)
             # breaks its pool, and fails that batch's remaining variants only.
@@ -693,6 +722,16 @@ def _run_variants(out: Path, base: Path, key: str, config: GenerateConfig, todo:
             if pool is not None:
                 stack.close()  # the warm pool's workers go
     bar.close()
+
+
+def write_coco(out: Path, rows: dict[int, dict[str, Any]], views: int, source: dict[str, Any]) -> Path:
+    """Join the COCO pieces of the finished variants (seed order) into ``coco/annotations.json``."""
+    from . import coco
+
+    cats = coco.categories(source["library"].values())
+    pieces = ((s, json.loads((out / rows[s]["variant"] / coco.PIECE_NAME).read_text()))
+              for s in sorted(rows) if rows[s]["status"] == "ok")
+    return coco.write_annotations(out, coco.join_pieces(pieces, views, cats, f"regnf generate: {out.name}"))
 
 
 def variants_per_minute(report: GenerationReport) -> float:

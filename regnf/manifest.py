@@ -35,7 +35,7 @@ STATUSES = ("ok", "failed")
 """A row's ``status``: the variant's files were written, or its task raised (``error``)."""
 REQUIRED = {"seed": int, "status": str, "config_key": str, "row_sha256": str}
 """Keys every row has, with their types."""
-REQUIRED_OK = {"variant": str, "layer": str, "selections": dict, "instance_ids": dict, "views": int,
+REQUIRED_OK = {"variant": str, "layer": str, "selections": dict, "instance_ids": dict, "boxes": dict, "views": int,
                "files": dict}
 """Further keys of a finished variant."""
 

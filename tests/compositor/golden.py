@@ -2,7 +2,8 @@
 
 Per case four PNGs in ``golden/``: ``<case>_rgb.png`` (8-bit), ``<case>_normals.png`` (world
 normals as ``(n + 1) / 2`` in 8 bits, black on the background), ``<case>_depth.png`` (16-bit
-millimetres) and ``<case>_instance.png`` (16-bit id + 1).
+millimetres) and ``<case>_instance.png`` (16-bit renderer id + 1, so that no hit (-1) and the
+scene (0) stay apart; written and read here, not with regnf's instance writer, which merges them).
 
 A render matches its golden when (thresholds below, chosen so that a few pixels flipping at
 silhouettes from floating-point differences between machines still pass, while a 1 cm offset
@@ -29,11 +30,9 @@ from regnf.compositor import Camera, SphereTracerConfig, VolumeRendererConfig, r
 from regnf.compositor.stage_config import StageCompositeConfig
 from regnf.core.image_io import (
     depth_to_mm,
-    read_instance_png,
     read_rgb_png,
     rgb_to_uint8,
     write_depth_png,
-    write_instance_png,
     write_rgb_png,
 )
 from regnf.neural_fields.field import Field
@@ -109,7 +108,7 @@ def paths(name: str, folder: Path = G.GOLDEN_DIR) -> dict[str, Path]:
 
 
 def write_images(images: Images, name: str, kinds: tuple[str, ...] = KINDS, folder: Path = G.GOLDEN_DIR) -> None:
-    """Write the ``kinds`` of ``images`` (atomically, see regnf.core.image_io)."""
+    """Write the ``kinds`` of ``images`` into ``folder``."""
     p = paths(name, folder)
     if "rgb" in kinds:
         write_rgb_png(p["rgb"], images.rgb)
@@ -118,7 +117,10 @@ def write_images(images: Images, name: str, kinds: tuple[str, ...] = KINDS, fold
     if "depth" in kinds:
         write_depth_png(p["depth"], images.depth)
     if "instance" in kinds:
-        write_instance_png(p["instance"], images.instance)
+        from PIL import Image
+
+        with Image.fromarray((images.instance + 1).astype(np.uint16)) as im:
+            im.save(p["instance"])
 
 
 def read_images(name: str, folder: Path = G.GOLDEN_DIR) -> Images:
@@ -128,7 +130,9 @@ def read_images(name: str, folder: Path = G.GOLDEN_DIR) -> Images:
     p = paths(name, folder)
     with Image.open(p["depth"]) as im:
         depth = np.asarray(im).astype(np.float64) / 1000.0
-    return Images(read_rgb_png(p["rgb"]), read_rgb_png(p["normals"]), depth, read_instance_png(p["instance"]))
+    with Image.open(p["instance"]) as im:
+        ids = np.asarray(im).astype(np.int64) - 1
+    return Images(read_rgb_png(p["rgb"]), read_rgb_png(p["normals"]), depth, ids)
 
 
 def psnr(a: np.ndarray, b: np.ndarray) -> float:

@@ -45,9 +45,9 @@ def test_views_report_and_sheet(tmp_path: Path) -> None:
     assert data["renderer_config"]["far"] is None  # inf is not JSON: written as null
     assert set(data["timings"]) >= {"render_seconds_total", "per_view_seconds_mean", "distance_grid_seconds"}
     ids = read_instance_png(out / "instance_0000.png")
-    assert set(np.unique(ids).tolist()) <= {-1, 0, 1, 2} and {1, 2} & set(np.unique(ids).tolist())
+    assert set(np.unique(ids).tolist()) <= {0, 1, 2} and {1, 2} & set(np.unique(ids).tolist())
     depth = read_depth_png(out / "depth_0000.png")
-    assert ((depth > 0) == (ids >= 0)).all() and depth.max() < 5.0
+    assert (depth[ids > 0] > 0).all() and depth.max() < 5.0
     sheet = read_rgb_png(out / "contact_sheet.png")
     assert sheet.shape == (2 + 2 * (18 + 2), 2 + 2 * (24 + 2), 3)  # 2 x 2 tiles for 3 views
     np.testing.assert_array_equal(sheet[2:20, 28:52], read_rgb_png(out / "rgb_0001.png"))
@@ -151,7 +151,8 @@ def test_transforms_json_uses_opengl_poses() -> None:
     files = [ViewFiles("rgb_0000.png", "depth_0000.png", "instance_0000.png")] * 2
     shared = transforms_json([cam, cam], files, {"seed": 1})
     assert shared["fl_x"] == pytest.approx(cam.K[0, 0]) and shared["w"] == 40 and shared["h"] == 30
-    assert shared["frames"][0]["mask_path"] == "instance_0000.png" and shared["regnf"] == {"seed": 1}
+    assert shared["frames"][0]["instance_file_path"] == "instance_0000.png"
+    assert "mask_path" not in shared["frames"][0]  # nerfstudio would leave out the room's pixels and shared["regnf"] == {"seed": 1}
     other = Camera(cam.K * np.array([[2.0], [2.0], [1.0]]), 80, 60, cam.camera_to_world)
     mixed = transforms_json([cam, other], files)
     assert "fl_x" not in mixed and mixed["frames"][1]["w"] == 80 and mixed["frames"][1]["fl_x"] == pytest.approx(2 * cam.K[0, 0])

@@ -57,12 +57,15 @@ def test_depth_is_16_bit_millimetres_with_zero_for_no_hit(tmp_path: Path) -> Non
 
 
 def test_instance_ids_round_trip(tmp_path: Path) -> None:
-    ids = torch.tensor([[-1, 0, 7], [3, -1, 65534]])
+    ids = torch.tensor([[-1, 0, 7], [3, -1, 65535]])
     write_instance_png(tmp_path / "i.png", ids)
-    assert read_instance_png(tmp_path / "i.png").tolist() == ids.tolist()
+    # No hit (-1) and the scene (0) are both the background, 0; instances keep their ids.
+    assert read_instance_png(tmp_path / "i.png").tolist() == [[0, 0, 7], [3, 0, 65535]]
+    with Image.open(tmp_path / "i.png") as im:  # read back without regnf's reader
+        assert im.mode.startswith("I") and np.asarray(im).tolist() == [[0, 0, 7], [3, 0, 65535]]
     with pytest.raises(ValueError, match="integer"):
         write_instance_png(tmp_path / "f.png", np.zeros((2, 2), dtype=np.float32))
-    with pytest.raises(ValueError, match=r"\[-1, 65534\]"):
+    with pytest.raises(ValueError, match=r"\[-1, 65535\]"):
         write_instance_png(tmp_path / "o.png", np.array([[-2]]))
 
 

@@ -50,9 +50,9 @@ def test_render_writes_every_view(stage: Path, tmp_path: Path, mode: str) -> Non
     assert data["mode"] == mode and len(data["cameras"]) == 3 and data["evals_per_pixel_mean"] > 0
     ids = set(np.unique(np.concatenate([read_instance_png(out / f"instance_{i:04d}.png").ravel() for i in range(3)])))
     if mode == "scene":
-        assert data["instance_ids"] == {} and ids <= {-1, 0}
+        assert data["instance_ids"] == {} and ids == {0}
     else:
-        assert data["instance_ids"] == {"c_1": 1, "dc_1": 2, "t_1": 3} and ids <= {-1, 0, 1, 2, 3}
+        assert data["instance_ids"] == {"c_1": 1, "dc_1": 2, "t_1": 3} and ids <= {0, 1, 2, 3} and len(ids) > 1
 
 
 def test_render_refuses_a_camera_inside_the_scene(stage: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -164,7 +164,7 @@ def test_replace_is_training_data_and_deterministic(stage: Path, tmp_path: Path)
     assert len(data["frames"]) == 3
     cams = json.loads((outs[0] / "render.json").read_text())["cameras"]
     for frame, cam in zip(data["frames"], cams, strict=True):
-        for key in ("file_path", "depth_file_path", "mask_path"):
+        for key in ("file_path", "depth_file_path", "instance_file_path"):
             assert (outs[0] / frame[key]).is_file()
         M = np.asarray(frame["transform_matrix"])
         np.testing.assert_allclose(M, np.asarray(cam["camera_to_world"]) @ np.diag([1.0, -1.0, -1.0, 1.0]))
