@@ -93,10 +93,10 @@ from regnf.core.output_dir import (
 from regnf.core.preflight import JsonInputError, read_json_input
 from regnf.neural_fields.camera import Camera
 
-from .generate_disk import check_generation_disk, variant_bytes
-from .variant_labels import instance_boxes, parse_formats, write_labels
 from .coco import COCO_DIR
+from .generate_disk import check_generation_disk, variant_bytes
 from .manifest import MANIFEST_NAME, append_row, read_manifest, sealed, sha256_file, write_manifest
+from .variant_labels import instance_boxes, parse_formats, write_labels
 
 GENERATION_JSON = "generation.json"
 """Settings of the data set in the output folder."""
@@ -264,7 +264,7 @@ class VariantOutput(NamedTuple):
     """File name -> content (views, class images, contact sheet, render.json, transforms.json, coco.json)."""
     seconds: float
     """Time the worker spent (loading, composing, rendering)."""
-    boxes: dict[str, Any] = {}
+    boxes: dict[str, Any]
     """Instance id -> its 3D box (:func:`regnf.variant_labels.instance_boxes`)."""
 
 
