@@ -51,6 +51,8 @@ class Generate(GenerateConfig):
             console.print(f"[yellow]interrupted[/]: finished variants are kept in {self.out}; "
                           "run the same command again to resume")
             raise SystemExit(130) from None
+        for note in report.notes:
+            console.print(f"note: {note}")
         for problem in report.problems:
             console.print(f"[yellow]redone[/]: {problem}")
         for seed, error in sorted(report.failed.items()):

@@ -19,6 +19,9 @@ room, in every format. Layout of ``out``::
                                      contact_sheet.png, render.json, transforms.json (nerfstudio),
                                      coco.json (COCO: the variant's part)
     coco/annotations.json            COCO: every finished variant's images and annotations
+    bop/                             BOP: models/, camera.json, train/000007/ (seed 7's scene);
+                                     the variant's folder then also holds full_k_i.png, the
+                                     whole silhouette of instance i in view k
     errors/000007.txt                the traceback of a variant that failed
     baked/                           with the baked renderer: the grids every variant reads
                                      (index.json, scene.safetensors, object_*.safetensors)
@@ -93,10 +96,17 @@ from regnf.core.output_dir import (
 from regnf.core.preflight import JsonInputError, read_json_input
 from regnf.neural_fields.camera import Camera
 
+from .bop import BOP_DIR
 from .coco import COCO_DIR
 from .generate_disk import check_generation_disk, variant_bytes
 from .manifest import MANIFEST_NAME, append_row, read_manifest, sealed, sha256_file, write_manifest
-from .variant_labels import instance_boxes, parse_formats, write_labels
+from .variant_labels import (
+    full_mask_file,
+    instance_boxes,
+    parse_formats,
+    write_full_masks,
+    write_labels,
+)
 
 GENERATION_JSON = "generation.json"
 """Settings of the data set in the output folder."""
@@ -113,7 +123,7 @@ UNHASHED = frozenset({RENDER_JSON})
 CONTACT_SHEET = "contact_sheet.png"
 """The first view of the first finished variants, tiled (:func:`tile_sheet`)."""
 LAYOUT = (GENERATION_JSON, MANIFEST_NAME, STAGE_DIR, VARIANTS_DIR, ERRORS_DIR, CONTACT_SHEET, BAKED_DIR,
-          COCO_DIR)
+          COCO_DIR, BOP_DIR)
 """The top-level entries a run writes in its output folder (besides the marker and the lock)."""
 KIND = "generate"
 """Kind of command recorded in the output folder's marker."""
@@ -146,7 +156,8 @@ class GenerateConfig:
 
     format: str = "nerfstudio"
     """Data set formats, comma separated: ``nerfstudio`` (a ``transforms.json`` per variant),
-    ``coco`` (``coco/annotations.json``). Every variant has its views, instance and class images."""
+    ``coco`` (``coco/annotations.json``), ``bop`` (``bop/``: models, and a scene per variant with
+    poses and masks). Every variant has its views, instance and class images."""
     variants: int = 10
     """Number of variants (seeds first_seed, first_seed + 1, ...): 1 to :data:`MAX_VARIANTS`
     (1,000,000; each run reads the whole manifest, so a larger data set is better split over
@@ -287,6 +298,8 @@ class GenerationReport(NamedTuple):
     """Wall time of this run."""
     bake_seconds: float = 0.0
     """Of which baking the grids of the baked renderer (0 when kept from an earlier run)."""
+    notes: tuple[str, ...] = ()
+    """What the user should know about the output (each said once)."""
 
 
 def variant_name(seed: int) -> str:
@@ -371,6 +384,11 @@ def render_variant(task: VariantTask) -> VariantOutput:
             (Path(tmp) / "transforms.json").write_text(json.dumps(tj, indent=2) + "\n")
         write_labels(Path(tmp), len(task.cameras), scene, selections, comp.instance_ids,
                      f"{VARIANTS_DIR}/{variant_name(task.seed)}", task.formats)
+        if "bop" in task.formats:
+            from regnf.compositor.baked_composite import baked_tracing
+
+            sphere = baked_tracing(task.render.sphere) if task.baked is not None else task.render.sphere
+            write_full_masks(Path(tmp), field, task.cameras, sphere)
         # Hidden entries are bookkeeping (the render folder's lock), not the variant's files.
         files = {p.name: p.read_bytes() for p in sorted(Path(tmp).iterdir())
                  if p.is_file() and not p.name.startswith(".")}
@@ -638,8 +656,9 @@ def generate(
             write_manifest(out, rows.values())  # sorted by seed again
         if "coco" in config.formats:
             write_coco(out, rows, config.cameras.n, source)
+        notes = write_bop(out, base, rows, set(made), source) if "bop" in config.formats else []
     return GenerationReport(out, out / MANIFEST_NAME, sorted(made), done, failed, state.problems,
-                            time.perf_counter() - t0, timings.get("bake", 0.0))
+                            time.perf_counter() - t0, timings.get("bake", 0.0), tuple(notes))
 
 
 def _make_variants(out: Path, base: Path, key: str, config: GenerateConfig, todo: list[int],
@@ -732,6 +751,61 @@ def write_coco(out: Path, rows: dict[int, dict[str, Any]], views: int, source: d
     pieces = ((s, json.loads((out / rows[s]["variant"] / coco.PIECE_NAME).read_text()))
               for s in sorted(rows) if rows[s]["status"] == "ok")
     return coco.write_annotations(out, coco.join_pieces(pieces, views, cats, f"regnf generate: {out.name}"))
+
+
+def write_bop(out: Path, base: Path, rows: dict[int, dict[str, Any]], made: set[int],
+              source: dict[str, Any]) -> list[str]:
+    """Write the BOP layout (:mod:`regnf.bop`): the models, and a scene for each finished variant
+    made in this run or not yet in ``bop/``; return the notes to show."""
+    import trimesh
+
+    from regnf.scene_graph import read_stage
+
+    from . import bop
+
+    scene = read_stage(base)
+    instances = {i: (r.library_name, np.asarray(r.object_to_scene, dtype=np.float64))
+                 for i, r in scene.instances.items()}
+    keys = bop.model_keys(source["library"], instances)
+    obj_id = {key: k + 1 for k, key in enumerate(keys)}
+    meshes = {name: trimesh.Trimesh(rec.proxy.points, rec.proxy.faces, process=False,
+                                    vertex_colors=None if rec.proxy.colors is None
+                                    else np.round(255 * np.clip(rec.proxy.colors, 0, 1)).astype(np.uint8))
+              for name, rec in scene.library.items()}
+    root = out / bop.BOP_DIR
+    bop.write_models(root, keys, meshes, {n: r.symmetry_order for n, r in scene.library.items()})
+    split = root / bop.SPLIT
+    split.mkdir(parents=True, exist_ok=True)
+    remove_leftovers(split)
+    for seed in sorted(rows):  # a loop over variants
+        row = rows[seed]
+        final = split / variant_name(seed)
+        if row["status"] != "ok" or (final.is_dir() and seed not in made):
+            continue
+        cams = read_json_input(out / row["variant"] / RENDER_JSON, None, "render record")["cameras"]
+        if not (root / "camera.json").is_file():
+            bop.write_camera(root, cams[0])
+        gts = []
+        for name, iid in sorted(row["instance_ids"].items(), key=lambda kv: kv[1]):  # a loop over instances
+            lib, matrix = row["selections"][name], instances[name][1]
+            _, centre = bop.model_frame(meshes[lib].vertices, 1.0)
+            gts.append((int(iid), obj_id[bop.ModelKey(lib, round(bop.similarity_scale(matrix), bop.SCALE_DECIMALS))],
+                        matrix, centre))
+        masks = (read_full_mask(out / row["variant"] / full_mask_file(k, iid))
+                 for k in range(len(cams)) for iid, *_ in gts)
+        with staging_dir(split, variant_name(seed)) as staging:
+            bop.write_scene(staging, out / row["variant"], cams, gts, masks)
+            bop.remove_scene(final)
+            replace_entry(staging, final)
+    return ["BOP models are the library fields' meshes as the stage holds them (the stage has no source meshes)"]
+
+
+def read_full_mask(path: Path) -> np.ndarray:
+    """(h, w) bool whole silhouette written by :func:`regnf.variant_labels.write_full_masks`."""
+    from PIL import Image
+
+    with Image.open(path) as im:
+        return np.asarray(im) > 127
 
 
 def variants_per_minute(report: GenerationReport) -> float:

@@ -22,7 +22,7 @@ from regnf.neural_fields.oriented_box import OrientedBox
 
 from . import coco
 
-FORMATS = ("nerfstudio", "coco")
+FORMATS = ("nerfstudio", "coco", "bop")
 """Data set formats ``regnf generate`` writes (``--format``, comma separated)."""
 
 
@@ -91,6 +91,37 @@ def write_labels(folder: Path, views: int, scene: Any, selections: Mapping[str, 
     if "coco" in formats:
         piece = coco.variant_piece(variant_folder, rgb, sizes, anns)
         (folder / coco.PIECE_NAME).write_text(json.dumps(piece, separators=(",", ":")) + "\n")
+
+
+def full_mask_file(k: int, instance_id: int) -> str:
+    """File name of instance ``instance_id``'s whole silhouette in view ``k`` (8-bit, 255 inside)."""
+    return f"full_{k:04d}_{instance_id:04d}.png"
+
+
+def write_full_masks(folder: Path, field: Any, cameras: Sequence[Any], sphere: Any) -> None:
+    """Write every instance's whole silhouette in every view: its object traced alone.
+
+    Parameters
+    ----------
+    folder : Path
+        The variant's folder.
+    field : CompositeField
+        The variant's composite (neural or baked), in the scene field frame.
+    cameras : sequence of Camera
+        The variant's cameras, room metres.
+    sphere : SphereTracerConfig
+        The tracer settings the views were rendered with.
+    """
+    from PIL import Image
+
+    from regnf.neural_fields.analytic import Transformed
+    from regnf.neural_fields.sphere_tracer import render_many
+
+    for placement, iid in zip(field.placements, field.instance_ids, strict=True):  # a loop over instances
+        alone = Transformed(placement.mapped.child, placement.mapped.matrix, to_world=field.to_world)
+        for k, r in enumerate(render_many(alone, cameras, sphere, normals=False)):
+            mask = r.mask.detach().cpu().numpy().astype(np.uint8) * 255
+            Image.fromarray(mask).save(folder / full_mask_file(k, int(iid)))
 
 
 def instance_boxes(scene: Any, selections: Mapping[str, str], instance_ids: Mapping[str, int]) -> dict[str, Any]:

@@ -1,0 +1,167 @@
+"""BOP output of ``regnf generate``, read back by a reader written here from the BOP format's text.
+
+The reader knows only the format: ``models/models_info.json`` and ``obj_XXXXXX.ply`` in
+millimetres, and per scene ``scene_camera.json`` (``cam_K``, ``depth_scale``),
+``scene_gt.json`` (``obj_id``, ``cam_R_m2c``, ``cam_t_m2c``), ``scene_gt_info.json`` and the
+masks ``mask[_visib]/<image>_<gt>.png``. The truths: the variant's own instance and depth
+images (read with PIL), the models' vertices (read with trimesh), and silhouettes drawn here by
+projecting each model with its pose: they must match the whole-object masks.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+from PIL import Image
+
+from regnf.compositor.cameras_io import OrbitConfig
+from regnf.core.executors import ExecutorConfig
+from regnf.generate import GenerateConfig, generate
+from regnf.neural_fields.checkpoint import save_field
+from regnf.neural_fields.distill import DistillConfig, distill_mesh
+from regnf.neural_fields.field import FieldInfo
+from regnf.scene_graph import add_instance, new_stage
+from tests.compositor.golden_scenes import NEURAL_ARCH, pouf_mesh
+from tests.scene_graph.helpers import make_library, similarity
+
+VIEWS = 3
+ORBIT = OrbitConfig(n=VIEWS, width=128, height=96, radius=4.5)
+"""Cameras well outside the tiny scene blob."""
+
+
+def distil(mesh: trimesh.Trimesh, name: str, label: str, folder: Path) -> Path:
+    """A tiny field distilled from ``mesh`` on one thread (the same weights on any machine)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        cfg = DistillConfig(steps=300, batch=2048, pool_surface=20000, seed=0, architecture=NEURAL_ARCH)
+        field, _ = distill_mesh(mesh, cfg, info=FieldInfo(label=label, name=name), progress=False)
+    finally:
+        torch.set_num_threads(threads)
+    save_field(field, folder / f"{name}.safetensors")
+    return folder / f"{name}.safetensors"
+
+
+@pytest.fixture(scope="module")
+def data_set(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    root = tmp_path_factory.mktemp("bop")
+    scene, _, proxies = make_library(root, ())
+    crate = trimesh.creation.box(extents=(0.6, 0.4, 0.35))
+    crate.apply_translation((0.0, 0.0, 0.175))
+    libs = [distil(pouf_mesh(), "pouf", "chair", root), distil(crate, "crate", "table", root)]
+    stage = root / "stage" / "scene.usda"
+    # The library's meshes are its fields' own (marching cubes), so that the models match the renders.
+    new_stage(stage, scene, libs, proxies={"scene": proxies["scene"]})
+    add_instance(stage, "pouf", similarity(0.5, (1.2, -0.5, 0.0), 1.0))
+    add_instance(stage, "pouf", similarity(1.5, (-1.2, 0.4, 0.0), 1.25))  # scaled: a model of its own
+    add_instance(stage, "crate", similarity(-0.3, (0.3, 1.2, 0.2), 0.9, tilt=0.3))
+    out = root / "data"
+    cfg = GenerateConfig(format="bop", variants=2, cameras=ORBIT, executor=ExecutorConfig(kind="local", workers=2))
+    report = generate(stage, out, cfg, progress=False)
+    assert report.made == [0, 1] and not report.failed and len(report.notes) == 1
+    return out
+
+
+def gray(path: Path) -> np.ndarray:
+    with Image.open(path) as im:
+        return np.asarray(im).astype(np.int64)
+
+
+def load(path: Path) -> dict:
+    return json.loads(path.read_text())
+
+
+def silhouette(vertices: np.ndarray, faces: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarray,
+               width: int, height: int) -> np.ndarray:
+    """The model's silhouette: the pixels whose centre ``(u + 0.5, v + 0.5)`` lies in a face
+    projected with ``K [R | t]``."""
+    cam = vertices @ R.T + t
+    uv = cam @ K.T
+    uv = uv[:, :2] / uv[:, 2:3]
+    out = np.zeros((height, width), dtype=bool)
+    for a, b, c in uv[faces]:  # a loop over faces, each over the pixels of its box
+        lo = np.maximum(np.floor(np.minimum(np.minimum(a, b), c) - 0.5), 0).astype(int)
+        hi = np.minimum(np.ceil(np.maximum(np.maximum(a, b), c) - 0.5), [width - 1, height - 1]).astype(int)
+        if (hi < lo).any():
+            continue
+        u, v = np.meshgrid(np.arange(lo[0], hi[0] + 1) + 0.5, np.arange(lo[1], hi[1] + 1) + 0.5)
+        p = np.stack([u, v], axis=-1)
+        d = [(q[0] - p0[0]) * (p[..., 1] - p0[1]) - (q[1] - p0[1]) * (p[..., 0] - p0[0])
+             for p0, q in ((a, b), (b, c), (c, a))]
+        inside = ((d[0] >= 0) & (d[1] >= 0) & (d[2] >= 0)) | ((d[0] <= 0) & (d[1] <= 0) & (d[2] <= 0))
+        out[lo[1]:hi[1] + 1, lo[0]:hi[0] + 1] |= inside
+    return out
+
+
+def test_models_are_millimetre_meshes_centred_with_their_diameters(data_set: Path) -> None:
+    info = load(data_set / "bop" / "models" / "models_info.json")
+    # The pouf at scales 1 and 1.25, the crate at 0.9.
+    assert len(info) == 3
+    for obj_id, entry in info.items():
+        mesh = trimesh.load(data_set / "bop" / "models" / f"obj_{int(obj_id):06d}.ply", process=False)
+        v = np.asarray(mesh.vertices, dtype=np.float64)
+        lo, hi = v.min(axis=0), v.max(axis=0)
+        np.testing.assert_allclose(lo + hi, 0.0, atol=1e-3)  # origin at the 3D box's centre
+        np.testing.assert_allclose([entry["size_x"], entry["size_y"], entry["size_z"]], hi - lo, rtol=1e-6)
+        np.testing.assert_allclose([entry["min_x"], entry["min_y"], entry["min_z"]], lo, rtol=1e-6, atol=1e-6)
+        far = max(float(np.linalg.norm(v - p, axis=1).max()) for p in v)  # every pair, by brute force
+        assert entry["diameter"] == pytest.approx(far, rel=1e-6)
+        assert 100.0 < entry["diameter"] < 3000.0  # millimetres, not metres
+        assert len(mesh.vertex_normals) == len(v)
+
+
+def test_each_scene_s_masks_and_counts_follow_the_instance_images(data_set: Path) -> None:
+    for seed in (0, 1):
+        scene = data_set / "bop" / "train" / f"{seed:06d}"
+        variant = data_set / "variants" / f"{seed:06d}"
+        cams, gts, infos = (load(scene / f"{n}.json") for n in ("scene_camera", "scene_gt", "scene_gt_info"))
+        assert sorted(cams, key=int) == sorted(gts, key=int) == sorted(infos, key=int) == [str(k) for k in range(VIEWS)]
+        for k in range(VIEWS):
+            assert cams[str(k)]["depth_scale"] == 1.0
+            assert np.array_equal(gray(scene / "depth" / f"{k:06d}.png"), gray(variant / f"depth_{k:04d}.png"))
+            assert np.array_equal(gray(scene / "rgb" / f"{k:06d}.png"), gray(variant / f"rgb_{k:04d}.png"))
+            ids, depth = gray(variant / f"instance_{k:04d}.png"), gray(scene / "depth" / f"{k:06d}.png")
+            union = np.zeros_like(ids, dtype=bool)
+            assert len(gts[str(k)]) == len(infos[str(k)]) == 3
+            for g, inf in enumerate(infos[str(k)]):
+                vis = gray(scene / "mask_visib" / f"{k:06d}_{g:06d}.png") > 0
+                full = gray(scene / "mask" / f"{k:06d}_{g:06d}.png") > 0
+                assert not (vis & union).any() and not (vis & ~full).any()
+                union |= vis
+                if vis.any():  # one instance's pixels in the instance image
+                    assert len(np.unique(ids[vis])) == 1 and np.array_equal(vis, ids == ids[vis][0])
+                assert inf["px_count_visib"] == vis.sum() and inf["px_count_all"] == full.sum()
+                assert inf["px_count_valid"] == (full & (depth > 0)).sum()
+                assert inf["visib_fract"] == pytest.approx(vis.sum() / max(full.sum(), 1))
+                if full.any():
+                    rows, cols = np.flatnonzero(full.any(axis=1)), np.flatnonzero(full.any(axis=0))
+                    assert inf["bbox_obj"] == [cols[0], rows[0], cols[-1] - cols[0] + 1, rows[-1] - rows[0] + 1]
+            assert np.array_equal(union, ids > 0)
+
+
+def test_the_poses_project_the_models_onto_the_whole_masks(data_set: Path) -> None:
+    models = data_set / "bop" / "models"
+    checked = 0
+    for seed in (0, 1):
+        scene = data_set / "bop" / "train" / f"{seed:06d}"
+        cams, gts = load(scene / "scene_camera.json"), load(scene / "scene_gt.json")
+        for k in range(VIEWS):
+            K = np.asarray(cams[str(k)]["cam_K"], dtype=np.float64).reshape(3, 3)
+            for g, gt in enumerate(gts[str(k)]):
+                full = gray(scene / "mask" / f"{k:06d}_{g:06d}.png") > 0
+                if full.sum() < 30:
+                    continue
+                mesh = trimesh.load(models / f"obj_{gt['obj_id']:06d}.ply", process=False)
+                R = np.asarray(gt["cam_R_m2c"], dtype=np.float64).reshape(3, 3)
+                np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-9)  # rigid, as BOP has it
+                drawn = silhouette(np.asarray(mesh.vertices), np.asarray(mesh.faces), K, R,
+                                   np.asarray(gt["cam_t_m2c"], dtype=np.float64), full.shape[1], full.shape[0])
+                iou = (drawn & full).sum() / (drawn | full).sum()
+                assert iou >= 0.9, f"seed {seed} view {k} gt {g} (obj {gt['obj_id']}): IoU {iou:.3f}"
+                checked += 1
+    assert checked >= 6, "too few objects in view to test anything"
