@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from rich.console import Console
 
+from regnf.compositor.scene_mesh import SceneMeshConfig
 from regnf.core.preflight import check_mesh_resolution, check_output_file, read_json_input
 
 console = Console(stderr=True)
@@ -117,9 +118,14 @@ class StageExport:
     allow_outside: bool = False
     """Open asset paths of the stage that lie outside its folder and copy them in (refused by default: a stage is
     a self-contained folder, and a path out of it may name anybody's file)."""
+    edit: bool = True
+    """Mesh the scene less its instances' removal regions into the export (the mesh other tools
+    show; the whole scene stays as the proxy), when the stage has instances."""
+    scene_mesh: SceneMeshConfig = field(default_factory=SceneMeshConfig)
+    """How the edited scene is meshed."""
 
     def run(self) -> None:
-        from regnf.scene_graph import StageError, export_stage
+        from regnf.scene_graph import StageError, export_stage, read_stage
 
         targets = [p for p in (self.usdz, self.usdc, self.usda) if p is not None]
         if not targets:
@@ -128,8 +134,26 @@ class StageExport:
             if out is not None:
                 check_output_file(out, suffix.replace(".", "--"), suffix=suffix)
         try:
+            edited = None
+            if self.edit and read_stage(self.stage, allow_outside=self.allow_outside).instances:
+                edited = self._edited_scene()
             for out in targets:
-                export_stage(self.stage, out, allow_outside=self.allow_outside)
+                export_stage(self.stage, out, allow_outside=self.allow_outside, edited_scene=edited)
                 console.print(f"[green]exported[/] {self.stage} -> {out}")
-        except StageError as exc:
+        except (StageError, ValueError) as exc:
             raise _fail(exc) from exc
+
+    def _edited_scene(self):  # noqa: ANN202 (a ProxyMesh; scene_graph is imported lazily)
+        import numpy as np
+
+        from regnf.compositor.scene_mesh import edited_scene_mesh
+        from regnf.scene_graph import ProxyMesh
+
+        console.print(f"meshing the scene less its instances' removal regions at {self.scene_mesh.cell * 100:g} cm cells")
+        result = edited_scene_mesh(self.stage, self.scene_mesh)
+        console.print(f"edited scene: {len(result.mesh.faces):,} triangles, {result.removals} removal regions cut out; "
+                      f"distance to the field's surface p99 {result.distance_p99 * 1000:.1f} mm, "
+                      f"max {result.distance_max * 1000:.1f} mm")
+        m = result.mesh
+        colors = np.asarray(m.visual.vertex_colors)[:, :3].astype(np.float32) / 255.0
+        return ProxyMesh(np.asarray(m.vertices, dtype=np.float32), np.asarray(m.faces, dtype=np.int32), colors)

@@ -164,6 +164,7 @@ def add_instance(
         iid = instance_id or scene.new_instance_id(library_name)
         if iid in scene.instances:
             raise StageError(stage_path, L.instance_path(iid), "an instance with this id exists already")
+        scene.edited_scene = None  # cut for the instances as they were
         scene.instances[iid] = InstanceRecord(iid, library_name, np.asarray(object_to_scene, dtype=np.float64),
                                               registration)
         write_stage(scene, stage_path)
@@ -199,6 +200,7 @@ def set_instance(
         if old is None:
             raise StageError(stage_path, L.instance_path(instance_id),
                              f"no such instance (the stage has {sorted(scene.instances)})")
+        scene.edited_scene = None  # cut for the instances as they were
         scene.instances[instance_id] = InstanceRecord(
             instance_id, old.library_name, np.asarray(object_to_scene, dtype=np.float64), registration)
         write_stage(scene, stage_path)
@@ -418,6 +420,7 @@ def add_instance_from_registration(
         iid = instance_id or scene.new_instance_id(name)
         if iid in scene.instances:
             raise StageError(stage_path, L.instance_path(iid), "an instance with this id exists already")
+        scene.edited_scene = None  # cut for the instances as they were
         scene.instances[iid] = InstanceRecord(iid, name, M, reg)
         write_stage(scene, stage_path)
     return iid

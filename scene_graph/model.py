@@ -123,6 +123,10 @@ class ComposedScene:
     """Instances by id, in insertion order."""
     provenance: dict = field(default_factory=dict)
     """Stage-level provenance (``customLayerData``): strings, numbers, bools, nested dicts."""
+    edited_scene: ProxyMesh | None = None
+    """The scene less every instance's removal region, in room metres (the render-purpose mesh
+    other tools show; the proxy keeps the whole scene), or None. Any change of the instances
+    drops it: it belongs to the instances it was cut for."""
 
     def classes(self) -> dict[str, list[str]]:
         """Library names per class, sorted (the variants of each class's slot)."""

@@ -34,13 +34,14 @@ from .embedded_checkpoint import (
 )
 from .errors import StageError
 from .locking import stage_lock
-from .model import ComposedScene
+from .model import ComposedScene, ProxyMesh
 from .transaction import file_transaction
 from .usd_read import read_stage
 from .usd_write import write_stage
 
 
-def export_stage(stage_path: str | os.PathLike, out_path: str | os.PathLike, allow_outside: bool = False) -> Path:
+def export_stage(stage_path: str | os.PathLike, out_path: str | os.PathLike, allow_outside: bool = False,
+                 edited_scene: ProxyMesh | None = None) -> Path:
     """Export ``stage_path`` to ``out_path``; the format follows its suffix.
 
     ``.usda`` / ``.usdc``: the whole stage is written again beside ``out_path`` (root layer in
@@ -59,6 +60,10 @@ def export_stage(stage_path: str | os.PathLike, out_path: str | os.PathLike, all
     allow_outside : bool
         Read a stage whose asset paths leave its folder (see :func:`read_stage`); the files
         they name are then copied INTO the export, which is self-contained.
+    edited_scene : ProxyMesh, optional
+        The scene less its instances' removal regions, room metres
+        (:func:`regnf.compositor.scene_mesh.edited_scene_mesh`): the export shows it (render
+        purpose) in place of the whole scene (kept as the proxy).
 
     Raises
     ------
@@ -73,6 +78,8 @@ def export_stage(stage_path: str | os.PathLike, out_path: str | os.PathLike, all
     if out.suffix not in (".usda", ".usdc", ".usdz"):
         raise StageError(out, "/", "export to .usda, .usdc or .usdz")
     scene = read_stage(src, allow_outside=allow_outside)
+    if edited_scene is not None:
+        scene = dataclasses.replace(scene, edited_scene=edited_scene)
     if out.suffix in (".usda", ".usdc"):
         with _unpacked(scene) as plain:
             write_stage(plain, out)

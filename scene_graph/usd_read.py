@@ -151,9 +151,9 @@ def _get(prim: Usd.Prim, name: str, file: str, required: bool = True) -> object:
     return attr.Get()
 
 
-def _proxy(prim: Usd.Prim, file: str) -> ProxyMesh:
-    mesh = prim.GetChild(L.PROXY)
-    where = f"{prim.GetPath()}/{L.PROXY}"
+def _proxy(prim: Usd.Prim, file: str, name: str = L.PROXY) -> ProxyMesh:
+    mesh = prim.GetChild(name)
+    where = f"{prim.GetPath()}/{name}"
     if not mesh or not mesh.IsA(UsdGeom.Mesh):
         raise StageError(file, where, "the field's proxy mesh is missing")
     m = UsdGeom.Mesh(mesh)
@@ -397,7 +397,9 @@ def read_stage(path: str | os.PathLike, check_checkpoints: bool = True, allow_ou
             registration=_registration(prim, file),
         )
     provenance = _plain(data.get("provenance", {}))
-    return ComposedScene(scene=scene, library=library, instances=instances, provenance=provenance)
+    edited = _proxy(scene_prim, file, L.EDITED) if scene_prim.GetChild(L.EDITED) else None
+    return ComposedScene(scene=scene, library=library, instances=instances, provenance=provenance,
+                         edited_scene=edited)
 
 
 def _table_path(rel: object, file: str, what: str) -> str:

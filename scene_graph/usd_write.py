@@ -26,7 +26,7 @@ from . import layout as L
 from .checks import check_registration, check_similarity
 from .errors import StageError
 from .locking import stage_lock
-from .model import FORMAT_VERSION, ID_RE, NAME_RE, ComposedScene, FieldRecord, InstanceRecord
+from .model import FORMAT_VERSION, ID_RE, NAME_RE, ComposedScene, FieldRecord, InstanceRecord, ProxyMesh
 from .transaction import FileTransaction
 from .xform import OP_ORDER, ops_from_matrix, to_usd_matrix
 
@@ -133,8 +133,24 @@ def _author_field(spec: Sdf.PrimSpec, rec: FieldRecord, checkpoint_rel: str) -> 
     _attr(spec, L.A_SYM_ORDER, Sdf.ValueTypeNames.Int, int(rec.symmetry_order))
     _attr(spec, L.A_FIELD_PROVENANCE, Sdf.ValueTypeNames.String, json.dumps(rec.provenance, sort_keys=True))
 
-    mesh = Sdf.PrimSpec(spec, L.PROXY, Sdf.SpecifierDef, "Mesh")
-    p = rec.proxy
+    _author_mesh(spec, L.PROXY, rec.proxy)
+
+
+def vertex_normals(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(n, 3) float32 unit vertex normals of a triangle mesh: the area-weighted mean of its faces'."""
+    p = np.asarray(points, dtype=np.float64)
+    tri = p[np.asarray(faces, dtype=np.int64)]
+    face_n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # length = twice the area
+    n = np.zeros_like(p)
+    for corner in range(3):  # a loop over the three corners of every face
+        np.add.at(n, faces[:, corner], face_n)
+    length = np.linalg.norm(n, axis=1, keepdims=True)
+    return np.where(length > 0, n / np.maximum(length, 1e-30), [0.0, 0.0, 1.0]).astype(np.float32)
+
+
+def _author_mesh(parent: Sdf.PrimSpec, name: str, p: ProxyMesh, purpose: str | None = None) -> Sdf.PrimSpec:
+    """A triangle ``Mesh`` child with points, faces, vertex normals, extent and colours."""
+    mesh = Sdf.PrimSpec(parent, name, Sdf.SpecifierDef, "Mesh")
     pts = np.ascontiguousarray(p.points, dtype=np.float32)
     faces = np.ascontiguousarray(p.faces, dtype=np.int32)
     _attr(mesh, "points", Sdf.ValueTypeNames.Point3fArray, Vt.Vec3fArray.FromNumpy(pts), custom=False)
@@ -144,10 +160,16 @@ def _author_field(spec: Sdf.PrimSpec, rec: FieldRecord, checkpoint_rel: str) -> 
           Vt.IntArray.FromNumpy(faces.reshape(-1)), custom=False)
     _attr(mesh, "extent", Sdf.ValueTypeNames.Float3Array, Vt.Vec3fArray.FromNumpy(p.extent), custom=False)
     _attr(mesh, "subdivisionScheme", Sdf.ValueTypeNames.Token, "none", custom=False, uniform=True)
+    normals = _attr(mesh, "normals", Sdf.ValueTypeNames.Normal3fArray,
+                    Vt.Vec3fArray.FromNumpy(vertex_normals(pts, faces)), custom=False)
+    normals.SetInfo("interpolation", "vertex")
     if p.colors is not None:
         c = _attr(mesh, "primvars:displayColor", Sdf.ValueTypeNames.Color3fArray,
                   Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(p.colors, dtype=np.float32)), custom=False)
         c.SetInfo("interpolation", "vertex")
+    if purpose is not None:
+        _attr(mesh, "purpose", Sdf.ValueTypeNames.Token, purpose, custom=False, uniform=True)
+    return mesh
 
 
 def library_layer(rec: FieldRecord) -> Sdf.Layer:
@@ -234,6 +256,12 @@ def stage_layer(scene: ComposedScene, suffix: str = ".usda") -> Sdf.Layer:
     sc = Sdf.PrimSpec(world, "Scene", Sdf.SpecifierDef, "Xform")
     sc.kind = "component"
     _author_field(sc, scene.scene, "./" + L.SCENE_CHECKPOINT)
+    if scene.edited_scene is not None:
+        # The edit is what a viewer shows (render); the whole scene stays as the proxy to switch to.
+        _attr(sc.nameChildren[L.PROXY], "purpose", Sdf.ValueTypeNames.Token, "proxy", custom=False, uniform=True)
+        edited = _author_mesh(sc, L.EDITED, scene.edited_scene, purpose="render")
+        rel = Sdf.RelationshipSpec(edited, "proxyPrim", custom=False)
+        rel.targetPathList.Prepend(sc.path.AppendChild(L.PROXY))
     inst_root = Sdf.PrimSpec(world, "Instances", Sdf.SpecifierDef, "Xform")
     inst_root.kind = "assembly"
     for inst in scene.instances.values():
