@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import math
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import NamedTuple
 
 import numpy as np
@@ -43,7 +43,7 @@ class SceneMeshConfig:
     """Points spread over the faces on which the distance to the zero set is measured."""
     max_cells: int = 80_000_000
     """Most grid nodes the meshing may evaluate (a smaller ``cell`` over a large room is refused)."""
-    composite: StageCompositeConfig = StageCompositeConfig()
+    composite: StageCompositeConfig = field(default_factory=StageCompositeConfig)
     """Removal settings (the mode is always substitute)."""
 
     def __post_init__(self) -> None:
@@ -113,20 +113,20 @@ def edited_scene_mesh(stage: str | os.PathLike, config: SceneMeshConfig = SceneM
     """
     comp = composite_from_stage(stage, StageCompositeConfig(**{**config.composite.__dict__, "mode": "substitute"}),
                                 device)
-    field = masked_scene(comp.field) if comp.field.removals else comp.field.scene
-    scale = field.world_scale
-    bounds = field.bounds.detach().cpu().double().numpy()
+    masked = masked_scene(comp.field) if comp.field.removals else comp.field.scene
+    scale = masked.world_scale
+    bounds = masked.bounds.detach().cpu().double().numpy()
     extent = (bounds[1] - bounds[0]) * scale
-    resolution = max(2, int(math.ceil(extent.max() / config.cell)))
+    resolution = max(2, math.ceil(float(extent.max()) / config.cell))
     nodes = float(np.prod(np.ceil(extent / extent.max() * resolution) + 1))
     if nodes > config.max_cells:
         raise ValueError(f"meshing the scene ({extent.round(2).tolist()} m) at {config.cell * 100:g} cm cells "
                          f"needs {nodes:,.0f} grid nodes, more than {config.max_cells:,}; use a larger cell")
-    mesh = extract_mesh(field, resolution=resolution, with_color=False)
-    mesh.vertices = snap_to_zero_set(field, np.asarray(mesh.vertices), config.snap_steps)
-    distance = surface_distance(field, mesh, config.check_points) * scale
-    mesh = extract_colors(field, mesh)
-    mesh.apply_transform(field.to_world.detach().cpu().double().numpy())
+    mesh = extract_mesh(masked, resolution=resolution, with_color=False)
+    mesh.vertices = snap_to_zero_set(masked, np.asarray(mesh.vertices), config.snap_steps)
+    distance = surface_distance(masked, mesh, config.check_points) * scale
+    mesh = extract_colors(masked, mesh)
+    mesh.apply_transform(masked.to_world.detach().cpu().double().numpy())
     return SceneMesh(mesh, float(np.quantile(distance, 0.99)), float(distance.max()), len(comp.field.removals))
 
 

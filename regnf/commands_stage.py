@@ -143,7 +143,7 @@ class StageExport:
         except (StageError, ValueError) as exc:
             raise _fail(exc) from exc
 
-    def _edited_scene(self):  # noqa: ANN202 (a ProxyMesh; scene_graph is imported lazily)
+    def _edited_scene(self):
         import numpy as np
 
         from regnf.compositor.scene_mesh import edited_scene_mesh

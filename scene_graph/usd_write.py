@@ -26,7 +26,15 @@ from . import layout as L
 from .checks import check_registration, check_similarity
 from .errors import StageError
 from .locking import stage_lock
-from .model import FORMAT_VERSION, ID_RE, NAME_RE, ComposedScene, FieldRecord, InstanceRecord, ProxyMesh
+from .model import (
+    FORMAT_VERSION,
+    ID_RE,
+    NAME_RE,
+    ComposedScene,
+    FieldRecord,
+    InstanceRecord,
+    ProxyMesh,
+)
 from .transaction import FileTransaction
 from .xform import OP_ORDER, ops_from_matrix, to_usd_matrix
 
