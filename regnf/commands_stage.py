@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -118,6 +119,12 @@ class StageExport:
     allow_outside: bool = False
     """Open asset paths of the stage that lie outside its folder and copy them in (refused by default: a stage is
     a self-contained folder, and a path out of it may name anybody's file)."""
+    density: float = 500.0
+    """Density of the library objects, kg / m^3: every instance becomes a rigid body and every
+    library mesh a convex-hull collider of this density (UsdPhysics), the edited scene a static
+    collider."""
+    physics: bool = True
+    """Write the physics above (off: the stage's own setting is kept)."""
     edit: bool = True
     """Mesh the scene less its instances' removal regions into the export (the mesh other tools
     show; the whole scene stays as the proxy), when the stage has instances."""
@@ -130,6 +137,8 @@ class StageExport:
         targets = [p for p in (self.usdz, self.usdc, self.usda) if p is not None]
         if not targets:
             raise SystemExit("regnf stage export: give --usdz, --usdc and/or --usda")
+        if self.physics and not (math.isfinite(self.density) and self.density > 0):
+            raise SystemExit(f"regnf stage export: --density must be > 0 kg/m^3, got {self.density}")
         for out, suffix in ((self.usdz, ".usdz"), (self.usdc, ".usdc"), (self.usda, ".usda")):
             if out is not None:
                 check_output_file(out, suffix.replace(".", "--"), suffix=suffix)
@@ -138,7 +147,8 @@ class StageExport:
             if self.edit and read_stage(self.stage, allow_outside=self.allow_outside).instances:
                 edited = self._edited_scene()
             for out in targets:
-                export_stage(self.stage, out, allow_outside=self.allow_outside, edited_scene=edited)
+                export_stage(self.stage, out, allow_outside=self.allow_outside, edited_scene=edited,
+                             density=self.density if self.physics else None)
                 console.print(f"[green]exported[/] {self.stage} -> {out}")
         except (StageError, ValueError) as exc:
             raise _fail(exc) from exc

@@ -15,6 +15,10 @@ VARIANT_SET = "libraryObject"
 """The slot's VariantSet: one variant per library object of its class."""
 LABEL_INSTANCE = "class"
 """Instance name of ``SemanticsLabelsAPI`` carrying the semantic class."""
+LABEL_NAME = "name"
+"""Instance name of ``SemanticsLabelsAPI`` carrying the library object's name (on library objects)."""
+COLLIDER_APPROXIMATION = "convexHull"
+"""``physics:approximation`` of every library object's collider."""
 
 STAGE_SUFFIXES = (".usda", ".usdc")
 """Suffixes of a writable stage (export also makes .usdz, a package that is not edited)."""

@@ -123,6 +123,10 @@ class ComposedScene:
     """Instances by id, in insertion order."""
     provenance: dict = field(default_factory=dict)
     """Stage-level provenance (``customLayerData``): strings, numbers, bools, nested dicts."""
+    physics_density: float | None = None
+    """Density of the library objects, kg / m^3, for simulators (``UsdPhysics``: every instance a
+    rigid body, every library mesh a convex-hull collider of this density, the scene a static
+    collider), or None: no physics."""
     edited_scene: ProxyMesh | None = None
     """The scene less every instance's removal region, in room metres (the render-purpose mesh
     other tools show; the proxy keeps the whole scene), or None. Any change of the instances

@@ -41,7 +41,7 @@ from .usd_write import write_stage
 
 
 def export_stage(stage_path: str | os.PathLike, out_path: str | os.PathLike, allow_outside: bool = False,
-                 edited_scene: ProxyMesh | None = None) -> Path:
+                 edited_scene: ProxyMesh | None = None, density: float | None = None) -> Path:
     """Export ``stage_path`` to ``out_path``; the format follows its suffix.
 
     ``.usda`` / ``.usdc``: the whole stage is written again beside ``out_path`` (root layer in
@@ -64,6 +64,9 @@ def export_stage(stage_path: str | os.PathLike, out_path: str | os.PathLike, all
         The scene less its instances' removal regions, room metres
         (:func:`regnf.compositor.scene_mesh.edited_scene_mesh`): the export shows it (render
         purpose) in place of the whole scene (kept as the proxy).
+    density : float, optional
+        Give the export physics (``UsdPhysics``): library objects of this density, kg / m^3
+        (see :attr:`ComposedScene.physics_density`); None keeps the stage's own setting.
 
     Raises
     ------
@@ -80,6 +83,8 @@ def export_stage(stage_path: str | os.PathLike, out_path: str | os.PathLike, all
     scene = read_stage(src, allow_outside=allow_outside)
     if edited_scene is not None:
         scene = dataclasses.replace(scene, edited_scene=edited_scene)
+    if density is not None:
+        scene = dataclasses.replace(scene, physics_density=density)
     if out.suffix in (".usda", ".usdc"):
         with _unpacked(scene) as plain:
             write_stage(plain, out)

@@ -10,6 +10,7 @@ that agree with the exact 4x4, registration records that obey :mod:`regnf.scene_
 from __future__ import annotations
 
 import json
+import math
 import os
 from pathlib import Path
 
@@ -397,9 +398,12 @@ def read_stage(path: str | os.PathLike, check_checkpoints: bool = True, allow_ou
             registration=_registration(prim, file),
         )
     provenance = _plain(data.get("provenance", {}))
+    density = data.get("physicsDensity")
+    if density is not None and not (isinstance(density, (int, float)) and math.isfinite(density) and density > 0):
+        raise StageError(file, "/", f"physicsDensity must be a density > 0 in kg / m^3, got {density!r}")
     edited = _proxy(scene_prim, file, L.EDITED) if scene_prim.GetChild(L.EDITED) else None
     return ComposedScene(scene=scene, library=library, instances=instances, provenance=provenance,
-                         edited_scene=edited)
+                         physics_density=None if density is None else float(density), edited_scene=edited)
 
 
 def _table_path(rel: object, file: str, what: str) -> str:

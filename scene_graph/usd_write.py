@@ -62,6 +62,9 @@ def check_scene(scene: ComposedScene, stage_path: Path) -> None:
     if stage_path.suffix not in STAGE_SUFFIXES:
         raise StageError(stage_path, "/", f"a stage must end in {' or '.join(STAGE_SUFFIXES)}")
     check_provenance(scene.provenance, "provenance", stage_path)
+    d = scene.physics_density
+    if d is not None and not (isinstance(d, (int, float)) and np.isfinite(d) and d > 0):
+        raise StageError(stage_path, "/", f"the physics density must be > 0 kg / m^3, got {d!r}")
     _check_field(scene.scene, L.SCENE, stage_path)
     for name, rec in scene.library.items():
         where = f"</{L.prim_name(name)}> of {L.library_layer(name)}"
@@ -180,8 +183,33 @@ def _author_mesh(parent: Sdf.PrimSpec, name: str, p: ProxyMesh, purpose: str | N
     return mesh
 
 
-def library_layer(rec: FieldRecord) -> Sdf.Layer:
-    """The asset layer of one library object: a component prim holding the field and its proxy."""
+def _apply(spec: Sdf.PrimSpec, *schemas: str) -> None:
+    """Prepend API schemas to ``spec``, keeping those already applied."""
+    old = list(spec.GetInfo("apiSchemas").prependedItems) if spec.HasInfo("apiSchemas") else []
+    spec.SetInfo("apiSchemas", Sdf.TokenListOp.Create(prependedItems=old + [s for s in schemas if s not in old]))
+
+
+def _semantics(spec: Sdf.PrimSpec, taxonomy: str, value: str) -> None:
+    """A ``SemanticsLabelsAPI`` label (Isaac Sim 4.5 on) and the same as a legacy ``SemanticsAPI``
+    (earlier Isaac Sim Replicator)."""
+    _apply(spec, f"SemanticsLabelsAPI:{taxonomy}", f"SemanticsAPI:{taxonomy}")
+    _attr(spec, f"semantics:labels:{taxonomy}", Sdf.ValueTypeNames.TokenArray, Vt.TokenArray([value]),
+          custom=False, uniform=True)
+    _attr(spec, f"semantic:{taxonomy}:params:semanticType", Sdf.ValueTypeNames.String, taxonomy, custom=False)
+    _attr(spec, f"semantic:{taxonomy}:params:semanticData", Sdf.ValueTypeNames.String, value, custom=False)
+
+
+def _collider(mesh: Sdf.PrimSpec, approximation: str, density: float | None = None) -> None:
+    """``UsdPhysics`` collider on a mesh: its approximation, and a density when it is a body's."""
+    _apply(mesh, "PhysicsCollisionAPI", "PhysicsMeshCollisionAPI", *(["PhysicsMassAPI"] if density else []))
+    _attr(mesh, "physics:approximation", Sdf.ValueTypeNames.Token, approximation, custom=False, uniform=True)
+    if density:
+        _attr(mesh, "physics:density", Sdf.ValueTypeNames.Float, float(density), custom=False)
+
+
+def library_layer(rec: FieldRecord, density: float | None = None) -> Sdf.Layer:
+    """The asset layer of one library object: a component prim holding the field and its proxy
+    (a convex-hull collider of ``density`` kg / m^3 when given)."""
     layer = _new_layer()
     name = L.prim_name(rec.name)
     spec = Sdf.PrimSpec(layer, name, Sdf.SpecifierDef, "Xform")
@@ -189,6 +217,9 @@ def library_layer(rec: FieldRecord) -> Sdf.Layer:
     layer.defaultPrim = name
     layer.customLayerData = {"regnf": {"formatVersion": FORMAT_VERSION, "role": L.ROLE_LIBRARY}}
     _author_field(spec, rec, "../" + L.library_checkpoint(rec.name))
+    _semantics(spec, L.LABEL_NAME, rec.name)
+    if density:
+        _collider(spec.nameChildren[L.PROXY], L.COLLIDER_APPROXIMATION, density)
     return layer
 
 
@@ -208,11 +239,16 @@ def slot_layer(label: str, names: list[str]) -> Sdf.Layer:
     return layer
 
 
-def _author_instance(parent: Sdf.PrimSpec, inst: InstanceRecord, label: str) -> None:
+def _author_instance(parent: Sdf.PrimSpec, inst: InstanceRecord, label: str, physics: bool = False) -> None:
     spec = Sdf.PrimSpec(parent, inst.id, Sdf.SpecifierDef, "Xform")
     spec.referenceList.Prepend(Sdf.Reference("./" + L.slot_layer(label)))
     spec.variantSelections[L.VARIANT_SET] = inst.library_name
     spec.instanceable = True
+    # The class on the instance itself (simulators label instance roots; it is its slot's class,
+    # whatever variant is selected); the library object's name comes with the variant.
+    _semantics(spec, L.LABEL_INSTANCE, label)
+    if physics:
+        _apply(spec, "PhysicsRigidBodyAPI")
     ops = ops_from_matrix(inst.object_to_scene)
     _attr(spec, OP_ORDER[0], Sdf.ValueTypeNames.Double3, Gf.Vec3d(*ops.translate.tolist()), custom=False)
     w, x, y, z = ops.orient.tolist()
@@ -251,6 +287,7 @@ def root_layer_data(scene: ComposedScene) -> dict:
         "library": {n: "./" + L.library_layer(n) for n in sorted(scene.library)},
         "slots": {c: "./" + L.slot_layer(c) for c in scene.classes()},
         "provenance": scene.provenance,
+        **({"physicsDensity": float(scene.physics_density)} if scene.physics_density else {}),
     }
 
 
@@ -270,10 +307,12 @@ def stage_layer(scene: ComposedScene, suffix: str = ".usda") -> Sdf.Layer:
         edited = _author_mesh(sc, L.EDITED, scene.edited_scene, purpose="render")
         rel = Sdf.RelationshipSpec(edited, "proxyPrim", custom=False)
         rel.targetPathList.Prepend(sc.path.AppendChild(L.PROXY))
+        if scene.physics_density:  # what the objects stand on: a static triangle-mesh collider
+            _collider(edited, "none")
     inst_root = Sdf.PrimSpec(world, "Instances", Sdf.SpecifierDef, "Xform")
     inst_root.kind = "assembly"
     for inst in scene.instances.values():
-        _author_instance(inst_root, inst, scene.library[inst.library_name].label)
+        _author_instance(inst_root, inst, scene.library[inst.library_name].label, bool(scene.physics_density))
     return layer
 
 
@@ -308,7 +347,7 @@ def write_stage(scene: ComposedScene, stage_path: str | os.PathLike) -> list[Pat
             for name in sorted(scene.library):
                 rec = scene.library[name]
                 tx.copy(rec.checkpoint, root / L.library_checkpoint(name))
-                library_layer(rec).Export(str(tx.temp_path(root / L.library_layer(name))))
+                library_layer(rec, scene.physics_density).Export(str(tx.temp_path(root / L.library_layer(name))))
             for label, names in scene.classes().items():
                 slot_layer(label, names).Export(str(tx.temp_path(root / L.slot_layer(label))))
             stage_layer(scene, stage_path.suffix).Export(str(tx.temp_path(stage_path)))

@@ -63,8 +63,9 @@ def test_switching_a_variant_changes_the_field_only(stage_path):
     after_stage = Usd.Stage.Open(str(out))
     after = _composed(after_stage)
     changed = {k for k in before.keys() | after.keys() if before.get(k) != after.get(k)}
-    # Only the field of instance b (its field attributes and the proxy below it) changed.
-    allowed = ("/World/Instances/b.regnf:field:", "/World/Instances/b/Proxy")
+    # Only the field of instance b (its field attributes, its name label and the proxy below it) changed.
+    allowed = ("/World/Instances/b.regnf:field:", "/World/Instances/b/Proxy",
+               "/World/Instances/b.semantics:labels:name", "/World/Instances/b.semantic:name:")
     assert changed and all(k.startswith(allowed) for k in changed), sorted(changed)[:10]
     b = after_stage.GetPrimAtPath("/World/Instances/b")
     assert b.GetAttribute("regnf:field:checkpoint").Get().path == "../fields/fc-nop.safetensors"
