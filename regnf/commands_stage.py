@@ -130,6 +130,9 @@ class StageExport:
     show; the whole scene stays as the proxy), when the stage has instances."""
     scene_mesh: SceneMeshConfig = field(default_factory=SceneMeshConfig)
     """How the edited scene is meshed."""
+    library_cell: float = 0.005
+    """Marching-cubes cell of the library objects' meshes in the export, metres (thin parts
+    such as chair slats need a few mm); 0 keeps the stage's proxies."""
 
     def run(self) -> None:
         from regnf.scene_graph import StageError, export_stage, read_stage
@@ -137,6 +140,8 @@ class StageExport:
         targets = [p for p in (self.usdz, self.usdc, self.usda) if p is not None]
         if not targets:
             raise SystemExit("regnf stage export: give --usdz, --usdc and/or --usda")
+        if not (math.isfinite(self.library_cell) and self.library_cell >= 0):
+            raise SystemExit(f"regnf stage export: --library-cell must be >= 0 metres, got {self.library_cell}")
         if self.physics and not (math.isfinite(self.density) and self.density > 0):
             raise SystemExit(f"regnf stage export: --density must be > 0 kg/m^3, got {self.density}")
         for out, suffix in ((self.usdz, ".usdz"), (self.usdc, ".usdc"), (self.usda, ".usda")):
@@ -144,14 +149,32 @@ class StageExport:
                 check_output_file(out, suffix.replace(".", "--"), suffix=suffix)
         try:
             edited = None
-            if self.edit and read_stage(self.stage, allow_outside=self.allow_outside).instances:
+            scene = read_stage(self.stage, allow_outside=self.allow_outside)
+            if self.edit and scene.instances:
                 edited = self._edited_scene()
+            meshes = self._library_meshes(scene) if self.library_cell > 0 else None
             for out in targets:
                 export_stage(self.stage, out, allow_outside=self.allow_outside, edited_scene=edited,
-                             density=self.density if self.physics else None)
+                             density=self.density if self.physics else None, library_meshes=meshes)
                 console.print(f"[green]exported[/] {self.stage} -> {out}")
         except (StageError, ValueError) as exc:
             raise _fail(exc) from exc
+
+    def _library_meshes(self, scene):
+        """Every library object meshed at ``library_cell`` (canonical object metres)."""
+        import math as m
+
+        from regnf.neural_fields.meshing import extract_mesh
+        from regnf.scene_graph.fields import load_record_field, proxy_from_trimesh
+
+        out = {}
+        for name, rec in sorted(scene.library.items()):  # a loop over library objects
+            field = load_record_field(self.stage, f"library object {name!r}", rec, "cpu")
+            extent = float((rec.bounds[1] - rec.bounds[0]).max()) * field.world_scale
+            cells = max(2, m.ceil(extent / self.library_cell))
+            out[name] = proxy_from_trimesh(extract_mesh(field, resolution=cells, in_world=True))
+            console.print(f"library object {name}: {len(out[name].faces):,} triangles at {cells} cells")
+        return out
 
     def _edited_scene(self):
         import numpy as np

@@ -17,7 +17,7 @@ import contextlib
 import dataclasses
 import os
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 
 from pxr import Sdf, UsdUtils
@@ -41,7 +41,8 @@ from .usd_write import write_stage
 
 
 def export_stage(stage_path: str | os.PathLike, out_path: str | os.PathLike, allow_outside: bool = False,
-                 edited_scene: ProxyMesh | None = None, density: float | None = None) -> Path:
+                 edited_scene: ProxyMesh | None = None, density: float | None = None,
+                 library_meshes: Mapping[str, ProxyMesh] | None = None) -> Path:
     """Export ``stage_path`` to ``out_path``; the format follows its suffix.
 
     ``.usda`` / ``.usdc``: the whole stage is written again beside ``out_path`` (root layer in
@@ -67,6 +68,9 @@ def export_stage(stage_path: str | os.PathLike, out_path: str | os.PathLike, all
     density : float, optional
         Give the export physics (``UsdPhysics``): library objects of this density, kg / m^3
         (see :attr:`ComposedScene.physics_density`); None keeps the stage's own setting.
+    library_meshes : mapping of str -> ProxyMesh, optional
+        Meshes (canonical object metres) that replace the named library objects' proxies in
+        the export, e.g. finer ones than the stage keeps.
 
     Raises
     ------
@@ -85,6 +89,10 @@ def export_stage(stage_path: str | os.PathLike, out_path: str | os.PathLike, all
         scene = dataclasses.replace(scene, edited_scene=edited_scene)
     if density is not None:
         scene = dataclasses.replace(scene, physics_density=density)
+    for name, mesh in (library_meshes or {}).items():
+        if name not in scene.library:
+            raise StageError(src, "/", f"no library object {name!r} to give a mesh to")
+        scene.library[name] = dataclasses.replace(scene.library[name], proxy=mesh)
     if out.suffix in (".usda", ".usdc"):
         with _unpacked(scene) as plain:
             write_stage(plain, out)

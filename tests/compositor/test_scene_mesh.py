@@ -109,3 +109,16 @@ def test_selecting_another_variant_in_plain_usd_changes_the_composed_mesh(stage:
     np.testing.assert_allclose(composed_points(), scene.library["c"].proxy.points)
     prim.GetVariantSets().GetVariantSet(L.VARIANT_SET).SetVariantSelection("dc")
     np.testing.assert_allclose(composed_points(), scene.library["dc"].proxy.points)
+
+
+def test_an_export_can_carry_finer_library_meshes(stage: Path, tmp_path: Path) -> None:
+    from regnf.scene_graph import StageError
+
+    tetra = ProxyMesh(np.array([[0, 0, 0], [0.3, 0, 0], [0, 0.3, 0], [0, 0, 0.3]], np.float32),
+                      np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]], np.int32), None)
+    out = export_stage(stage, tmp_path / "fine" / "scene.usda", library_meshes={"c": tetra})
+    again = read_stage(out)
+    np.testing.assert_array_equal(again.library["c"].proxy.points, tetra.points)
+    np.testing.assert_array_equal(again.library["t"].proxy.points, read_stage(stage).library["t"].proxy.points)
+    with pytest.raises(StageError, match="no library object 'chair'"):
+        export_stage(stage, tmp_path / "bad" / "scene.usda", library_meshes={"chair": tetra})
