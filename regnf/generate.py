@@ -3,7 +3,8 @@
 Each variant is one seed. Its instances are swapped for random library objects of their
 class (:func:`regnf.compositor.replace.pick_replacements`), the composite is rendered from ``K``
 orbit cameras (RGB, depth, instance masks, a contact sheet, ``render.json``), labelled with a
-class image per view and described by the formats asked for (``format``: a nerfstudio
+class image per view, its camera's exposure and white balance varied from the seed
+(:mod:`regnf.variation`), and described by the formats asked for (``format``: a nerfstudio
 ``transforms.json``, COCO annotations; :mod:`regnf.variant_labels`); its replacement layer goes
 beside the base stage, and a row of ``manifest.jsonl`` records it with each instance's 3D box
 (:mod:`regnf.manifest`). Instance images hold instance ids 1..n, 0 for the background and the
@@ -107,6 +108,7 @@ from .variant_labels import (
     write_full_masks,
     write_labels,
 )
+from .variation import check_ranges, draw_appearance, vary_views
 
 GENERATION_JSON = "generation.json"
 """Settings of the data set in the output folder."""
@@ -168,6 +170,12 @@ class GenerateConfig:
     """Orbit of cameras inside the scene's bounds; n is the number of views per variant (at most
     :data:`MAX_VIEWS`), and a view has at most width * height = 4096 * 4096 pixels
     (:data:`regnf.compositor.render_folder.MAX_PIXELS`: a view is rendered whole in memory)."""
+    exposure_stops: float = 0.0
+    """Largest exposure change of a variant's camera, stops (0 to 4; each variant draws one
+    from its seed, :mod:`regnf.variation`, recorded in its manifest row)."""
+    white_balance: float = 0.0
+    """Largest white-balance gain change of a variant's camera per channel, a fraction (0 to
+    below 1; drawn and recorded as the exposure is)."""
     jitter_cameras: bool = True
     """Turn each variant's orbit by a random azimuth (from its seed) so the variants see the room from
     different places."""
@@ -203,6 +211,10 @@ class GenerateConfig:
         if self.cameras.n > MAX_VIEWS:
             raise ValueError(f"views per variant must be at most {MAX_VIEWS:,}, got {self.cameras.n}")
         check_image_size(self.cameras.width, self.cameras.height, "cameras: a view")
+        check_ranges(self.exposure_stops, self.white_balance)
+        if (self.exposure_stops or self.white_balance) and self.render.sequence != "none":
+            raise ValueError("a varied exposure or white balance and render.sequence cannot go together "
+                             "(the sequence would show the views before the variation)")
 
     @property
     def formats(self) -> tuple[str, ...]:
@@ -223,6 +235,7 @@ class GenerateConfig:
             render = dataclasses.replace(render, sphere=baked_tracing(render.sphere))
         return {
             "formats": list(self.formats),
+            "appearance": {"exposure_stops": self.exposure_stops, "white_balance": self.white_balance},
             "cameras": dataclasses.asdict(self.cameras),
             "jitter_cameras": self.jitter_cameras,
             "composite": dataclasses.asdict(dataclasses.replace(self.composite, mode="substitute")),
@@ -260,6 +273,8 @@ class VariantTask(NamedTuple):
     """Absolute path of the data set's ``baked/index.json`` (the baked renderer), or None."""
     formats: tuple[str, ...] = ("nerfstudio",)
     """The data set's formats (:data:`regnf.variant_labels.FORMATS`)."""
+    appearance: tuple[float, float] = (0.0, 0.0)
+    """Largest exposure change (stops) and white-balance change (fraction) of the variant."""
 
 
 class VariantOutput(NamedTuple):
@@ -277,6 +292,8 @@ class VariantOutput(NamedTuple):
     """Time the worker spent (loading, composing, rendering)."""
     boxes: dict[str, Any]
     """Instance id -> its 3D box (:func:`regnf.variant_labels.instance_boxes`)."""
+    appearance: dict[str, Any]
+    """The camera appearance drawn for the variant (:mod:`regnf.variation`)."""
 
 
 class GenerationReport(NamedTuple):
@@ -376,6 +393,8 @@ def render_variant(task: VariantTask) -> VariantOutput:
                 "instance_ids": comp.instance_ids}
     with tempfile.TemporaryDirectory(prefix=f"{variant_name(task.seed)}-", dir=task.scratch) as tmp:
         report = render_views(field, task.cameras, tmp, task.render, metadata)
+        look = draw_appearance(task.seed, *task.appearance)
+        vary_views(Path(tmp), len(task.cameras), look, task.render.sheet_columns, task.render.sheet_tile_width)
         if "nerfstudio" in task.formats:
             extra = {"seed": task.seed, "stage": rel_layer, "selections": selections,
                      "instance_ids": comp.instance_ids,
@@ -393,7 +412,8 @@ def render_variant(task: VariantTask) -> VariantOutput:
         files = {p.name: p.read_bytes() for p in sorted(Path(tmp).iterdir())
                  if p.is_file() and not p.name.startswith(".")}
     return VariantOutput(task.seed, selections, comp.instance_ids, files, time.perf_counter() - t0,
-                         instance_boxes(scene, selections, comp.instance_ids))
+                         instance_boxes(scene, selections, comp.instance_ids),
+                         {"exposure_stops": look.stops, "white_balance": list(look.gains)})
 
 
 def _with_data_set_grids(comp: Any, selections: dict[str, str], index: Path, device: str) -> Any:
@@ -580,7 +600,8 @@ def commit_variant(out: Path, base: Path, output: VariantOutput, key: str) -> di
         "seed": output.seed, "status": "ok", "config_key": key,
         "variant": f"{VARIANTS_DIR}/{name}", "layer": str(layer.relative_to(out)),
         "layer_sha256": sha256_file(layer), "selections": output.selections,
-        "instance_ids": output.instance_ids, "boxes": output.boxes, "views": views, "files": files,
+        "instance_ids": output.instance_ids, "boxes": output.boxes, "appearance": output.appearance,
+        "views": views, "files": files,
     })
 
 
@@ -712,7 +733,8 @@ def _run_variants(out: Path, base: Path, key: str, config: GenerateConfig, todo:
     with staging_dir(out, WORK_LABEL) as scratch:
         for first in range(0, len(todo), TASKS_PER_BATCH):
             tasks = [VariantTask(str(base), s, variant_cameras(bounds, config, s), layer_name(s), config.composite,
-                                 render, config.device, str(scratch), baked, config.formats)
+                                 render, config.device, str(scratch), baked, config.formats,
+                                 (config.exposure_stops, config.white_balance))
                      for s in todo[first:first + TASKS_PER_BATCH]]
             # Later batches in pools of their own: a worker that died (killed, out of memory)
             # breaks its pool, and fails that batch's remaining variants only.
