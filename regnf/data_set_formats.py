@@ -1,0 +1,93 @@
+"""The data set formats a ``regnf generate`` run joins at its end, from its finished variants.
+
+COCO (:func:`write_coco`): every variant's piece joined into ``coco/annotations.json``. BOP
+(:func:`write_bop`): the models, and a scene for each variant made in the run or not yet in
+``bop/``. Each variant's own files (views, class images, whole-silhouette masks, COCO piece)
+are written by its worker (:mod:`regnf.variant_labels`).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from regnf.compositor.render_folder import RENDER_JSON
+from regnf.core.output_dir import remove_leftovers, replace_entry, staging_dir
+from regnf.core.preflight import read_json_input
+
+from .variant_labels import full_mask_file
+
+
+def _variant_name(seed: int) -> str:
+    """Folder name of a variant (:func:`regnf.generate.variant_name`)."""
+    from .generate import variant_name
+
+    return variant_name(seed)
+
+
+def write_coco(out: Path, rows: dict[int, dict[str, Any]], views: int, source: dict[str, Any]) -> Path:
+    """Join the COCO pieces of the finished variants (seed order) into ``coco/annotations.json``."""
+    from . import coco
+
+    cats = coco.categories(source["library"].values())
+    pieces = ((s, json.loads((out / rows[s]["variant"] / coco.PIECE_NAME).read_text()))
+              for s in sorted(rows) if rows[s]["status"] == "ok")
+    return coco.write_annotations(out, coco.join_pieces(pieces, views, cats, f"regnf generate: {out.name}"))
+
+
+def write_bop(out: Path, base: Path, rows: dict[int, dict[str, Any]], made: set[int],
+              source: dict[str, Any]) -> list[str]:
+    """Write the BOP layout (:mod:`regnf.bop`): the models, and a scene for each finished variant
+    made in this run or not yet in ``bop/``; return the notes to show."""
+    import trimesh
+
+    from regnf.scene_graph import read_stage
+
+    from . import bop
+
+    scene = read_stage(base)
+    instances = {i: (r.library_name, np.asarray(r.object_to_scene, dtype=np.float64))
+                 for i, r in scene.instances.items()}
+    keys = bop.model_keys(source["library"], instances)
+    obj_id = {key: k + 1 for k, key in enumerate(keys)}
+    meshes = {name: trimesh.Trimesh(rec.proxy.points, rec.proxy.faces, process=False,
+                                    vertex_colors=None if rec.proxy.colors is None
+                                    else np.round(255 * np.clip(rec.proxy.colors, 0, 1)).astype(np.uint8))
+              for name, rec in scene.library.items()}
+    root = out / bop.BOP_DIR
+    bop.write_models(root, keys, meshes, {n: r.symmetry_order for n, r in scene.library.items()})
+    split = root / bop.SPLIT
+    split.mkdir(parents=True, exist_ok=True)
+    remove_leftovers(split)
+    for seed in sorted(rows):  # a loop over variants
+        row = rows[seed]
+        final = split / _variant_name(seed)
+        if row["status"] != "ok" or (final.is_dir() and seed not in made):
+            continue
+        cams = read_json_input(out / row["variant"] / RENDER_JSON, None, "render record")["cameras"]
+        if not (root / "camera.json").is_file():
+            bop.write_camera(root, cams[0])
+        gts = []
+        for name, iid in sorted(row["instance_ids"].items(), key=lambda kv: kv[1]):  # a loop over instances
+            lib, matrix = row["selections"][name], instances[name][1]
+            _, centre = bop.model_frame(meshes[lib].vertices, 1.0)
+            gts.append((int(iid), obj_id[bop.ModelKey(lib, round(bop.similarity_scale(matrix), bop.SCALE_DECIMALS))],
+                        matrix, centre))
+        masks = (read_full_mask(out / row["variant"] / full_mask_file(k, iid))
+                 for k in range(len(cams)) for iid, *_ in gts)
+        with staging_dir(split, _variant_name(seed)) as staging:
+            bop.write_scene(staging, out / row["variant"], cams, gts, masks)
+            bop.remove_scene(final)
+            replace_entry(staging, final)
+    return ["BOP models are the library fields' meshes as the stage holds them (the stage has no source meshes)"]
+
+
+def read_full_mask(path: Path) -> np.ndarray:
+    """(h, w) bool whole silhouette written by :func:`regnf.variant_labels.write_full_masks`."""
+    from PIL import Image
+
+    with Image.open(path) as im:
+        return np.asarray(im) > 127
