@@ -24,7 +24,7 @@ import torch
 import trimesh
 
 from regnf.neural_fields.field import Field
-from regnf.neural_fields.meshing import extract_mesh
+from regnf.neural_fields.meshing import extract_mesh, vertex_colors
 
 from .baked_composite import masked_scene
 from .from_stage import composite_from_stage
@@ -130,13 +130,8 @@ def edited_scene_mesh(stage: str | os.PathLike, config: SceneMeshConfig = SceneM
     return SceneMesh(mesh, float(np.quantile(distance, 0.99)), float(distance.max()), len(comp.field.removals))
 
 
-@torch.no_grad()
 def extract_colors(field: Field, mesh: trimesh.Trimesh) -> trimesh.Trimesh:
     """``mesh`` (field frame) with vertex normals from its faces and colours seen from outside along them."""
     normals = np.asarray(mesh.vertex_normals, dtype=np.float64)
-    v = torch.as_tensor(np.asarray(mesh.vertices), dtype=torch.float32, device=field.device)
-    n = torch.as_tensor(normals.copy(), dtype=torch.float32, device=field.device)
-    rgb = field.color_chunked(v, -n).cpu().numpy()
-    rgb8 = np.clip(np.round(np.clip(rgb, 0.0, 1.0) * 255.0), 0, 255).astype(np.uint8)
-    colors = np.concatenate([rgb8, np.full((len(rgb8), 1), 255, np.uint8)], axis=1)
+    colors = vertex_colors(field, np.asarray(mesh.vertices), normals)
     return trimesh.Trimesh(mesh.vertices, mesh.faces, vertex_normals=normals, vertex_colors=colors, process=False)

@@ -168,12 +168,7 @@ def extract_mesh(
     if np.sum(np.einsum("ij,ij->i", face_n, normals[faces].sum(axis=1))) < 0:
         faces = faces[:, ::-1].copy()
 
-    colors = None
-    if with_color:
-        nt = torch.as_tensor(normals, dtype=torch.float32, device=dev)
-        rgb = field.color_chunked(vt, -nt, chunk=chunk, device=dev).cpu().numpy()
-        rgb8 = np.clip(np.round(np.clip(rgb, 0.0, 1.0) * 255.0), 0, 255).astype(np.uint8)
-        colors = np.concatenate([rgb8, np.full((rgb8.shape[0], 1), 255, np.uint8)], axis=1)
+    colors = vertex_colors(field, verts, normals, chunk, dev) if with_color else None
 
     mesh = trimesh.Trimesh(
         vertices=verts, faces=faces, vertex_normals=normals, vertex_colors=colors, process=False
@@ -181,6 +176,19 @@ def extract_mesh(
     if in_world:
         mesh.apply_transform(field.to_world.detach().cpu().numpy())
     return mesh
+
+
+@torch.no_grad()
+def vertex_colors(field: Field, vertices: np.ndarray, normals: np.ndarray, chunk: int = DEFAULT_CHUNK,
+                  device: torch.device | str | None = None) -> np.ndarray:
+    """(n, 4) uint8 RGBA (alpha 255): the field's colour at ``vertices`` (n, 3), seen from
+    outside along the unit ``normals`` (n, 3), both in the field frame."""
+    dev = torch.device(device) if device is not None else field.device
+    v = torch.as_tensor(np.asarray(vertices), dtype=torch.float32, device=dev)
+    n = torch.as_tensor(np.array(normals), dtype=torch.float32, device=dev)
+    rgb = field.color_chunked(v, -n, chunk=chunk, device=dev).cpu().numpy()
+    rgb8 = np.clip(np.round(np.clip(rgb, 0.0, 1.0) * 255.0), 0, 255).astype(np.uint8)
+    return np.concatenate([rgb8, np.full((rgb8.shape[0], 1), 255, np.uint8)], axis=1)
 
 
 def save_mesh(mesh: trimesh.Trimesh, path: str | os.PathLike) -> Path:

@@ -25,7 +25,6 @@ from __future__ import annotations
 import contextlib
 import json
 import math
-import os
 import shutil
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
@@ -255,10 +254,3 @@ def write_camera(bop: Path, camera: Mapping[str, Any]) -> None:
                                                 "width": int(camera["width"]), "height": int(camera["height"]),
                                                 "depth_scale": 1.0}, indent=1) + "\n")
 
-
-def remove_scene(folder: Path) -> None:
-    """Remove a scene folder this module wrote (a variant made again)."""
-    if folder.is_dir() and not folder.is_symlink():
-        shutil.rmtree(folder)
-    elif os.path.lexists(folder):
-        folder.unlink()

@@ -177,16 +177,12 @@ class StageExport:
         return out
 
     def _edited_scene(self):
-        import numpy as np
-
         from regnf.compositor.scene_mesh import edited_scene_mesh
-        from regnf.scene_graph import ProxyMesh
+        from regnf.scene_graph.fields import proxy_from_trimesh
 
         console.print(f"meshing the scene less its instances' removal regions at {self.scene_mesh.cell * 100:g} cm cells")
         result = edited_scene_mesh(self.stage, self.scene_mesh)
         console.print(f"edited scene: {len(result.mesh.faces):,} triangles, {result.removals} removal regions cut out; "
                       f"distance to the field's surface p99 {result.distance_p99 * 1000:.1f} mm, "
                       f"max {result.distance_max * 1000:.1f} mm")
-        m = result.mesh
-        colors = np.asarray(m.visual.vertex_colors)[:, :3].astype(np.float32) / 255.0
-        return ProxyMesh(np.asarray(m.vertices, dtype=np.float32), np.asarray(m.faces, dtype=np.int32), colors)
+        return proxy_from_trimesh(result.mesh)

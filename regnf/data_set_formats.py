@@ -80,8 +80,7 @@ def write_bop(out: Path, base: Path, rows: dict[int, dict[str, Any]], made: set[
                  for k in range(len(cams)) for iid, *_ in gts)
         with staging_dir(split, _variant_name(seed)) as staging:
             bop.write_scene(staging, out / row["variant"], cams, gts, masks)
-            bop.remove_scene(final)
-            replace_entry(staging, final)
+            replace_entry(staging, final)  # an earlier scene of this seed goes aside, then away
     return ["BOP models are the library fields' meshes as the stage holds them (the stage has no source meshes)"]
 
 

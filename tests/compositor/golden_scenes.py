@@ -193,19 +193,39 @@ def pouf_mesh() -> trimesh.Trimesh:
     return mesh
 
 
-def distil_pouf(steps: int = 300) -> Field:
-    """Distil the pouf: about 10 s, on one thread so that it is deterministic for its seed
-    (bitwise-identical weights run after run; trained fields are never committed)."""
+def distil(mesh: trimesh.Trimesh, name: str, label: str, steps: int = 300) -> Field:
+    """A tiny field distilled from ``mesh``: about 10 s, on one thread so that it is
+    deterministic for its seed (bitwise-identical weights run after run; trained fields are
+    never committed)."""
     from regnf.neural_fields.distill import DistillConfig, distill_mesh
 
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
         cfg = DistillConfig(steps=steps, batch=2048, pool_surface=20000, seed=0, architecture=NEURAL_ARCH)
-        field, _ = distill_mesh(pouf_mesh(), cfg, info=FieldInfo(label="chair", name="pouf"), progress=False)
+        field, _ = distill_mesh(mesh, cfg, info=FieldInfo(label=label, name=name), progress=False)
     finally:
         torch.set_num_threads(threads)
     return field
+
+
+def distil_pouf(steps: int = 300) -> Field:
+    """Distil the pouf (:func:`distil`)."""
+    return distil(pouf_mesh(), "pouf", "chair", steps)
+
+
+def distilled_library(folder: Path) -> list[Path]:
+    """Checkpoints of the pouf (a chair) and a crate (a table, 0.6 x 0.4 x 0.35 m standing on
+    z = 0), distilled here into ``folder``."""
+    from regnf.neural_fields.checkpoint import save_field
+
+    crate = trimesh.creation.box(extents=(0.6, 0.4, 0.35))
+    crate.apply_translation((0.0, 0.0, 0.175))
+    paths = []
+    for name, label, mesh in (("pouf", "chair", pouf_mesh()), ("crate", "table", crate)):
+        paths.append(folder / f"{name}.safetensors")
+        save_field(distil(mesh, name, label), paths[-1])
+    return paths
 
 
 @functools.lru_cache(maxsize=1)

@@ -17,7 +17,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-import trimesh
 from PIL import Image
 
 from regnf.compositor.cameras_io import OrbitConfig, field_bounds_metres, orbit_around_bounds
@@ -25,11 +24,8 @@ from regnf.compositor.from_stage import composite_from_stage
 from regnf.compositor.render_folder import RenderConfig, render_views
 from regnf.compositor.scene_mesh import SceneMeshConfig, edited_scene_mesh
 from regnf.core.image_io import read_instance_png
-from regnf.neural_fields.checkpoint import save_field
-from regnf.neural_fields.distill import DistillConfig, distill_mesh
-from regnf.neural_fields.field import FieldInfo
 from regnf.scene_graph import ProxyMesh, add_instance, export_stage, new_stage
-from tests.compositor.golden_scenes import NEURAL_ARCH, pouf_mesh
+from tests.compositor.golden_scenes import distilled_library
 from tests.scene_graph.helpers import make_library, similarity
 
 SCRIPT = Path(__file__).with_name("blender_render.py")
@@ -38,25 +34,11 @@ COLORS = {"pouf_1": (1.0, 0.0, 0.0), "pouf_2": (0.0, 1.0, 0.0), "crate_1": (0.0,
 """Emission colour of each instance in Blender's render."""
 
 
-def distil(mesh: trimesh.Trimesh, name: str, label: str, folder: Path) -> Path:
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        cfg = DistillConfig(steps=300, batch=2048, pool_surface=20000, seed=0, architecture=NEURAL_ARCH)
-        field, _ = distill_mesh(mesh, cfg, info=FieldInfo(label=label, name=name), progress=False)
-    finally:
-        torch.set_num_threads(threads)
-    save_field(field, folder / f"{name}.safetensors")
-    return folder / f"{name}.safetensors"
-
-
 @pytest.fixture(scope="module")
 def exported(tmp_path_factory: pytest.TempPathFactory) -> Path:
     root = tmp_path_factory.mktemp("blender")
     scene, _, proxies = make_library(root, ())
-    crate = trimesh.creation.box(extents=(0.6, 0.4, 0.35))
-    crate.apply_translation((0.0, 0.0, 0.175))
-    libs = [distil(pouf_mesh(), "pouf", "chair", root), distil(crate, "crate", "table", root)]
+    libs = distilled_library(root)
     stage = root / "stage" / "scene.usda"
     new_stage(stage, scene, libs, proxies={"scene": proxies["scene"]})
     add_instance(stage, "pouf", similarity(0.5, (1.2, -0.5, 0.0), 1.0))

@@ -15,18 +15,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
 import trimesh
 from PIL import Image
 
 from regnf.compositor.cameras_io import OrbitConfig
 from regnf.core.executors import ExecutorConfig
 from regnf.generate import GenerateConfig, generate
-from regnf.neural_fields.checkpoint import save_field
-from regnf.neural_fields.distill import DistillConfig, distill_mesh
-from regnf.neural_fields.field import FieldInfo
 from regnf.scene_graph import add_instance, new_stage
-from tests.compositor.golden_scenes import NEURAL_ARCH, pouf_mesh
+from tests.compositor.golden_scenes import distilled_library
 from tests.scene_graph.helpers import make_library, similarity
 
 VIEWS = 3
@@ -34,26 +30,11 @@ ORBIT = OrbitConfig(n=VIEWS, width=128, height=96, radius=4.5)
 """Cameras well outside the tiny scene blob."""
 
 
-def distil(mesh: trimesh.Trimesh, name: str, label: str, folder: Path) -> Path:
-    """A tiny field distilled from ``mesh`` on one thread (the same weights on any machine)."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        cfg = DistillConfig(steps=300, batch=2048, pool_surface=20000, seed=0, architecture=NEURAL_ARCH)
-        field, _ = distill_mesh(mesh, cfg, info=FieldInfo(label=label, name=name), progress=False)
-    finally:
-        torch.set_num_threads(threads)
-    save_field(field, folder / f"{name}.safetensors")
-    return folder / f"{name}.safetensors"
-
-
 @pytest.fixture(scope="module")
 def data_set(tmp_path_factory: pytest.TempPathFactory) -> Path:
     root = tmp_path_factory.mktemp("bop")
     scene, _, proxies = make_library(root, ())
-    crate = trimesh.creation.box(extents=(0.6, 0.4, 0.35))
-    crate.apply_translation((0.0, 0.0, 0.175))
-    libs = [distil(pouf_mesh(), "pouf", "chair", root), distil(crate, "crate", "table", root)]
+    libs = distilled_library(root)
     stage = root / "stage" / "scene.usda"
     # The library's meshes are its fields' own (marching cubes), so that the models match the renders.
     new_stage(stage, scene, libs, proxies={"scene": proxies["scene"]})
