@@ -5,6 +5,7 @@ Layout (default root ``~/.cache/regnf``, or ``$REGNF_CACHE``)::
     captures/object-<name>-<key>/meta_data.json ...
     captures/room-<name>-<coverage>[-<noise>]-<key>/meta_data.json ...   (<noise>: not at ideal)
     fields/<name>-<source>-<key>.safetensors
+    fields/<name>-mesh-<key>.source-mesh.safetensors  the mesh a distilled field was made from (regnf.neural_fields.source_mesh)
     fields/.<name>-mesh-<key>.safetensors.lock        held while a mesh is distilled into that entry
     baked/<room>-<coverage>-<source>/index.json ...   grids ``regnf demo`` bakes from its stage (regnf.data_set_grids)
 
@@ -63,6 +64,7 @@ from regnf.neural_fields.distill import (
 from regnf.neural_fields.field import FieldInfo, Symmetry
 from regnf.neural_fields.pose_refinement import PoseRefineConfig
 from regnf.neural_fields.presets import object_mesh_preset, object_rgbd_preset, scene_rgbd_preset
+from regnf.neural_fields.source_mesh import SourceMeshError, keep_source_mesh, read_source_mesh
 from regnf.neural_fields.training import (
     TRAIN_VERSION,
     RGBDTrainConfig,
@@ -389,7 +391,7 @@ class Cache:
         # Distil the mesh as the captures show it (the same baked Lambertian shading), so that
         # a field from either source has the colours a capture of the object has.
         info = FieldInfo(label=obj.label, name=name, symmetry=Symmetry(obj.symmetry_order))
-        return self.distilled_field(shaded_copy(obj.mesh), info, config)
+        return self.distilled_field(shaded_copy(obj.mesh), info, config, source=obj.mesh)
 
     def distilled_entry(self, mesh: trimesh.Trimesh, info: FieldInfo, config: DistillConfig) -> tuple[Path, str]:
         """The cache file of the field distilled from ``mesh`` with ``config``, and the mesh's
@@ -398,24 +400,40 @@ class Cache:
         key = config_key(config, mesh_sha, info.label, info.name, info.symmetry.order, DISTILL_VERSION)
         return self.root / "fields" / f"{entry_stem(info.name, 'mesh')}-mesh-{key}.safetensors", mesh_sha
 
-    def distilled_field(self, mesh: trimesh.Trimesh, info: FieldInfo, config: DistillConfig) -> Path:
-        """Checkpoint of a field distilled from ``mesh`` (distilled if missing).
+    def distilled_field(self, mesh: trimesh.Trimesh, info: FieldInfo, config: DistillConfig,
+                        source: trimesh.Trimesh | None = None) -> Path:
+        """Checkpoint of a field distilled from ``mesh`` (distilled if missing), with its source
+        mesh kept beside it (:mod:`regnf.neural_fields.source_mesh`).
 
         The mesh is checked and its targets prepared before anything is written; then the
         entry's lock (:func:`entry_lock`) is taken, so that of two processes distilling the
         same mesh with the same settings the second waits and reuses the first's field.
+        ``source`` is the mesh as other tools should render it, when it differs from ``mesh``
+        (a mesh with baked shading distilled, its plain colours kept).
         """
         path, mesh_sha = self.distilled_entry(mesh, info, config)
         if reusable(path, {"mesh_sha256": mesh_sha}):
+            self._keep_source(source if source is not None else mesh, path, config)
             return path
         check_entry_writable(path)
         targets = distillation_targets(mesh, config, mesh_source(info))
         with entry_lock(path):
-            if reusable(path, {"mesh_sha256": mesh_sha}):
-                return path  # made by another process while this one waited
-            info.provenance = {**info.provenance, "source": "mesh", "mesh_sha256": mesh_sha}
-            field, _ = distill_mesh(mesh, config, info=info, progress=self.progress, targets=targets)
-            return save_field(field, path)
+            if not reusable(path, {"mesh_sha256": mesh_sha}):  # else made by another process meanwhile
+                info.provenance = {**info.provenance, "source": "mesh", "mesh_sha256": mesh_sha}
+                field, _ = distill_mesh(mesh, config, info=info, progress=self.progress, targets=targets)
+                save_field(field, path)
+            self._keep_source(source if source is not None else mesh, path, config)
+        return path
+
+    @staticmethod
+    def _keep_source(mesh: trimesh.Trimesh, path: Path, config: DistillConfig) -> None:
+        """Write the source mesh of the entry ``path`` unless an intact one is there."""
+        try:
+            if read_source_mesh(path) is not None:
+                return
+        except SourceMeshError as exc:
+            log.warning("remaking a damaged source mesh: %s", exc)
+        keep_source_mesh(mesh, path, config.scale, config.up)
 
     def scene_field(self, name: str, coverage: str = "full", device: str = "cpu", noise: str = "ideal",
                     noise_seed: int = 0, pose_refine: str = "auto") -> Path:

@@ -55,9 +55,15 @@ def check_checkpoint_out(out: Path | None) -> None:
 
 
 def copy_out(path: Path, out: Path | None) -> None:
-    """Copy a cached checkpoint to ``out`` (atomically), if asked (checked by the cache on the way in)."""
+    """Copy a cached checkpoint to ``out`` (atomically), if asked (checked by the cache on the way
+    in), with the source mesh kept beside it, if any."""
     if out is None:
         return
+    from regnf.neural_fields.source_mesh import source_mesh_file
+
+    source = source_mesh_file(path)
+    if source.is_file():
+        write_bytes(source_mesh_file(out), source.read_bytes())
     write_bytes(out, path.read_bytes())
     console.print(f"-> {out}")
 
@@ -228,7 +234,8 @@ class Distill:
     scale: float | None = None
     """Metres per unit of the mesh file, for other units (0.0254: inches); instead of --units."""
     out: Path | None = None
-    """Also copy the checkpoint here (.safetensors); it is kept in the cache either way."""
+    """Also copy the checkpoint here (.safetensors), and the mesh it keeps for other tools beside
+    it (``<stem>.source-mesh.safetensors``, read by ``regnf stage new``); the cache keeps both either way."""
     up: Literal["z", "y", "x", "-z", "-y", "-x", "+z", "+y", "+x"] = "z"
     """Up axis of the mesh file; it is turned to +Z, the library's up (y or +y: a Y-up file, as
     many OBJ and glTF exporters write, +X forward kept)."""

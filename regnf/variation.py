@@ -19,6 +19,7 @@ import numpy as np
 from PIL import Image
 
 from regnf.core.atomic_io import atomic_path
+from regnf.core.srgb import linear_to_srgb, srgb_to_linear
 
 STREAM = 7
 """Second seed word of the appearance's random stream (``default_rng([seed, STREAM])``)."""
@@ -56,16 +57,6 @@ def draw_appearance(seed: int, exposure_stops: float, white_balance: float) -> A
     g = rng.uniform(1.0 - white_balance, 1.0 + white_balance, size=3)
     g = g / g.mean()
     return Appearance(stops, (float(g[0]), float(g[1]), float(g[2])))
-
-
-def srgb_to_linear(c: np.ndarray) -> np.ndarray:
-    """sRGB-encoded values (any shape) in [0, 1] to linear."""
-    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
-
-
-def linear_to_srgb(c: np.ndarray) -> np.ndarray:
-    """Linear values (any shape) in [0, 1] to sRGB encoding."""
-    return np.where(c <= 0.0031308, 12.92 * c, 1.055 * np.power(np.maximum(c, 0.0031308), 1 / 2.4) - 0.055)
 
 
 def apply_appearance(rgb: np.ndarray, appearance: Appearance) -> np.ndarray:

@@ -14,6 +14,7 @@ import trimesh
 from regnf.neural_fields.checkpoint import CheckpointError, load_field, read_header
 from regnf.neural_fields.field import Field, Symmetry
 from regnf.neural_fields.meshing import extract_mesh
+from regnf.neural_fields.source_mesh import SourceMeshError, read_source_mesh, source_mesh_file
 
 from .embedded_checkpoint import checkpoint_file
 from .errors import StageError
@@ -72,10 +73,13 @@ def field_record(
     proxy : trimesh.Trimesh, optional
         A proxy mesh in metres to use instead of marching cubes of the field.
 
+    The source mesh kept beside a distilled checkpoint
+    (:func:`regnf.neural_fields.source_mesh.source_mesh_file`) comes with the record.
+
     Raises
     ------
     StageError
-        A missing or corrupted checkpoint, or a field with no surface to mesh.
+        A missing or corrupted checkpoint or source mesh, or a field with no surface to mesh.
     """
     cfg = config or ProxyConfig()
     path = Path(checkpoint).absolute()
@@ -84,6 +88,10 @@ def field_record(
         field = load_field(path, device=cfg.device)
     except CheckpointError as exc:
         raise StageError(exc.path, prim, exc.problem) from exc
+    try:
+        source = read_source_mesh(path)
+    except SourceMeshError as exc:
+        raise StageError(source_mesh_file(path), prim, str(exc).removeprefix(f"{source_mesh_file(path)}: ")) from exc
     if proxy is None:
         try:
             mesh = extract_mesh(field, cfg.resolution, with_color=cfg.with_color, in_world=True)
@@ -101,6 +109,7 @@ def field_record(
         symmetry_order=Symmetry.from_json(header.get("symmetry")).order,
         provenance=dict(header.get("provenance") or {}),
         proxy=proxy_mesh,
+        source_mesh=source,
     )
 
 

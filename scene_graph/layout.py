@@ -9,6 +9,10 @@ SCENE = "/World/Scene"
 INSTANCES = "/World/Instances"
 PROXY = "Proxy"
 """Name of the proxy mesh child of every field prim."""
+SOURCE = "Source"
+"""Name of a library object's source mesh (render purpose) when it was distilled from one."""
+LOOKS = "Looks"
+"""Scope of a library object's materials."""
 EDITED = "Edited"
 """Name of the scene's mesh less the instances' removal regions (render purpose), under /World/Scene."""
 VARIANT_SET = "libraryObject"
@@ -76,6 +80,11 @@ def library_layer(name: str) -> str:
 def library_checkpoint(name: str) -> str:
     """Checkpoint of a library object, relative to the stage."""
     return f"{FIELDS_DIR}/{name}.safetensors"
+
+
+def library_texture(name: str) -> str:
+    """Base-colour texture of a library object's source mesh, relative to the stage."""
+    return f"{LIBRARY_DIR}/textures/{name}.png"
 
 
 def slot_layer(label: str) -> str:

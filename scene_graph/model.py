@@ -13,6 +13,8 @@ from typing import NamedTuple
 
 import numpy as np
 
+from regnf.neural_fields.source_mesh import SourceMesh
+
 FORMAT_VERSION = 1
 """Version of the stage layout below; written into the stage's ``customLayerData``."""
 
@@ -59,6 +61,8 @@ class FieldRecord:
     """The checkpoint's provenance record (JSON-serialisable)."""
     proxy: ProxyMesh
     """Marching-cubes proxy in metres."""
+    source_mesh: SourceMesh | None = None
+    """The mesh a library object was distilled from, with its colours or texture (None: none kept)."""
 
 
 @dataclass

@@ -112,6 +112,8 @@ def export_stage(stage_path: str | os.PathLike, out_path: str | os.PathLike, all
         entries = [(_packaged_layer(loose_root, packed / root_name), root_name)]
         entries += [(_packaged_layer(loose / rel, packed / rel), rel) for rel in layers]
         entries += [(loose / rel, rel) for rel in slots]
+        entries += [(loose / rel, rel) for rel in (L.library_texture(n) for n in sorted(scene.library))
+                    if (loose / rel).is_file()]
         for rel in checkpoints:
             name = embedded_name(rel)
             (packed / name).parent.mkdir(parents=True, exist_ok=True)

@@ -33,6 +33,7 @@ from .model import (
     ProxyMesh,
     RegistrationProvenance,
 )
+from .source_mesh_usd import read_source_mesh
 from .xform import OP_ORDER, XformOps, from_usd_matrix, matrix_from_ops
 
 OPS_RTOL = 1e-9
@@ -220,6 +221,7 @@ def read_field(prim: Usd.Prim, layer: Sdf.Layer, boundary: Boundary, check_check
         symmetry_order=int(_get(prim, L.A_SYM_ORDER, file)),
         provenance=provenance,
         proxy=_proxy(prim, file),
+        source_mesh=read_source_mesh(prim, file, boundary),
     )
 
 

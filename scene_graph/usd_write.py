@@ -4,6 +4,7 @@ Files, relative to the stage's folder::
 
     <stage>.usda|.usdc          /World (assembly): Scene (component), Instances (assembly)
     library/<name>.usda         one asset layer per library object (kind component)
+    library/textures/<name>.png the texture of its source mesh, if it has one
     slots/<class>.usda          VariantSet "libraryObject": one variant per library object
     fields/<name>.safetensors   the checkpoints (copied), fields/scene_field.safetensors
 
@@ -35,6 +36,7 @@ from .model import (
     InstanceRecord,
     ProxyMesh,
 )
+from .source_mesh_usd import author_source_mesh
 from .transaction import FileTransaction
 from .xform import OP_ORDER, ops_from_matrix, to_usd_matrix
 
@@ -218,6 +220,11 @@ def library_layer(rec: FieldRecord, density: float | None = None) -> Sdf.Layer:
     layer.customLayerData = {"regnf": {"formatVersion": FORMAT_VERSION, "role": L.ROLE_LIBRARY}}
     _author_field(spec, rec, "../" + L.library_checkpoint(rec.name))
     _semantics(spec, L.LABEL_NAME, rec.name)
+    if rec.source_mesh is not None:
+        # The source mesh is what a viewer renders; the field's mesh stays as its proxy (and collider).
+        texture = L.library_texture(rec.name).removeprefix(L.LIBRARY_DIR + "/")
+        author_source_mesh(spec, rec.source_mesh, "./" + texture)
+        _attr(spec.nameChildren[L.PROXY], "purpose", Sdf.ValueTypeNames.Token, "proxy", custom=False, uniform=True)
     if density:
         _collider(spec.nameChildren[L.PROXY], L.COLLIDER_APPROXIMATION, density)
     return layer
@@ -348,6 +355,8 @@ def write_stage(scene: ComposedScene, stage_path: str | os.PathLike) -> list[Pat
                 rec = scene.library[name]
                 tx.copy(rec.checkpoint, root / L.library_checkpoint(name))
                 library_layer(rec, scene.physics_density).Export(str(tx.temp_path(root / L.library_layer(name))))
+                if rec.source_mesh is not None and rec.source_mesh.texture is not None:
+                    tx.write_bytes(root / L.library_texture(name), rec.source_mesh.texture)
             for label, names in scene.classes().items():
                 slot_layer(label, names).Export(str(tx.temp_path(root / L.slot_layer(label))))
             stage_layer(scene, stage_path.suffix).Export(str(tx.temp_path(stage_path)))

@@ -18,6 +18,7 @@ from regnf.neural_fields.distill import DistillConfig
 from regnf.neural_fields.evaluation import world_to_field
 from regnf.neural_fields.field import FieldInfo
 from regnf.neural_fields.neural_sdf import NeuralSDFConfig
+from regnf.neural_fields.source_mesh import read_source_mesh, source_mesh_file
 
 TINY = NeuralSDFConfig(levels=3, features_per_level=2, base_resolution=8, finest_resolution=16,
                        hidden_dim=16, color_hidden_dim=16)
@@ -42,6 +43,15 @@ def test_vertex_colours_are_part_of_the_key_and_of_the_field(tmp_path: Path) -> 
         assert mesh.visual.kind == "vertex"
         fields[name] = cache.distilled_field(mesh, FieldInfo(name="box"), QUICK)
     assert fields["red"] != fields["blue"]
+    # Each keeps the mesh it was distilled from, with its colours, for tools that render meshes;
+    # one lost is made again when the field is reused.
+    for name, rgb in (("red", (230, 20, 20)), ("blue", (20, 20, 230))):
+        kept = read_source_mesh(fields[name])
+        np.testing.assert_allclose(kept.face_colors, np.tile(np.asarray(rgb) / 255.0, (12, 1)), atol=1e-6)
+    source_mesh_file(fields["red"]).unlink()
+    mesh = trimesh.load(tmp_path / "red.ply", force="mesh")
+    assert cache.distilled_field(mesh, FieldInfo(name="box"), QUICK) == fields["red"]
+    np.testing.assert_allclose(read_source_mesh(fields["red"]).points, mesh.vertices, atol=1e-6)
     assert fields["red"].read_bytes() != fields["blue"].read_bytes()
     pts, _ = trimesh.sample.sample_surface(coloured_box((0, 0, 0)), 2000, seed=1)
     for name, channel in (("red", 0), ("blue", 2)):

@@ -1,7 +1,7 @@
 """Run by ``test_blender.py`` in a process of its own: import a stage with Blender's USD importer,
 colour each instance's mesh by the emission colour the job gives it (the rest black), render
 with Cycles from the job's camera (OpenCV axes, pixel centres at ``u + 0.5``), and write the
-render, the imported scene meshes' vertices in world coordinates and a report.
+render, the imported scene meshes' vertices in world coordinates and a report (with the materials the importer gave each instance).
 
 Usage: ``python blender_render.py JOB.json`` (keys: stage, K, width, height, camera_to_world,
 colors {instance: rgb}, places {instance: translation}, png, scene_points, report).
@@ -42,6 +42,20 @@ def main(job: dict) -> None:
         name = min(job["places"], key=lambda n: np.linalg.norm(np.asarray(job["places"][n]) - t))
         return name if np.linalg.norm(np.asarray(job["places"][name]) - t) < 1e-4 else None
 
+    looks = {}  # what the importer made of each instance's materials, before they are replaced
+    for o in meshes:
+        inst = instance_of(o)
+        if inst is None:
+            continue
+        found = looks.setdefault(inst, {"vertices": len(o.data.vertices), "colors": [], "images": []})
+        for m in o.data.materials:
+            nodes = m.node_tree.nodes if m and m.use_nodes else []
+            for node in nodes:
+                if node.type == "BSDF_PRINCIPLED" and not node.inputs["Base Color"].is_linked:
+                    found["colors"].append(list(node.inputs["Base Color"].default_value)[:3])
+                if node.type == "TEX_IMAGE" and node.image is not None:
+                    found["images"].append(list(node.image.size))
+
     black = emission("black", tuple(job.get("rest_color", (0.0, 0.0, 0.0))))
     mats = {name: emission(name, tuple(rgb)) for name, rgb in job["colors"].items()}
     for o in meshes:
@@ -77,7 +91,7 @@ def main(job: dict) -> None:
               + np.array(o.matrix_world)[:3, 3] for o in rest]
     np.save(job["scene_points"], np.concatenate(points) if points else np.zeros((0, 3)))
     report = {"instances": sorted(n for n in (instance_of(o) for o in meshes) if n),
-              "scene_meshes": sorted(o.name for o in rest)}
+              "scene_meshes": sorted(o.name for o in rest), "looks": looks}
     with open(job["report"], "w") as f:
         json.dump(report, f)
 
