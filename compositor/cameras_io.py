@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from regnf.captures.formats import read_capture
+from regnf.captures.model import Capture
 from regnf.core.cameras import look_at
 from regnf.neural_fields.camera import Camera
 from regnf.neural_fields.field import Field
@@ -74,6 +75,22 @@ def cameras_from_capture(
         An index out of range.
     """
     capture, _ = read_capture(path)
+    return capture_cameras(capture, width, height, indices)
+
+
+def capture_cameras(
+    capture: Capture,
+    width: int | None = None,
+    height: int | None = None,
+    indices: Sequence[int] | None = None,
+) -> list[Camera]:
+    """The cameras of a capture already read (:func:`cameras_from_capture`'s, without reading it).
+
+    Raises
+    ------
+    ValueError
+        An index out of range.
+    """
     w, h = target_size(capture.width, capture.height, width, height)
     chosen = range(len(capture.frames)) if indices is None else list(indices)
     cams = []

@@ -2,8 +2,10 @@
 
 Works on everything :func:`regnf.scene_graph.read_stage` reads: .usda / .usdc stages, replacement
 layers (an instance then SHOWS the newly selected object but the ORIGINAL one, the object
-that was registered, is removed) and .usdz packages (checkpoints carried inside). Frames and
-removal regions are those of :mod:`regnf.compositor.substitution`.
+that was registered, is removed, where the stage beneath the layers places it: a layer of
+``regnf generate`` may move the shown object, :func:`original_poses`) and .usdz packages
+(checkpoints carried inside). Frames and removal regions are those of
+:mod:`regnf.compositor.substitution`.
 
 Every stage, and every base stage a replacement layer names (``replacementOf``), is read
 inside its folder's trust boundary (:mod:`regnf.scene_graph.boundary`): a path that leaves the
@@ -13,10 +15,11 @@ folder is refused before the file it names is opened, unless ``allow_outside``.
 from __future__ import annotations
 
 import os
-from collections.abc import Callable, MutableMapping
+from collections.abc import Callable, Mapping, MutableMapping
 from pathlib import Path
 from typing import NamedTuple
 
+import numpy as np
 import torch
 
 from regnf.neural_fields.field import Field
@@ -31,6 +34,7 @@ from regnf.scene_graph import (
     load_record_field,
     original_selections,
     read_stage,
+    replacement_base,
 )
 
 from .composite_field import CompositeField
@@ -82,8 +86,43 @@ def composite_from_stage(
     """
     path = Path(stage_path).absolute()
     scene = read_stage(path, allow_outside=allow_outside)
-    originals = original_selections(path, scene, allow_outside=allow_outside) if config.mode == "substitute" else {}
-    return composite_from_scene(scene, originals, path, config, device)
+    if config.mode != "substitute":
+        return composite_from_scene(scene, {}, path, config, device)
+    originals = original_selections(path, scene, allow_outside=allow_outside)
+    return composite_from_scene(scene, originals, path, config, device,
+                                removal_poses=original_poses(path, scene, allow_outside=allow_outside))
+
+
+def original_poses(stage_path: str | os.PathLike, scene: ComposedScene, depth: int = 0,
+                   allow_outside: bool = False) -> dict[str, np.ndarray]:
+    """Instance id -> (4, 4) ``object_to_scene`` of the stage beneath every replacement layer.
+
+    The original object is removed where that stage places it: a layer that also moves the
+    shown object (``regnf generate``'s placement jitter) leaves the removal where the captured
+    object was. For a plain stage, or layers that move nothing, these are ``scene``'s own.
+
+    Parameters
+    ----------
+    stage_path : str or PathLike
+        The stage ``scene`` was read from.
+    scene : ComposedScene
+    depth : int
+        Replacement layers followed so far (at most
+        :data:`regnf.scene_graph.replacement.MAX_LAYER_DEPTH`).
+    allow_outside : bool
+        Follow a ``replacementOf`` outside the layer's folder.
+    """
+    from regnf.scene_graph.replacement import MAX_LAYER_DEPTH
+
+    path = Path(stage_path).absolute()
+    base = replacement_base(path, allow_outside)
+    below: dict[str, np.ndarray] = {}
+    if base is not None:
+        if depth >= MAX_LAYER_DEPTH:
+            raise StageError(path, "/", f"more than {MAX_LAYER_DEPTH} nested replacement layers")
+        below = original_poses(base, read_stage(base, check_checkpoints=False, allow_outside=allow_outside),
+                               depth + 1, allow_outside)
+    return {iid: below.get(iid, inst.object_to_scene) for iid, inst in scene.instances.items()}
 
 
 def composite_from_scene(
@@ -93,6 +132,7 @@ def composite_from_scene(
     config: StageCompositeConfig = DEFAULT_STAGE_COMPOSITE,
     device: torch.device | str = "cpu",
     loaded: MutableMapping[str, Field] | None = None,
+    removal_poses: Mapping[str, np.ndarray] | None = None,
 ) -> StageComposite:
     """:func:`composite_from_stage` of a stage already read (or changed in memory).
 
@@ -111,6 +151,10 @@ def composite_from_scene(
         Fields already loaded, by checkpoint identifier; new ones are added. A worker that
         composes many variants of one stage loads each checkpoint once (the composite only
         reads its fields).
+    removal_poses : mapping, optional
+        Instance id -> (4, 4) ``object_to_scene`` where its original object is removed, when
+        the shown object stands elsewhere (:func:`original_poses`); an instance not named is
+        removed where it stands.
     """
     path = Path(stage_path).absolute()
     scene_field = load_record_field(path, SCENE_PRIM, scene.scene, device, loaded)
@@ -137,6 +181,7 @@ def composite_from_scene(
             object_to_scene=inst.object_to_scene,
             proposal=_proposal(path, where, inst.registration),
             name=iid,
+            removal_to_scene=None if removal_poses is None else removal_poses.get(iid),
         ))
         ids[iid] = k
     try:

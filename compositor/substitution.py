@@ -9,7 +9,9 @@ Frames (docs/design.md section 2), all 4x4 similarities acting on column vectors
 
 A library field therefore enters the scene field frame through ``inv(S) @ O @ L``. An
 instance that was swapped for another object of its class keeps ``O``: the new object stands
-where the old one stood (base on the floor, heading kept) at its own metric size.
+where the old one stood (base on the floor, heading kept) at its own metric size. A shown
+object may also stand elsewhere than the original (``regnf generate``'s placement jitter):
+the original is then removed where it was (``SubstitutedInstance.removal_to_scene``).
 
 Removal: the ORIGINAL object (the one registered) is cut out of the scene, as its field
 bounds mapped into the scene field frame (an oriented box, grown by ``box_pad``) plus the
@@ -67,6 +69,15 @@ class SubstitutedInstance(NamedTuple):
     """The registration's proposal box in the SCENE FIELD frame, or None."""
     name: str = ""
     """Instance name, for error messages."""
+    removal_to_scene: np.ndarray | None = None
+    """(4, 4) float64 canonical object metres -> scene metres of the ORIGINAL object, where it is
+    removed, when the shown object stands elsewhere (a placement jitter moved it); None: at
+    ``object_to_scene``."""
+
+    @property
+    def removed_at(self) -> np.ndarray:
+        """(4, 4) where the original object is removed: ``removal_to_scene`` or ``object_to_scene``."""
+        return self.object_to_scene if self.removal_to_scene is None else self.removal_to_scene
 
 
 def as_matrix(M: object, what: str) -> np.ndarray:
@@ -132,8 +143,8 @@ def removal_regions(
     """The regions cut out of ``scene`` for ``inst`` (scene field frame, floor spared)."""
     S = scene.to_world.detach().cpu().double().numpy()
     ws = scene.world_scale
-    M_orig = library_to_scene(S, inst.object_to_scene, inst.original.to_world)
-    floor = base_height(S, inst.object_to_scene)
+    M_orig = library_to_scene(S, inst.removed_at, inst.original.to_world)
+    floor = base_height(S, inst.removed_at)
     margin = config.floor_margin / ws
     if config.removal == "shell":
         return [

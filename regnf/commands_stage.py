@@ -2,14 +2,14 @@
 
 from __future__ import annotations
 
-import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, fields
 from pathlib import Path
 
 from rich.console import Console
 
-from regnf.compositor.scene_mesh import SceneMeshConfig
 from regnf.core.preflight import check_mesh_resolution, check_output_file, read_json_input
+
+from .tool_export import ToolExportConfig
 
 console = Console(stderr=True)
 
@@ -104,8 +104,8 @@ class StageShow:
         print(summarize(scene))
 
 
-@dataclass
-class StageExport:
+@dataclass(frozen=True, kw_only=True)
+class StageExport(ToolExportConfig):
     """Export a stage as .usda, .usdc or a self-contained .usdz (checkpoints and proxies inside)."""
 
     stage: Path
@@ -119,70 +119,28 @@ class StageExport:
     allow_outside: bool = False
     """Open asset paths of the stage that lie outside its folder and copy them in (refused by default: a stage is
     a self-contained folder, and a path out of it may name anybody's file)."""
-    density: float = 500.0
-    """Density of the library objects, kg / m^3: every instance becomes a rigid body and every
-    library mesh a convex-hull collider of this density (UsdPhysics), the edited scene a static
-    collider."""
-    physics: bool = True
-    """Write the physics above (off: the stage's own setting is kept)."""
-    edit: bool = True
-    """Mesh the scene less its instances' removal regions into the export (the mesh other tools
-    show; the whole scene stays as the proxy), when the stage has instances."""
-    scene_mesh: SceneMeshConfig = field(default_factory=SceneMeshConfig)
-    """How the edited scene is meshed."""
-    library_cell: float = 0.005
-    """Marching-cubes cell of the library objects' meshes in the export, metres (thin parts
-    such as chair slats need a few mm); 0 keeps the stage's proxies."""
+
+    def __post_init__(self) -> None:
+        # The settings are checked in :meth:`run` (one line and status 1, not a usage error).
+        pass
 
     def run(self) -> None:
-        from regnf.scene_graph import StageError, export_stage, read_stage
+        from regnf.scene_graph import StageError
+
+        from .tool_export import export_for_tools
 
         targets = [p for p in (self.usdz, self.usdc, self.usda) if p is not None]
         if not targets:
             raise SystemExit("regnf stage export: give --usdz, --usdc and/or --usda")
-        if not (math.isfinite(self.library_cell) and self.library_cell >= 0):
-            raise SystemExit(f"regnf stage export: --library-cell must be >= 0 metres, got {self.library_cell}")
-        if self.physics and not (math.isfinite(self.density) and self.density > 0):
-            raise SystemExit(f"regnf stage export: --density must be > 0 kg/m^3, got {self.density}")
+        try:
+            config = ToolExportConfig(**{f.name: getattr(self, f.name) for f in fields(ToolExportConfig)})
+        except ValueError as exc:
+            raise SystemExit(f"regnf stage export: {exc}") from exc
         for out, suffix in ((self.usdz, ".usdz"), (self.usdc, ".usdc"), (self.usda, ".usda")):
             if out is not None:
                 check_output_file(out, suffix.replace(".", "--"), suffix=suffix)
         try:
-            edited = None
-            scene = read_stage(self.stage, allow_outside=self.allow_outside)
-            if self.edit and scene.instances:
-                edited = self._edited_scene()
-            meshes = self._library_meshes(scene) if self.library_cell > 0 else None
-            for out in targets:
-                export_stage(self.stage, out, allow_outside=self.allow_outside, edited_scene=edited,
-                             density=self.density if self.physics else None, library_meshes=meshes)
+            for out in export_for_tools(self.stage, targets, config, self.allow_outside, say=console.print):
                 console.print(f"[green]exported[/] {self.stage} -> {out}")
         except (StageError, ValueError) as exc:
             raise _fail(exc) from exc
-
-    def _library_meshes(self, scene):
-        """Every library object meshed at ``library_cell`` (canonical object metres)."""
-        import math as m
-
-        from regnf.neural_fields.meshing import extract_mesh
-        from regnf.scene_graph.fields import load_record_field, proxy_from_trimesh
-
-        out = {}
-        for name, rec in sorted(scene.library.items()):  # a loop over library objects
-            field = load_record_field(self.stage, f"library object {name!r}", rec, "cpu")
-            extent = float((rec.bounds[1] - rec.bounds[0]).max()) * field.world_scale
-            cells = max(2, m.ceil(extent / self.library_cell))
-            out[name] = proxy_from_trimesh(extract_mesh(field, resolution=cells, in_world=True))
-            console.print(f"library object {name}: {len(out[name].faces):,} triangles at {cells} cells")
-        return out
-
-    def _edited_scene(self):
-        from regnf.compositor.scene_mesh import edited_scene_mesh
-        from regnf.scene_graph.fields import proxy_from_trimesh
-
-        console.print(f"meshing the scene less its instances' removal regions at {self.scene_mesh.cell * 100:g} cm cells")
-        result = edited_scene_mesh(self.stage, self.scene_mesh)
-        console.print(f"edited scene: {len(result.mesh.faces):,} triangles, {result.removals} removal regions cut out; "
-                      f"distance to the field's surface p99 {result.distance_p99 * 1000:.1f} mm, "
-                      f"max {result.distance_max * 1000:.1f} mm")
-        return proxy_from_trimesh(result.mesh)

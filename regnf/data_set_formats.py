@@ -73,6 +73,8 @@ def write_bop(out: Path, base: Path, rows: dict[int, dict[str, Any]], made: set[
         gts = []
         for name, iid in sorted(row["instance_ids"].items(), key=lambda kv: kv[1]):  # a loop over instances
             lib, matrix = row["selections"][name], instances[name][1]
+            if name in row.get("placement", {}):  # a placement jitter: the pose shown
+                matrix = np.asarray(row["placement"][name]["object_to_scene"], dtype=np.float64)
             _, centre = bop.model_frame(meshes[lib].vertices, 1.0)
             gts.append((int(iid), obj_id[bop.ModelKey(lib, round(bop.similarity_scale(matrix), bop.SCALE_DECIMALS))],
                         matrix, centre))

@@ -16,7 +16,9 @@
    substituted by its library field on the grids; per object, both through the networks from a
    side the capture never saw (next to the ground-truth render: object completion);
 7. render two random instance replacements on the grids;
-8. export the stage as one ``.usdz``;
+8. export the stage as one ``.usdz`` for other tools (:data:`DEMO_EXPORT`): the scene less the
+   substituted instances meshed in, every library object's source mesh with its materials,
+   rigid bodies and colliders;
 9. write ``report.html`` with every image, the registration table, loss curves and timings.
 
 Layout of ``out``::
@@ -24,7 +26,7 @@ Layout of ``out``::
     report.html, report/           the report (open it in a browser)
     summary.json                   everything the report shows, as numbers
     stage/<room>.usda + assets     the stage; registration/<instance>.json per registration
-    <room>.usdz                    the same stage as one package
+    <room>.usdz                    the same stage as one package, the edit meshed in
     renders/scene/, renders/substitute/   orbit views (contact_sheet.png, sequence.gif, ...)
     renders/completion.png         per object: ground truth | scene field | substituted
     replacements/seed_1/, seed_2/  random replacements (replacement.usda, views, transforms.json)
@@ -57,6 +59,8 @@ from rich.console import Console
 
 from regnf.neural_fields.cache import Cache, default_cache_dir
 from regnf.registration.metrics import BARS
+
+from .tool_export import ToolExportConfig
 
 if TYPE_CHECKING:
     from regnf.captures.model import Capture
@@ -107,6 +111,9 @@ DEMO_KIND = "demo"
 """Kind of command recorded in the demo folder's marker."""
 GRIDS_DIR = "baked"
 """Folder of the cache that holds the demo stages' baked grids (:func:`regnf.data_set_grids.cached_stage_grids`)."""
+DEMO_EXPORT = ToolExportConfig(library_cell=0.0)
+"""The export the demo writes: the library objects' source meshes render, so their fields' proxies
+stay the stage's (colliders and the proxy purpose)."""
 REMADE = ("stage", "renders", "replacements", "report")
 """Folders of ``out`` made again from scratch on every run (an earlier demo's are removed)."""
 
@@ -356,12 +363,13 @@ def _run_demo(folder: OutputFolder, config: DemoConfig, cache: Cache | None) -> 
     from regnf.compositor.stage_config import StageCompositeConfig
     from regnf.core.atomic_io import write_json
     from regnf.neural_fields.baked_field import BakeConfig
-    from regnf.scene_graph import export_stage, new_stage, validate_stage
+    from regnf.scene_graph import new_stage, validate_stage
     from regnf.synthetic.capture import RoomCaptureConfig
     from regnf.synthetic.rooms import ROOM_CONTENTS, make_room
 
     from .data_set_grids import cached_stage_grids
     from .report import write_report
+    from .tool_export import export_for_tools
 
     t_start = time.perf_counter()
     out = folder.path
@@ -418,8 +426,9 @@ def _run_demo(folder: OutputFolder, config: DemoConfig, cache: Cache | None) -> 
             res = replace_and_render(stage, seed, out / "replacements" / f"seed_{seed}", cameras, cfg, grids=grids)
             replacements.append({"seed": seed, "selections": res.selections})
     usdz = out / f"{config.room}.usdz"
-    with log.step("export the .usdz", "one self-contained package"):
-        export_stage(stage, usdz)
+    with log.step("export the .usdz", "one self-contained package for other tools: the edit meshed in, "
+                  "source meshes with their materials, physics"):
+        export_for_tools(stage, [usdz], DEMO_EXPORT)
         validation = validate_stage(usdz)
 
     summary = _summary(config, out, stage, usdz, log, registrations, discovery, renders, completion,

@@ -1,14 +1,27 @@
 """Scripted synthetic scene generation: many random instance replacements of one stage.
 
 Each variant is one seed. Its instances are swapped for random library objects of their
-class (:func:`regnf.compositor.replace.pick_replacements`), the composite is rendered from ``K``
-orbit cameras (RGB, depth, instance masks, a contact sheet, ``render.json``), labelled with a
-class image per view, its camera's exposure and white balance varied from the seed
-(:mod:`regnf.variation`), and described by the formats asked for (``format``: a nerfstudio
-``transforms.json``, COCO annotations; :mod:`regnf.variant_labels`); its replacement layer goes
-beside the base stage, and a row of ``manifest.jsonl`` records it with each instance's 3D box
-(:mod:`regnf.manifest`). Instance images hold instance ids 1..n, 0 for the background and the
-room, in every format. Layout of ``out``::
+class (:func:`regnf.compositor.replace.pick_replacements`), each optionally turned and moved
+on its support plane where that collides with nothing (``jitter_yaw_deg``, ``jitter_shift``:
+:mod:`regnf.placement_jitter`; the captured objects stay removed where they were), the
+composite is rendered from ``K`` orbit cameras (RGB, depth, instance masks, a contact sheet,
+``render.json``), labelled with a class image per view, its camera's exposure and white
+balance varied from the seed (:mod:`regnf.variation`), and described by the formats asked for
+(``format``: a nerfstudio ``transforms.json``, COCO annotations; :mod:`regnf.variant_labels`);
+its replacement layer (the selections, and the moved instances' poses) goes beside the base
+stage, and a row of ``manifest.jsonl`` records it with each instance's 3D box and, with a
+placement jitter, each instance's placement (:mod:`regnf.manifest`). Instance images hold
+instance ids 1..n, 0 for the background and the room, in every format; 3D boxes and BOP poses
+are those of the poses shown.
+
+The cameras (``camera_source``) are an orbit inside the scene's bounds, turned by a seeded
+azimuth per variant, or ``cameras.n`` frames of a capture the user names (``capture``, any
+capture format; :func:`capture_views`): each variant's own seeded choice of frames
+(:func:`variant_frames`), or the same evenly spaced ones, posed and with the intrinsics the
+capture has, ``cameras.width`` wide at the capture's aspect ratio. Their frame indices are in
+the variant's manifest row, ``transforms.json`` and ``render.json`` (``capture_frames``); the
+capture's path and identity (frame count, size, a digest of its cameras) in ``generation.json``,
+the identity in the config_key. Layout of ``out``::
 
     .regnf-output.json               marker: a folder made by regnf generate (regnf.core.output_dir)
     .regnf.lock                      the lock a run holds (regnf.core.file_lock)
@@ -44,9 +57,9 @@ unprotected.
 With ``render.renderer`` ``baked``, the fields are baked once per data set, before the first
 variant (:func:`bake_for_data_set`): the scene less its removal regions (the same in every
 variant) and every library object a variant may show, each at the finest cell its places in
-the scene need for the orbit's pixel footprint, each on one CPU thread (the same grids on any
-machine). The grids go to ``baked/`` and every worker reads them there; a rerun keeps them when
-their record and digests check out. Every sphere-tracing step of a variant then reads grids
+the scene need for the views' pixel footprint (the orbit's; or every capture frame a variant
+may take), each on one CPU thread (the same grids on any machine). The grids go to ``baked/``
+and every worker reads them there; a rerun keeps them when their record and digests check out. Every sphere-tracing step of a variant then reads grids
 (trilinear look-ups), not networks; ``regnf bench render`` measures what that costs in PSNR.
 
 Variants run as independent tasks on an executor (:mod:`regnf.core.executors`): a local process
@@ -77,7 +90,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any, Literal, NamedTuple
 
 import numpy as np
 
@@ -100,8 +113,17 @@ from regnf.neural_fields.camera import Camera
 from .bop import BOP_DIR
 from .coco import COCO_DIR
 from .data_set_formats import write_bop, write_coco
+from .generate_cameras import (
+    CaptureViews,
+    at_capture_size,
+    capture_views,
+    variant_cameras,
+    variant_frames,
+)
 from .generate_disk import check_generation_disk, variant_bytes
 from .manifest import MANIFEST_NAME, append_row, read_manifest, sealed, sha256_file, write_manifest
+from .placement_jitter import check_ranges as check_jitter_ranges
+from .placement_jitter import manifest_entry, record_in_layer
 from .variant_labels import (
     instance_boxes,
     parse_formats,
@@ -170,15 +192,31 @@ class GenerateConfig:
     """Orbit of cameras inside the scene's bounds; n is the number of views per variant (at most
     :data:`MAX_VIEWS`), and a view has at most width * height = 4096 * 4096 pixels
     (:data:`regnf.compositor.render_folder.MAX_PIXELS`: a view is rendered whole in memory)."""
+    camera_source: Literal["orbit", "capture"] = "orbit"
+    """Where the views' cameras come from: ``orbit`` (``cameras``) or ``capture``: cameras.n frames
+    of the capture named by ``capture`` (each variant its own seeded choice with
+    ``jitter_cameras``, else the same evenly spaced frames), posed and with their intrinsics as the
+    capture has them. Capture views are cameras.width wide with the capture's aspect ratio
+    (cameras.height is not used; K scaled to that size), so every label is of the capture's camera."""
+    capture: Path | None = None
+    """The capture folder (any capture format: sdfstudio, nerfstudio, scannet) whose frames are the
+    cameras of ``camera_source`` ``capture``; nothing else is read from it. Not given otherwise."""
     exposure_stops: float = 0.0
     """Largest exposure change of a variant's camera, stops (0 to 4; each variant draws one
     from its seed, :mod:`regnf.variation`, recorded in its manifest row)."""
     white_balance: float = 0.0
     """Largest white-balance gain change of a variant's camera per channel, a fraction (0 to
     below 1; drawn and recorded as the exposure is)."""
+    jitter_yaw_deg: float = 0.0
+    """Largest turn of each instance about the scene's up axis through its own origin (its
+    base), degrees (0 to 180; drawn per variant from its seed, :mod:`regnf.placement_jitter`, kept
+    only where the instance collides with nothing, recorded in the manifest row). 0: no turn."""
+    jitter_shift: float = 0.0
+    """Largest move of each instance along its support plane, metres (0 to 0.5; drawn and kept
+    as the turn is). 0: no move."""
     jitter_cameras: bool = True
     """Turn each variant's orbit by a random azimuth (from its seed) so the variants see the room from
-    different places."""
+    different places; with capture cameras, each variant takes its own random frames (from its seed)."""
     composite: StageCompositeConfig = field(default_factory=StageCompositeConfig)
     """Removal settings of the substituted instances (the mode is always substitute)."""
     render: RenderConfig = field(default_factory=lambda: RenderConfig(progress=False, views_per_trace=16))
@@ -211,7 +249,15 @@ class GenerateConfig:
         if self.cameras.n > MAX_VIEWS:
             raise ValueError(f"views per variant must be at most {MAX_VIEWS:,}, got {self.cameras.n}")
         check_image_size(self.cameras.width, self.cameras.height, "cameras: a view")
+        if self.camera_source not in ("orbit", "capture"):
+            raise ValueError(f"camera_source must be orbit or capture, got {self.camera_source!r}")
+        if self.camera_source == "capture" and self.capture is None:
+            raise ValueError("camera_source capture needs the capture folder (--camera-source capture --capture DIR)")
+        if self.camera_source == "orbit" and self.capture is not None:
+            raise ValueError(f"capture {self.capture} is read with camera_source capture only; give "
+                             "--camera-source capture too, or leave --capture out for orbit cameras")
         check_ranges(self.exposure_stops, self.white_balance)
+        check_jitter_ranges(self.jitter_yaw_deg, self.jitter_shift)
         if (self.exposure_stops or self.white_balance) and self.render.sequence != "none":
             raise ValueError("a varied exposure or white balance and render.sequence cannot go together "
                              "(the sequence would show the views before the variation)")
@@ -238,6 +284,13 @@ class GenerateConfig:
             "appearance": {"exposure_stops": self.exposure_stops, "white_balance": self.white_balance},
             "cameras": dataclasses.asdict(self.cameras),
             "jitter_cameras": self.jitter_cameras,
+            # Only with a placement jitter: data sets without one keep the settings (and the
+            # resumption) of those made before it.
+            **({"placement": {"jitter_yaw_deg": self.jitter_yaw_deg, "jitter_shift": self.jitter_shift}}
+               if self.jitter_yaw_deg or self.jitter_shift else {}),
+            # Only for capture cameras (the capture itself is keyed by prepare_output): orbit data
+            # sets keep the settings (and the resumption) of those made before them.
+            **({"camera_source": self.camera_source} if self.camera_source != "orbit" else {}),
             "composite": dataclasses.asdict(dataclasses.replace(self.composite, mode="substitute")),
             # The grids' settings change the files of the baked renderer only; left out of the
             # others, they keep the settings (and the resumption) of data sets made before them.
@@ -275,6 +328,10 @@ class VariantTask(NamedTuple):
     """The data set's formats (:data:`regnf.variant_labels.FORMATS`)."""
     appearance: tuple[float, float] = (0.0, 0.0)
     """Largest exposure change (stops) and white-balance change (fraction) of the variant."""
+    frames: tuple[int, ...] | None = None
+    """With capture cameras, the capture frames its cameras are (indices, one per view); None: an orbit."""
+    placement: tuple[float, float] = (0.0, 0.0)
+    """Largest turn (degrees) and move (metres) of each instance (:mod:`regnf.placement_jitter`)."""
 
 
 class VariantOutput(NamedTuple):
@@ -294,6 +351,11 @@ class VariantOutput(NamedTuple):
     """Instance id -> its 3D box (:func:`regnf.variant_labels.instance_boxes`)."""
     appearance: dict[str, Any]
     """The camera appearance drawn for the variant (:mod:`regnf.variation`)."""
+    frames: tuple[int, ...] | None = None
+    """The capture frames of its views (:attr:`VariantTask.frames`); None: an orbit."""
+    placement: dict[str, Any] | None = None
+    """Instance id -> its placement jitter (:func:`regnf.placement_jitter.manifest_entry`); None:
+    no jitter asked for."""
 
 
 class GenerationReport(NamedTuple):
@@ -327,18 +389,6 @@ def variant_name(seed: int) -> str:
 def layer_name(seed: int) -> str:
     """File name of a variant's replacement layer."""
     return f"variant_{variant_name(seed)}.usda"
-
-
-def variant_cameras(bounds: np.ndarray, config: GenerateConfig, seed: int) -> list[Camera]:
-    """The cameras of variant ``seed``: the configured orbit, turned by a seeded azimuth if jittered."""
-    orbit = config.cameras
-    if config.jitter_cameras:
-        # A generator of its own (not the replacement choices'), so the choices stay those of
-        # `regnf replace --seed`.
-        rng = np.random.default_rng([seed, 1])
-        offset = orbit.azimuth_offset_deg + float(rng.uniform(0.0, 360.0 / orbit.n))
-        orbit = dataclasses.replace(orbit, azimuth_offset_deg=offset)
-    return orbit_around_bounds(bounds, orbit)
 
 
 # Per worker process: the stage as read and its loaded fields, kept across the variants it runs.
@@ -382,6 +432,9 @@ def render_variant(task: VariantTask) -> VariantOutput:
     comp = composite_from_scene(swapped(scene, selections), _WORKER_CACHE["originals"], base,
                                 dataclasses.replace(task.composite, mode="substitute"), task.device,
                                 loaded=_WORKER_CACHE["fields"])
+    placed = None
+    if any(task.placement):
+        comp, placed = _jittered(task, scene, selections, comp)
     shown = {iid: inst.library_name for iid, inst in comp.scene.instances.items()}
     if shown != selections:
         raise RuntimeError(f"the composite shows {shown}, expected {selections}")
@@ -389,8 +442,10 @@ def render_variant(task: VariantTask) -> VariantOutput:
     if task.baked is not None:
         field = _with_data_set_grids(comp, selections, Path(task.baked), task.device)
     rel_layer = f"../../{STAGE_DIR}/{task.layer_name}"
+    # Capture cameras: the frames the views are, in render.json and transforms.json too.
+    shot = {} if task.frames is None else {"capture_frames": list(task.frames)}
     metadata = {"stage": rel_layer, "mode": "substitute", "seed": task.seed, "selections": selections,
-                "instance_ids": comp.instance_ids}
+                "instance_ids": comp.instance_ids, **shot}
     with tempfile.TemporaryDirectory(prefix=f"{variant_name(task.seed)}-", dir=task.scratch) as tmp:
         report = render_views(field, task.cameras, tmp, task.render, metadata)
         look = draw_appearance(task.seed, *task.appearance)
@@ -398,7 +453,8 @@ def render_variant(task: VariantTask) -> VariantOutput:
         if "nerfstudio" in task.formats:
             extra = {"seed": task.seed, "stage": rel_layer, "selections": selections,
                      "instance_ids": comp.instance_ids,
-                     "instance_png": "uint16 instance id, 0 background and scene", "depth_unit_scale_factor": 1e-3}
+                     "instance_png": "uint16 instance id, 0 background and scene", "depth_unit_scale_factor": 1e-3,
+                     **shot}
             tj = transforms_json(task.cameras, report.views, extra)
             (Path(tmp) / "transforms.json").write_text(json.dumps(tj, indent=2) + "\n")
         write_labels(Path(tmp), len(task.cameras), scene, selections, comp.instance_ids,
@@ -412,8 +468,28 @@ def render_variant(task: VariantTask) -> VariantOutput:
         files = {p.name: p.read_bytes() for p in sorted(Path(tmp).iterdir())
                  if p.is_file() and not p.name.startswith(".")}
     return VariantOutput(task.seed, selections, comp.instance_ids, files, time.perf_counter() - t0,
-                         instance_boxes(scene, selections, comp.instance_ids),
-                         {"exposure_stops": look.stops, "white_balance": list(look.gains)})
+                         instance_boxes(comp.scene, selections, comp.instance_ids),
+                         {"exposure_stops": look.stops, "white_balance": list(look.gains)}, frames=task.frames,
+                         placement=None if placed is None else manifest_entry(placed))
+
+
+def _jittered(task: VariantTask, scene: Any, selections: dict[str, str], comp: Any) -> tuple[Any, dict[str, Any]]:
+    """The variant's composite ``comp`` (every instance where it was captured) with its instances
+    jittered (:mod:`regnf.placement_jitter`), and their placements. The original objects stay
+    removed where they were captured."""
+    from regnf.compositor.from_stage import composite_from_scene
+
+    from .placement_jitter import collision_test, draw_placements, moved_scene
+
+    test = collision_test(comp.field, {i: scene.library[name].proxy for i, name in selections.items()},
+                          comp.instance_ids)
+    placed = draw_placements(task.seed, {i: r.object_to_scene for i, r in comp.scene.instances.items()},
+                             *task.placement, test)
+    moved = composite_from_scene(moved_scene(comp.scene, placed), _WORKER_CACHE["originals"], Path(task.base_stage),
+                                 dataclasses.replace(task.composite, mode="substitute"), task.device,
+                                 loaded=_WORKER_CACHE["fields"],
+                                 removal_poses={i: r.object_to_scene for i, r in scene.instances.items()})
+    return moved, placed
 
 
 def _with_data_set_grids(comp: Any, selections: dict[str, str], index: Path, device: str) -> Any:
@@ -493,7 +569,8 @@ def check_source(stage: str | os.PathLike, out: str | os.PathLike) -> None:
 
 
 def prepare_output(stage: str | os.PathLike, out: str | os.PathLike, config: GenerateConfig,
-                   source: dict[str, Any] | None = None) -> tuple[Path, str]:
+                   source: dict[str, Any] | None = None,
+                   capture: CaptureViews | None = None) -> tuple[Path, str]:
     """Claim ``out``, check or write ``generation.json``, export the base stage; return (base, config_key).
 
     The export is done once: a rerun whose ``generation.json`` records the same settings and
@@ -513,13 +590,17 @@ def prepare_output(stage: str | os.PathLike, out: str | os.PathLike, config: Gen
     source : dict, optional
         What of the source stage the variants depend on (:func:`source_summary`), if the
         caller has read it already.
+    capture : CaptureViews, optional
+        With capture cameras, the capture (:func:`capture_views`), if the caller has read it
+        already. Its identity is part of the config_key, and generation.json records it and
+        its path (the path is not keyed: the same capture elsewhere gives the same data set).
 
     Raises
     ------
     ValueError
         The source stage is inside ``out/stage/``; ``out`` is refused
         (:class:`regnf.core.output_dir.OutputFolderError`); ``out`` holds a data set of another
-        stage or other settings (naming the file); the stage cannot be read.
+        stage, capture or other settings (naming the file); the stage or the capture cannot be read.
     """
     from regnf.scene_graph import export_stage
 
@@ -527,9 +608,14 @@ def prepare_output(stage: str | os.PathLike, out: str | os.PathLike, config: Gen
     out = Path(out).absolute()
     check_source(src, out)
     source = source_summary(src) if source is None else source  # a stage that cannot be read: nothing written
+    if capture is None:
+        capture = capture_views(config)  # nor a capture that cannot be
+    config = at_capture_size(config, capture)
     claim_output_dir(out, KIND, config.reuse, _legacy_entries)
     settings = config.output_settings()
-    key = _settings_key({"settings": settings, "source": source})
+    # Orbit data sets: the key of those made before capture cameras.
+    shots = {} if capture is None else {"capture": capture.identity}
+    key = _settings_key({"settings": settings, "source": source, **shots})
     meta_path = out / GENERATION_JSON
     base = out / STAGE_DIR / (src.stem + ".usda")
     recorded = False
@@ -540,6 +626,10 @@ def prepare_output(stage: str | os.PathLike, out: str | os.PathLike, config: Gen
             raise ValueError(f"{meta_path}: unreadable ({exc.problem}); remove it or choose another output "
                              "folder") from exc
         if meta.get("config_key") != key:
+            before = meta.get("capture") if isinstance(meta.get("capture"), dict) else {}
+            if capture is not None and before.get("cameras_sha256") != capture.identity["cameras_sha256"]:
+                raise ValueError(f"{meta_path}: {out} holds variants of another capture than {capture.path} "
+                                 f"(or of orbit cameras); choose another output folder")
             raise ValueError(f"{meta_path}: {out} holds variants of another stage or other settings "
                              f"(config_key {meta.get('config_key')}, now {key}); choose another output folder")
         rel = Path(str(meta.get("base_stage", base.relative_to(out))))
@@ -552,7 +642,8 @@ def prepare_output(stage: str | os.PathLike, out: str | os.PathLike, config: Gen
         # complete; otherwise what is there is (part of) an export that the new one completes.
         export_stage(src, base)
     write_json(meta_path, {"config_key": key, "source_stage": str(src), "base_stage": str(base.relative_to(out)),
-                           "settings": settings, "source": source})
+                           "settings": settings, "source": source,
+                           **({} if capture is None else {"capture": {"path": str(capture.path), **capture.identity}})})
     return base, key
 
 
@@ -593,6 +684,9 @@ def commit_variant(out: Path, base: Path, output: VariantOutput, key: str) -> di
         for fname, data in output.files.items():
             (staging / _plain_name(fname)).write_bytes(data)
         layer = make_replacement_layer(base, output.selections, base.parent / layer_name(output.seed))
+        if output.placement:  # the moved instances' poses, so that the layer composes to the views
+            record_in_layer(layer, {i: np.asarray(p["object_to_scene"]) for i, p in output.placement.items()
+                                    if p["moved"]})
         replace_entry(staging, final)
     files = {f: sha256_file(final / f) for f in sorted(output.files) if f not in UNHASHED}
     views = sum(1 for f in output.files if f.startswith("rgb_"))
@@ -602,6 +696,8 @@ def commit_variant(out: Path, base: Path, output: VariantOutput, key: str) -> di
         "layer_sha256": sha256_file(layer), "selections": output.selections,
         "instance_ids": output.instance_ids, "boxes": output.boxes, "appearance": output.appearance,
         "views": views, "files": files,
+        **({} if output.frames is None else {"capture_frames": list(output.frames)}),
+        **({} if output.placement is None else {"placement": output.placement}),
     })
 
 
@@ -644,7 +740,9 @@ def generate(
         ``config.allow_size_change``); ``out`` holds files regnf generate did
         not make and ``config.reuse`` is off (:class:`regnf.core.output_dir.OutputFolderError`);
         ``out`` holds a data set of other settings; the stage cannot be read (a
-        ``scene_graph.StageError`` naming the file). Nothing is written then.
+        ``scene_graph.StageError`` naming the file); with capture cameras, the capture is
+        missing or not a capture (a ``CaptureError`` naming the file) or has fewer frames than
+        ``cameras.n``. Nothing is written then.
     regnf.core.file_lock.LockBusy
         Another run is writing into ``out`` (a ``RuntimeError``); nothing is written.
     regnf.core.file_lock.LockUnavailable
@@ -654,13 +752,15 @@ def generate(
     out = Path(out).absolute()
     # The source is checked and read before the folder is claimed: a refusal writes nothing.
     check_source(stage, out)
+    capture = capture_views(config)  # capture cameras: the capture read and checked, or one line
+    config = at_capture_size(config, capture)
     if not config.allow_size_change:
         check_variant_sizes(Path(stage).absolute())
     source = source_summary(Path(stage).absolute())
     check_generation_disk(stage, out, config)
     with owned_output_dir(out, KIND, config.reuse, "the data set folder", _legacy_entries):
         _remove_leftovers(out)
-        base, key = prepare_output(stage, out, config, source)
+        base, key = prepare_output(stage, out, config, source, capture)
         state = read_manifest(out, key)
         rows = dict(state.rows)
         done = [s for s in config.seeds if s in rows and (rows[s]["status"] == "ok" or not config.retry_failed)]
@@ -673,7 +773,8 @@ def generate(
         failed: dict[int, str] = {}
         timings: dict[str, float] = {}
         if todo:
-            _make_variants(out, base, key, config, todo, rows, made, failed, progress, on_variant, timings)
+            _make_variants(out, base, key, config, todo, rows, made, failed, progress, on_variant, timings,
+                           capture)
             write_manifest(out, rows.values())  # sorted by seed again
         if "coco" in config.formats:
             write_coco(out, rows, config.cameras.n, source)
@@ -684,9 +785,10 @@ def generate(
 
 def _make_variants(out: Path, base: Path, key: str, config: GenerateConfig, todo: list[int],
                    rows: dict[int, dict[str, Any]], made: list[int], failed: dict[int, str], progress: bool,
-                   on_variant: Callable[[dict[str, Any]], None] | None, timings: dict[str, float]) -> None:
+                   on_variant: Callable[[dict[str, Any]], None] | None, timings: dict[str, float],
+                   capture: CaptureViews | None = None) -> None:
     """Run the variants of ``todo`` and commit each as it finishes (``rows``, ``made``, ``failed``
-    and ``timings`` are updated)."""
+    and ``timings`` are updated); their cameras are ``capture``'s frames when it is given."""
     from regnf.compositor.cameras_io import field_bounds_metres
     from regnf.compositor.from_stage import composite_from_stage
 
@@ -709,20 +811,27 @@ def _make_variants(out: Path, base: Path, key: str, config: GenerateConfig, todo
         if render.renderer == "baked":
             from .data_set_grids import bake_for_data_set
 
-            # The orbit unturned: the turns move the cameras around, not nearer or farther.
-            orbit = orbit_around_bounds(bounds, config.cameras)
+            # The orbit unturned: the turns move the cameras around, not nearer or farther. Capture
+            # cameras: every frame a variant may take (the same frames for all, unjittered).
+            if capture is None:
+                orbit = orbit_around_bounds(bounds, config.cameras)
+            elif config.jitter_cameras:
+                orbit = capture.cameras
+            else:
+                orbit = variant_cameras(bounds, config, config.first_seed, capture)
             index, timings["bake"] = bake_for_data_set(base, out / BAKED_DIR, key, orbit, render.bake,
                                                        config.composite, config.device, progress,
                                                        reserve_bytes=len(todo) * variant_bytes(config))
             baked = str(index)
         _run_variants(out, base, key, config, todo, rows, made, failed, progress, on_variant, bounds, render,
-                      baked, stack, warm)
+                      baked, stack, warm, capture)
 
 
 def _run_variants(out: Path, base: Path, key: str, config: GenerateConfig, todo: list[int],
                   rows: dict[int, dict[str, Any]], made: list[int], failed: dict[int, str], progress: bool,
                   on_variant: Callable[[dict[str, Any]], None] | None, bounds: np.ndarray, render: RenderConfig,
-                  baked: str | None, stack: contextlib.ExitStack, warm: Any) -> None:
+                  baked: str | None, stack: contextlib.ExitStack, warm: Any,
+                  capture: CaptureViews | None = None) -> None:
     """The variants of :func:`_make_variants`, :data:`TASKS_PER_BATCH` at a time; the first
     batch in the pool ``warm`` (started early, closed with ``stack``) when there is one."""
     from tqdm import tqdm
@@ -732,9 +841,12 @@ def _run_variants(out: Path, base: Path, key: str, config: GenerateConfig, todo:
     # or, if this run is killed, when the next one takes the lock.
     with staging_dir(out, WORK_LABEL) as scratch:
         for first in range(0, len(todo), TASKS_PER_BATCH):
-            tasks = [VariantTask(str(base), s, variant_cameras(bounds, config, s), layer_name(s), config.composite,
-                                 render, config.device, str(scratch), baked, config.formats,
-                                 (config.exposure_stops, config.white_balance))
+            tasks = [VariantTask(str(base), s, variant_cameras(bounds, config, s, capture), layer_name(s),
+                                 config.composite, render, config.device, str(scratch), baked, config.formats,
+                                 (config.exposure_stops, config.white_balance),
+                                 placement=(config.jitter_yaw_deg, config.jitter_shift),
+                                 frames=None if capture is None else tuple(variant_frames(config, s,
+                                                                                          len(capture.cameras))))
                      for s in todo[first:first + TASKS_PER_BATCH]]
             # Later batches in pools of their own: a worker that died (killed, out of memory)
             # breaks its pool, and fails that batch's remaining variants only.
