@@ -4,7 +4,8 @@ with Cycles from the job's camera (OpenCV axes, pixel centres at ``u + 0.5``), a
 render, the imported scene meshes' vertices in world coordinates and a report (with the materials the importer gave each instance).
 
 Usage: ``python blender_render.py JOB.json`` (keys: stage, K, width, height, camera_to_world,
-colors {instance: rgb}, places {instance: translation}, png, scene_points, report).
+colors {instance: rgb}, places {instance: translation}, png, scene_points, report; optionally
+alone {instance: png}: each instance rendered again with nothing else).
 """
 
 from __future__ import annotations
@@ -85,6 +86,14 @@ def main(job: dict) -> None:
     scene.render.image_settings.file_format = "PNG"
     scene.render.filepath = job["png"]
     bpy.ops.render.render(write_still=True)
+    # Each instance alone (``alone``: instance -> png): its whole silhouette, nothing in front.
+    for name, png in job.get("alone", {}).items():
+        for o in meshes:
+            o.hide_render = instance_of(o) != name
+        scene.render.filepath = png
+        bpy.ops.render.render(write_still=True)
+    for o in meshes:
+        o.hide_render = False
 
     rest = [o for o in meshes if instance_of(o) is None]
     points = [np.array([tuple(v.co) for v in o.data.vertices]) @ np.array(o.matrix_world)[:3, :3].T
