@@ -42,7 +42,6 @@ def write_bop(out: Path, base: Path, rows: dict[int, dict[str, Any]], made: set[
               source: dict[str, Any]) -> list[str]:
     """Write the BOP layout (:mod:`regnf.bop`): the models, and a scene for each finished variant
     made in this run or not yet in ``bop/``; return the notes to show."""
-    import trimesh
 
     from regnf.scene_graph import read_stage
 
@@ -53,10 +52,7 @@ def write_bop(out: Path, base: Path, rows: dict[int, dict[str, Any]], made: set[
                  for i, r in scene.instances.items()}
     keys = bop.model_keys(source["library"], instances)
     obj_id = {key: k + 1 for k, key in enumerate(keys)}
-    meshes = {name: trimesh.Trimesh(rec.proxy.points, rec.proxy.faces, process=False,
-                                    vertex_colors=None if rec.proxy.colors is None
-                                    else np.round(255 * np.clip(rec.proxy.colors, 0, 1)).astype(np.uint8))
-              for name, rec in scene.library.items()}
+    meshes = {name: model_mesh(rec) for name, rec in scene.library.items()}
     root = out / bop.BOP_DIR
     bop.write_models(root, keys, meshes, {n: r.symmetry_order for n, r in scene.library.items()})
     split = root / bop.SPLIT
@@ -83,7 +79,42 @@ def write_bop(out: Path, base: Path, rows: dict[int, dict[str, Any]], made: set[
         with staging_dir(split, _variant_name(seed)) as staging:
             bop.write_scene(staging, out / row["variant"], cams, gts, masks)
             replace_entry(staging, final)  # an earlier scene of this seed goes aside, then away
-    return ["BOP models are the library fields' meshes as the stage holds them (the stage has no source meshes)"]
+    fallback = sorted(n for n in {k.library_name for k in keys} if scene.library[n].source_mesh is None)
+    if not fallback:
+        return []
+    return [(f"BOP models of {', '.join(fallback)} are their fields' meshes as the stage holds them "
+            "(no source mesh: not distilled from a mesh)")]
+
+
+def model_mesh(rec: Any) -> Any:
+    """A library object's BOP model: its source mesh (its colours per vertex, a face's colour on
+    corners of its own; a texture sampled at the vertices), else its field's mesh from the stage."""
+    import trimesh
+
+    src = rec.source_mesh
+    if src is None:
+        colors = rec.proxy.colors
+        return trimesh.Trimesh(rec.proxy.points, rec.proxy.faces, process=False,
+                               vertex_colors=None if colors is None
+                               else np.round(255 * np.clip(colors, 0, 1)).astype(np.uint8))
+    if src.face_colors is not None:
+        # One vertex per face corner, so that each face keeps its own colour.
+        corners = np.asarray(src.points, np.float64)[np.asarray(src.faces).reshape(-1)]
+        rgb = np.repeat(np.round(255 * np.asarray(src.face_colors)).astype(np.uint8), 3, axis=0)
+        return trimesh.Trimesh(corners, np.arange(len(corners)).reshape(-1, 3), process=False,
+                               vertex_colors=np.concatenate([rgb, np.full((len(rgb), 1), 255, np.uint8)], 1))
+    mesh = trimesh.Trimesh(src.points, src.faces, process=False)
+    if src.texture is not None:
+        import io
+
+        from PIL import Image
+
+        with Image.open(io.BytesIO(src.texture)) as im:
+            visual = trimesh.visual.TextureVisuals(uv=src.uv, image=im.convert("RGB"))
+            mesh.visual = visual.to_color()
+    else:
+        mesh.visual.vertex_colors = np.append(np.round(255 * np.asarray(src.base_color)), 255).astype(np.uint8)
+    return mesh
 
 
 def read_full_mask(path: Path) -> np.ndarray:

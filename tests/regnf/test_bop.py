@@ -146,3 +146,25 @@ def test_the_poses_project_the_models_onto_the_whole_masks(data_set: Path) -> No
                 assert iou >= 0.9, f"seed {seed} view {k} gt {g} (obj {gt['obj_id']}): IoU {iou:.3f}"
                 checked += 1
     assert checked >= 6, "too few objects in view to test anything"
+
+
+def test_a_model_is_the_library_objects_source_mesh_when_it_has_one() -> None:
+    from types import SimpleNamespace
+
+    from regnf.data_set_formats import model_mesh
+    from regnf.neural_fields.source_mesh import SourceMesh
+    from regnf.scene_graph import ProxyMesh
+
+    box = trimesh.creation.box(extents=(0.4, 0.3, 0.2))
+    colours = np.random.default_rng(0).random((len(box.faces), 3)).astype(np.float32)
+    proxy = ProxyMesh(np.zeros((3, 3), np.float32), np.array([[0, 1, 2]], np.int32), None)
+    src = SourceMesh(np.asarray(box.vertices, np.float32), np.asarray(box.faces, np.int32), np.ones(3, np.float32),
+                     colours)
+    model = model_mesh(SimpleNamespace(source_mesh=src, proxy=proxy))
+    # The same triangles, each face's corners in its own colour.
+    np.testing.assert_allclose(model.vertices[model.faces], box.vertices[box.faces], atol=1e-6)
+    rgb = np.asarray(model.visual.vertex_colors)[:, :3].reshape(-1, 3, 3)
+    np.testing.assert_array_equal(rgb, np.repeat(np.round(255 * colours).astype(np.uint8)[:, None], 3, axis=1))
+    # Without one: the field's mesh as the stage holds it.
+    plain = model_mesh(SimpleNamespace(source_mesh=None, proxy=proxy))
+    np.testing.assert_array_equal(plain.vertices, proxy.points)
