@@ -29,8 +29,6 @@ from safetensors.numpy import load_file, save_file
 
 from regnf.core.atomic_io import atomic_path
 
-from .mesh_repair import up_rotation
-
 SUFFIX = ".source-mesh.safetensors"
 """What the source mesh's file adds to its checkpoint's stem."""
 
@@ -107,6 +105,9 @@ def source_mesh_from_trimesh(mesh: trimesh.Trimesh, scale: float = 1.0, up: str 
     if len(faces) == 0 or len(faces) > MAX_FACES or not np.isfinite(points).all():
         return None
     if up != "z":
+        # Imported here: mesh_repair brings the solid-geometry libraries, which a stage reader does not need.
+        from .mesh_repair import up_rotation
+
         points = points @ up_rotation(up).T
     kind = getattr(mesh.visual, "kind", None)
     texture, uv, factor = (None, None, np.asarray(GREY, np.float32))

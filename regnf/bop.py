@@ -241,7 +241,7 @@ def write_scene(folder: Path, variant: Path, cameras: Sequence[Mapping[str, Any]
             full = next(masks) | visible
             infos.append(gt_info(full, visible, depth))
             for sub, m in (("mask", full), ("mask_visib", visible)):
-                Image.fromarray((m * 255).astype(np.uint8)).save(folder / sub / f"{k:06d}_{g:06d}.png")
+                Image.fromarray((m * 255).astype(np.uint8)).save(folder / sub / f"{k:06d}_{g:06d}.png", compress_level=1)
         scene_gt[str(k)], scene_info[str(k)] = gts, infos
     for name, data in (("scene_camera", scene_camera), ("scene_gt", scene_gt), ("scene_gt_info", scene_info)):
         write_text(folder / f"{name}.json", json.dumps(data, indent=1) + "\n")
