@@ -21,7 +21,7 @@ system-deps:
 
 setup: $(VENV)/.installed system-deps
 
-# The end-to-end demo: 3.8-4.6 minutes on 2 CPU cores the first time (set-up included), under 1 with the cache
+# The end-to-end demo: 4-5 minutes on 2 CPU cores the first time (set-up included), about 2 with the cache
 # (trained fields are reused from ~/.cache/regnf, or $$REGNF_CACHE).
 demo: setup
 	$(VENV)/bin/regnf demo --out out/demo
