@@ -157,14 +157,16 @@ def write_full_masks(folder: Path, field: Any, cameras: Sequence[Any], sphere: A
             rows, cols = np.divmod(np.flatnonzero(todo), x1 - x0)
             where.append((k, rows + y0, cols + x0))
         if origins:  # every view's undecided pixels in one trace
-            hits = trace(alone, torch.cat(origins), torch.cat(dirs), sphere, None, torch.cat(angles), torch.cat(starts))
+            # Few rays, each starting near its surface: a distance grid would cost more than it saves.
+            plain = dataclasses.replace(sphere, grid_resolution=0)
+            hits = trace(alone, torch.cat(origins), torch.cat(dirs), plain, None, torch.cat(angles), torch.cat(starts))
             hit = hits.hit.detach().cpu().numpy()
             first = 0
             for k, rows, cols in where:  # a loop over views
                 masks[k][rows, cols] |= hit[first:first + len(rows)]
                 first += len(rows)
         for k, mask in enumerate(masks):
-            Image.fromarray(mask.astype(np.uint8) * 255).save(folder / full_mask_file(k, int(iid)))
+            Image.fromarray(mask.astype(np.uint8) * 255).save(folder / full_mask_file(k, int(iid)), compress_level=1)
 
 
 FULL_MASK_MARGIN = 0.005
