@@ -4,11 +4,13 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 import trimesh
 
 from regnf.cli import main
 from regnf.neural_fields.checkpoint import load_field
+from regnf.neural_fields.source_mesh import read_source_mesh, source_mesh_file
 from tests.neural_fields.capture_helpers import write_analytic_capture
 from tests.regnf.cli_helpers import assert_fails
 
@@ -34,6 +36,11 @@ def test_command_help_explains_options(capsys: pytest.CaptureFixture[str]) -> No
     assert "--cache-dir" in out and "Cache directory" in out
 
 
+def checkpoints(cache: Path) -> list[Path]:
+    """The cache's field checkpoints (not the source meshes kept beside them)."""
+    return sorted(p for p in (cache / "fields").glob("*.safetensors") if not p.name.endswith(".source-mesh.safetensors"))
+
+
 def test_distill_uses_the_cache_and_meshes(tmp_path: Path) -> None:
     box = trimesh.creation.box(extents=(0.4, 0.3, 0.2))
     box.apply_translation((0.0, 0.0, 0.1))
@@ -42,18 +49,22 @@ def test_distill_uses_the_cache_and_meshes(tmp_path: Path) -> None:
     cache = tmp_path / "cache"
     args = ["distill", "--mesh", str(mesh_path), "--steps", "5", "--label", "box", "--cache-dir", str(cache)]
     assert main([*args, "--out", str(tmp_path / "a.safetensors")]) == 0
-    made = sorted((cache / "fields").glob("*.safetensors"))
+    made = checkpoints(cache)
     assert len(made) == 1
+    # The mesh comes along for other tools, in the cache and beside --out.
+    kept = source_mesh_file(made[0])
+    assert source_mesh_file(tmp_path / "a.safetensors").read_bytes() == kept.read_bytes()
+    np.testing.assert_allclose(read_source_mesh(made[0]).points, box.vertices, atol=1e-6)
     stamp = made[0].stat().st_mtime_ns
     # Same mesh, same settings: reused, not distilled again.
     assert main([*args, "--out", str(tmp_path / "b.safetensors")]) == 0
-    assert sorted((cache / "fields").glob("*.safetensors")) == made
+    assert checkpoints(cache) == made
     assert made[0].stat().st_mtime_ns == stamp
     assert (tmp_path / "a.safetensors").read_bytes() == made[0].read_bytes() == (tmp_path / "b.safetensors").read_bytes()
     assert load_field(tmp_path / "a.safetensors").label == "box"
     # A different setting is a different field.
     assert main([*args[:-2], "--steps", "6", "--cache-dir", str(cache)]) == 0
-    assert len(list((cache / "fields").glob("*.safetensors"))) == 2
+    assert len(checkpoints(cache)) == 2
     assert main(["mesh", "--field", str(made[0]), "--out", str(tmp_path / "m.ply"), "--resolution", "32"]) == 0
     assert len(trimesh.load(tmp_path / "m.ply").faces) > 0
 
@@ -74,7 +85,7 @@ def test_train_from_a_capture_folder(tmp_path: Path) -> None:
     assert len(list((cache / "fields").glob("*.safetensors"))) == 1
     # The edge loss is a training setting: another field, with the weight in its provenance.
     assert main([*args, "--edge-weight", "1", "--out", str(tmp_path / "e.safetensors")]) == 0
-    assert len(list((cache / "fields").glob("*.safetensors"))) == 2
+    assert len(checkpoints(cache)) == 2
     assert load_field(tmp_path / "e.safetensors").info.provenance["train_config"]["w_edge"] == 1.0
     assert main([*args, "--outline-weight", "1", "--out", str(tmp_path / "o.safetensors")]) == 0
     assert len(list((cache / "fields").glob("*.safetensors"))) == 3
