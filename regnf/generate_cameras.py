@@ -27,8 +27,9 @@ if TYPE_CHECKING:
 
 CAPTURE_FRAMES_STREAM = 11
 """Second seed word of a variant's random choice of capture frames (``default_rng([seed,
-STREAM])``): a stream of its own, apart from the orbit's turn (1) and the appearance's
-(:data:`regnf.variation.STREAM`, 7), so neither changes what the other draws."""
+STREAM])``): a stream of its own, apart from the orbit's turn (1), the appearance's
+(:data:`regnf.variation.STREAM`, 7) and the placement's (:data:`regnf.placement_jitter.STREAM`,
+13), so none changes what another draws."""
 
 
 class CaptureViews(NamedTuple):

@@ -32,9 +32,10 @@ from typing import Any, NamedTuple
 import numpy as np
 import torch
 
-STREAM = 11
-"""Second seed word of the placement's random stream (``default_rng([seed, STREAM])``);
-:data:`regnf.variation.STREAM` is 7."""
+STREAM = 13
+"""Second seed word of the placement's random stream (``default_rng([seed, STREAM])``), apart
+from the appearance's (:data:`regnf.variation.STREAM`) and the capture frames'
+(:data:`regnf.generate_cameras.CAPTURE_FRAMES_STREAM`)."""
 TRIES = 20
 """Candidate placements drawn per instance; the first free one is kept."""
 TRIES_PER_BATCH = 5
@@ -42,9 +43,8 @@ TRIES_PER_BATCH = 5
 TOLERANCE = 0.01
 """Metres a surface point may lie inside the scene or another object without a collision."""
 FLOOR_CLEARANCE = 0.02
-"""Points lower than this above the base (metres) are not tested against the scene: on the
-demo's stage the free floor at base height reads down to -0.02 m (1.6 % of it below -0.01 m),
-while 0.01 m above it every point read at least +0.001 m. An obstacle of the scene lower than
+"""Points lower than this above the base (metres) are not tested against the scene: the floor
+the object rests on reads slightly inside near its base. An obstacle of the scene lower than
 this is not seen."""
 SURFACE_POINTS = 2000
 """Points sampled on each proxy's faces (area-weighted), besides up to :data:`VERTEX_POINTS`
