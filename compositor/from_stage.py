@@ -32,9 +32,9 @@ from regnf.scene_graph import (
     StageError,
     instance_path,
     load_record_field,
+    original_poses,
     original_selections,
     read_stage,
-    replacement_base,
 )
 
 from .composite_field import CompositeField
@@ -91,38 +91,6 @@ def composite_from_stage(
     originals = original_selections(path, scene, allow_outside=allow_outside)
     return composite_from_scene(scene, originals, path, config, device,
                                 removal_poses=original_poses(path, scene, allow_outside=allow_outside))
-
-
-def original_poses(stage_path: str | os.PathLike, scene: ComposedScene, depth: int = 0,
-                   allow_outside: bool = False) -> dict[str, np.ndarray]:
-    """Instance id -> (4, 4) ``object_to_scene`` of the stage beneath every replacement layer.
-
-    The original object is removed where that stage places it: a layer that also moves the
-    shown object (``regnf generate``'s placement jitter) leaves the removal where the captured
-    object was. For a plain stage, or layers that move nothing, these are ``scene``'s own.
-
-    Parameters
-    ----------
-    stage_path : str or PathLike
-        The stage ``scene`` was read from.
-    scene : ComposedScene
-    depth : int
-        Replacement layers followed so far (at most
-        :data:`regnf.scene_graph.replacement.MAX_LAYER_DEPTH`).
-    allow_outside : bool
-        Follow a ``replacementOf`` outside the layer's folder.
-    """
-    from regnf.scene_graph.replacement import MAX_LAYER_DEPTH
-
-    path = Path(stage_path).absolute()
-    base = replacement_base(path, allow_outside)
-    below: dict[str, np.ndarray] = {}
-    if base is not None:
-        if depth >= MAX_LAYER_DEPTH:
-            raise StageError(path, "/", f"more than {MAX_LAYER_DEPTH} nested replacement layers")
-        below = original_poses(base, read_stage(base, check_checkpoints=False, allow_outside=allow_outside),
-                               depth + 1, allow_outside)
-    return {iid: below.get(iid, inst.object_to_scene) for iid, inst in scene.instances.items()}
 
 
 def composite_from_scene(

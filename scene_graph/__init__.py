@@ -28,7 +28,7 @@ from .layout import instance_path
 from .locking import STAGE_LOCK_TIMEOUT_S, check_writable, stage_lock
 from .model import ComposedScene, FieldRecord, InstanceRecord, ProxyMesh, RegistrationProvenance
 from .package import export_stage
-from .replacement import make_replacement_layer, original_selections
+from .replacement import make_replacement_layer, original_poses, original_selections
 from .summary import discovery_line, summarize
 from .usd_read import read_stage, replacement_base
 from .usd_write import write_stage
@@ -56,6 +56,7 @@ __all__ = [
     "load_record_field",
     "make_replacement_layer",
     "new_stage",
+    "original_poses",
     "original_selections",
     "parse_registration",
     "provenance_from_registration",

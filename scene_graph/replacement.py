@@ -10,9 +10,10 @@ the origin, +Z up, +X forward) make the new object stand on the floor with the o
 from __future__ import annotations
 
 import os
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 
+import numpy as np
 from pxr import Sdf
 
 from . import layout as L
@@ -140,16 +141,34 @@ def original_selections(stage_path: str | os.PathLike, scene: ComposedScene, dep
         Follow a ``replacementOf`` outside the layer's folder (refused by default, before the
         base is opened).
     """
-    path = Path(stage_path).absolute()
-    base = replacement_base(path, allow_outside)
-    below: dict[str, str] = {}
-    if base is not None:
-        if depth >= MAX_LAYER_DEPTH:
-            raise StageError(path, "/", f"more than {MAX_LAYER_DEPTH} nested replacement layers")
-        below = original_selections(base, read_stage(base, check_checkpoints=False, allow_outside=allow_outside),
-                                    depth + 1, allow_outside)
+    below = _beneath(stage_path, depth, allow_outside, original_selections)
     out = {}
     for iid, inst in scene.instances.items():
         reg = inst.registration
         out[iid] = reg.library_name if reg is not None and reg.library_name else below.get(iid, inst.library_name)
     return out
+
+
+def original_poses(stage_path: str | os.PathLike, scene: ComposedScene, depth: int = 0,
+                   allow_outside: bool = False) -> dict[str, np.ndarray]:
+    """Instance id -> (4, 4) ``object_to_scene`` of the stage beneath every replacement layer.
+
+    The original object is removed where that stage places it: a layer that also moves the
+    shown object (``regnf generate``'s placement jitter) leaves the removal where the captured
+    object was. For a plain stage, or layers that move nothing, these are ``scene``'s own.
+    Parameters as :func:`original_selections`.
+    """
+    below = _beneath(stage_path, depth, allow_outside, original_poses)
+    return {iid: below.get(iid, inst.object_to_scene) for iid, inst in scene.instances.items()}
+
+
+def _beneath(stage_path: str | os.PathLike, depth: int, allow_outside: bool,
+             walk: Callable[[Path, ComposedScene, int, bool], dict]) -> dict:
+    """``walk`` of the stage a replacement layer is over ({} for a plain stage)."""
+    path = Path(stage_path).absolute()
+    base = replacement_base(path, allow_outside)
+    if base is None:
+        return {}
+    if depth >= MAX_LAYER_DEPTH:
+        raise StageError(path, "/", f"more than {MAX_LAYER_DEPTH} nested replacement layers")
+    return walk(base, read_stage(base, check_checkpoints=False, allow_outside=allow_outside), depth + 1, allow_outside)
