@@ -245,6 +245,7 @@ def trace(
     grid: DistanceGrid | None = None,
     pixel_angle: float | torch.Tensor = 0.0,
     t_min: torch.Tensor | None = None,
+    t_max: torch.Tensor | None = None,
 ) -> TraceHits:
     """Intersect rays with the zero level set of ``field`` (see the module).
 
@@ -270,6 +271,9 @@ def trace(
     t_min : (n,) float, optional
         Field units: each ray's march starts no nearer than this, the part before it known to
         be free of surfaces (:func:`cone_starts`).
+    t_max : (n,) float, optional
+        Field units: each ray's march stops no farther than this (a part of the field it is
+        not to see lies beyond).
 
     Returns
     -------
@@ -290,8 +294,12 @@ def trace(
     if t_min is not None and tuple(t_min.shape) != (o.shape[0],):
         raise ValueError(f"t_min must be ({o.shape[0]},), got shape {tuple(t_min.shape)}")
     t_start, t_stop = _clip(field, o, d, near, far, config)
+    if t_max is not None and tuple(t_max.shape) != (o.shape[0],):
+        raise ValueError(f"t_max must be ({o.shape[0]},), got shape {tuple(t_max.shape)}")
     if t_min is not None:
         t_start = torch.maximum(t_start, t_min.to(device=dev, dtype=t_start.dtype))
+    if t_max is not None:
+        t_stop = torch.minimum(t_stop, t_max.to(device=dev, dtype=t_stop.dtype))
     return _trace_wavefront(field, o, d, t_start, t_stop, config, grid, angle.expand(o.shape[0]))
 
 

@@ -17,15 +17,18 @@ BOP poses are rigid and models are in millimetres, while an instance places its 
 similarity: every (library object, instance scale) pair a variant may show gets a model of its
 own, the object's mesh scaled by that factor, with its origin at the centre of its 3D box (as
 BOP asks); ``models_info.json`` records each model's ``library_name`` and ``scale`` beside
-BOP's keys. The models are the library fields' meshes as the stage holds them.
+BOP's keys. A model is its library object's source mesh when it was distilled from one, else
+its field's mesh as the stage holds them. The models are written once per run, before the
+variants; each variant's worker makes its scene (:func:`scene_files`), with the obj_ids of
+the run's :class:`ModelPlan`.
 """
 
 from __future__ import annotations
 
 import contextlib
+import io
 import json
 import math
-import shutil
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -49,6 +52,37 @@ class ModelKey(NamedTuple):
     """The library object."""
     scale: float
     """Instance scale (canonical object metres -> room metres), rounded to SCALE_DECIMALS."""
+
+
+class ModelPlan(NamedTuple):
+    """The data set's BOP models as a variant's worker needs them (:func:`ground_truths`)."""
+
+    obj_ids: dict[ModelKey, int]
+    """Model -> its obj_id (1.., in :func:`model_keys` order)."""
+    centres: dict[str, tuple[float, float, float]]
+    """Library object -> the centre of its mesh's box, canonical metres (its models' origin)."""
+
+
+def ground_truths(plan: ModelPlan, instance_ids: Mapping[str, int], selections: Mapping[str, str],
+                  poses: Mapping[str, np.ndarray]) -> list[tuple[int, int, np.ndarray, np.ndarray]]:
+    """A variant's ground truths, in instance image id order (:func:`scene_files`' ``instances``).
+
+    Parameters
+    ----------
+    plan : ModelPlan
+    instance_ids : mapping str -> int
+        Stage instance -> id in the instance images.
+    selections : mapping str -> str
+        Stage instance -> library object shown.
+    poses : mapping str -> (4, 4) float
+        Stage instance -> the object_to_scene it is shown at.
+    """
+    out = []
+    for name, iid in sorted(instance_ids.items(), key=lambda kv: kv[1]):  # a loop over instances
+        matrix = np.asarray(poses[name], dtype=np.float64)
+        key = ModelKey(selections[name], round(similarity_scale(matrix), SCALE_DECIMALS))
+        out.append((int(iid), plan.obj_ids[key], matrix, np.asarray(plan.centres[key.library_name], np.float64)))
+    return out
 
 
 def similarity_scale(matrix: np.ndarray) -> float:
@@ -131,8 +165,9 @@ def symmetries(order: int, axis_point: np.ndarray) -> dict[str, Any]:
     return {"symmetries_discrete": out} if out else {}
 
 
-def write_models(bop: Path, keys: Sequence[ModelKey], meshes: Mapping[str, Any], symmetry_orders: Mapping[str, int]) -> None:
-    """Write ``models/obj_*.ply`` and ``models_info.json`` for ``keys`` (obj_id k + 1).
+def write_models(bop: Path, keys: Sequence[ModelKey], meshes: Mapping[str, Any],
+                 symmetry_orders: Mapping[str, int]) -> ModelPlan:
+    """Write ``models/obj_*.ply`` and ``models_info.json`` for ``keys`` (obj_id k + 1); return their plan.
 
     ``meshes`` maps a library object to its mesh (a ``trimesh.Trimesh`` in canonical metres).
     """
@@ -158,6 +193,8 @@ def write_models(bop: Path, keys: Sequence[ModelKey], meshes: Mapping[str, Any],
                  "library_name": key.library_name, "scale": key.scale}
         info[str(k + 1)] = {n: (float(v) if isinstance(v, (float, np.floating)) else v) for n, v in entry.items()}
     write_text(folder / "models_info.json", json.dumps(info, indent=1) + "\n")
+    centres = {name: tuple(float(v) for v in model_frame(mesh.vertices, 1.0)[1]) for name, mesh in meshes.items()}
+    return ModelPlan({key: k + 1 for k, key in enumerate(keys)}, centres)
 
 
 def model_to_camera(object_to_scene: np.ndarray, centre: np.ndarray, camera_to_world: np.ndarray) -> tuple[list, list]:
@@ -196,14 +233,13 @@ def gt_info(full: np.ndarray, visible: np.ndarray, depth_mm: np.ndarray) -> dict
             "visib_fract": float(n_vis / n_all) if n_all else 0.0}
 
 
-def write_scene(folder: Path, variant: Path, cameras: Sequence[Mapping[str, Any]],
-                instances: Sequence[tuple[int, int, np.ndarray, np.ndarray]], masks: Iterable[np.ndarray]) -> None:
-    """Write one variant as a BOP scene into ``folder`` (a new, empty folder).
+def scene_files(variant: Path, cameras: Sequence[Mapping[str, Any]],
+                instances: Sequence[tuple[int, int, np.ndarray, np.ndarray]],
+                masks: Iterable[np.ndarray]) -> dict[str, bytes]:
+    """One variant as a BOP scene: path in the scene's folder (``bop/train/<seed>``) -> content.
 
     Parameters
     ----------
-    folder : Path
-        ``bop/train/<seed>``.
     variant : Path
         The variant's folder (``rgb_k.png``, ``depth_k.png``, ``instance_k.png``).
     cameras : sequence of mapping
@@ -218,14 +254,13 @@ def write_scene(folder: Path, variant: Path, cameras: Sequence[Mapping[str, Any]
 
     from regnf.core.image_io import read_instance_png
 
-    for sub in ("rgb", "depth", "mask", "mask_visib"):
-        (folder / sub).mkdir(parents=True, exist_ok=True)
+    files: dict[str, bytes] = {}
     masks = iter(masks)
     scene_camera, scene_gt, scene_info = {}, {}, {}
     for k, cam in enumerate(cameras):  # a loop over views
-        shutil.copyfile(variant / f"rgb_{k:04d}.png", folder / "rgb" / f"{k:06d}.png")
-        shutil.copyfile(variant / f"depth_{k:04d}.png", folder / "depth" / f"{k:06d}.png")
-        with Image.open(variant / f"depth_{k:04d}.png") as im:
+        files[f"rgb/{k:06d}.png"] = (variant / f"rgb_{k:04d}.png").read_bytes()
+        files[f"depth/{k:06d}.png"] = (variant / f"depth_{k:04d}.png").read_bytes()
+        with Image.open(io.BytesIO(files[f"depth/{k:06d}.png"])) as im:
             depth = np.asarray(im).astype(np.int64)
         ids = read_instance_png(variant / f"instance_{k:04d}.png")
         c2w = np.asarray(cam["camera_to_world"], dtype=np.float64)
@@ -241,10 +276,13 @@ def write_scene(folder: Path, variant: Path, cameras: Sequence[Mapping[str, Any]
             full = next(masks) | visible
             infos.append(gt_info(full, visible, depth))
             for sub, m in (("mask", full), ("mask_visib", visible)):
-                Image.fromarray((m * 255).astype(np.uint8)).save(folder / sub / f"{k:06d}_{g:06d}.png", compress_level=1)
+                png = io.BytesIO()
+                Image.fromarray((m * 255).astype(np.uint8)).save(png, format="PNG", compress_level=1)
+                files[f"{sub}/{k:06d}_{g:06d}.png"] = png.getvalue()
         scene_gt[str(k)], scene_info[str(k)] = gts, infos
     for name, data in (("scene_camera", scene_camera), ("scene_gt", scene_gt), ("scene_gt_info", scene_info)):
-        write_text(folder / f"{name}.json", json.dumps(data, indent=1) + "\n")
+        files[f"{name}.json"] = (json.dumps(data, indent=1) + "\n").encode()
+    return files
 
 
 def write_camera(bop: Path, camera: Mapping[str, Any]) -> None:

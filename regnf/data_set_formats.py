@@ -1,14 +1,17 @@
-"""The data set formats a ``regnf generate`` run joins at its end, from its finished variants.
+"""The data set formats of ``regnf generate`` beyond each variant's own files.
 
-COCO (:func:`write_coco`): every variant's piece joined into ``coco/annotations.json``. BOP
-(:func:`write_bop`): the models, and a scene for each variant made in the run or not yet in
-``bop/``. Each variant's own files (views, class images, whole-silhouette masks, COCO piece)
-are written by its worker (:mod:`regnf.variant_labels`).
+COCO (:func:`write_coco`): every finished variant's piece joined into
+``coco/annotations.json`` at the end of a run. BOP: the models, written before the variants
+(:func:`write_bop_models`); each variant's scene, made in its worker from its views and its
+objects' whole silhouettes (:func:`variant_bop_scene`) and put in place with the variant
+(:func:`commit_bop_scene`). Each variant's own files (views, class images, COCO piece) are
+written by its worker (:mod:`regnf.variant_labels`).
 """
 
 from __future__ import annotations
 
 import json
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -18,7 +21,7 @@ from regnf.compositor.render_folder import RENDER_JSON
 from regnf.core.output_dir import remove_leftovers, replace_entry, staging_dir
 from regnf.core.preflight import read_json_input
 
-from .variant_labels import full_mask_file
+from . import bop
 
 
 def _variant_name(seed: int) -> str:
@@ -38,52 +41,74 @@ def write_coco(out: Path, rows: dict[int, dict[str, Any]], views: int, source: d
     return coco.write_annotations(out, coco.join_pieces(pieces, views, cats, f"regnf generate: {out.name}"))
 
 
-def write_bop(out: Path, base: Path, rows: dict[int, dict[str, Any]], made: set[int],
-              source: dict[str, Any]) -> list[str]:
-    """Write the BOP layout (:mod:`regnf.bop`): the models, and a scene for each finished variant
-    made in this run or not yet in ``bop/``; return the notes to show."""
+def bop_scene_folder(out: Path, seed: int) -> Path:
+    """``bop/train/<seed>``: where a variant's BOP scene goes."""
+    return out / bop.BOP_DIR / bop.SPLIT / _variant_name(seed)
 
+
+def write_bop_models(out: Path, base: Path, source: dict[str, Any]) -> tuple[bop.ModelPlan, list[str]]:
+    """Write the BOP models of every object a variant of ``base`` may show; return their plan
+    and the notes to show (a library object without a source mesh, said once)."""
     from regnf.scene_graph import read_stage
-
-    from . import bop
 
     scene = read_stage(base)
     instances = {i: (r.library_name, np.asarray(r.object_to_scene, dtype=np.float64))
                  for i, r in scene.instances.items()}
     keys = bop.model_keys(source["library"], instances)
-    obj_id = {key: k + 1 for k, key in enumerate(keys)}
     meshes = {name: model_mesh(rec) for name, rec in scene.library.items()}
     root = out / bop.BOP_DIR
-    bop.write_models(root, keys, meshes, {n: r.symmetry_order for n, r in scene.library.items()})
+    plan = bop.write_models(root, keys, meshes, {n: r.symmetry_order for n, r in scene.library.items()})
     split = root / bop.SPLIT
     split.mkdir(parents=True, exist_ok=True)
     remove_leftovers(split)
-    for seed in sorted(rows):  # a loop over variants
-        row = rows[seed]
-        final = split / _variant_name(seed)
-        if row["status"] != "ok" or (final.is_dir() and seed not in made):
-            continue
-        cams = read_json_input(out / row["variant"] / RENDER_JSON, None, "render record")["cameras"]
-        if not (root / "camera.json").is_file():
-            bop.write_camera(root, cams[0])
-        gts = []
-        for name, iid in sorted(row["instance_ids"].items(), key=lambda kv: kv[1]):  # a loop over instances
-            lib, matrix = row["selections"][name], instances[name][1]
-            if name in row.get("placement", {}):  # a placement jitter: the pose shown
-                matrix = np.asarray(row["placement"][name]["object_to_scene"], dtype=np.float64)
-            _, centre = bop.model_frame(meshes[lib].vertices, 1.0)
-            gts.append((int(iid), obj_id[bop.ModelKey(lib, round(bop.similarity_scale(matrix), bop.SCALE_DECIMALS))],
-                        matrix, centre))
-        masks = (read_full_mask(out / row["variant"] / full_mask_file(k, iid))
-                 for k in range(len(cams)) for iid, *_ in gts)
-        with staging_dir(split, _variant_name(seed)) as staging:
-            bop.write_scene(staging, out / row["variant"], cams, gts, masks)
-            replace_entry(staging, final)  # an earlier scene of this seed goes aside, then away
     fallback = sorted(n for n in {k.library_name for k in keys} if scene.library[n].source_mesh is None)
     if not fallback:
-        return []
-    return [(f"BOP models of {', '.join(fallback)} are their fields' meshes as the stage holds them "
-            "(no source mesh: not distilled from a mesh)")]
+        return plan, []
+    return plan, [(f"BOP models of {', '.join(fallback)} are their fields' meshes as the stage holds them "
+                   "(no source mesh: not distilled from a mesh)")]
+
+
+def variant_bop_scene(folder: Path, plan: bop.ModelPlan, selections: Mapping[str, str],
+                      instance_ids: Mapping[str, int], poses: Mapping[str, np.ndarray],
+                      masks: Mapping[int, Sequence[np.ndarray]]) -> dict[str, bytes]:
+    """A rendered variant's BOP scene (made in its worker): relative path -> content.
+
+    Parameters
+    ----------
+    folder : Path
+        The variant's rendered views and ``render.json``.
+    plan : ModelPlan
+        The run's models (:func:`write_bop_models`).
+    selections, instance_ids, poses : mapping
+        Stage instance -> library object shown, id in the instance images, object_to_scene
+        (4, 4) shown.
+    masks : mapping int -> sequence of (h, w) bool
+        Instance image id -> its whole silhouette in each view
+        (:func:`regnf.full_masks.full_masks`).
+    """
+    cams = read_json_input(folder / RENDER_JSON, None, "render record")["cameras"]
+    gts = bop.ground_truths(plan, instance_ids, selections, poses)
+    return bop.scene_files(folder, cams, gts, (masks[iid][k] for k in range(len(cams)) for iid, *_ in gts))
+
+
+def commit_bop_scene(out: Path, seed: int, files: Mapping[str, bytes], first_camera: Mapping[str, Any]) -> None:
+    """Put a variant's BOP scene (:func:`variant_bop_scene`) in place: staging folder, then rename.
+
+    ``bop/camera.json`` is written from ``first_camera`` (a ``render.json`` camera) if missing.
+    """
+    root = out / bop.BOP_DIR
+    final = bop_scene_folder(out, seed)
+    with staging_dir(final.parent, final.name) as staging:
+        for rel, data in sorted(files.items()):
+            parts = rel.split("/")
+            if any(not p or p in (".", "..") or p.startswith(".") for p in parts):
+                raise ValueError(f"a worker returned a BOP file named {rel!r}, not a plain relative path")
+            target = staging.joinpath(*parts)
+            target.parent.mkdir(parents=True, exist_ok=True)
+            target.write_bytes(data)
+        replace_entry(staging, final)  # an earlier scene of this seed goes aside, then away
+    if not (root / "camera.json").is_file():
+        bop.write_camera(root, first_camera)
 
 
 def model_mesh(rec: Any) -> Any:
@@ -115,11 +140,3 @@ def model_mesh(rec: Any) -> Any:
     else:
         mesh.visual.vertex_colors = np.append(np.round(255 * np.asarray(src.base_color)), 255).astype(np.uint8)
     return mesh
-
-
-def read_full_mask(path: Path) -> np.ndarray:
-    """(h, w) bool whole silhouette written by :func:`regnf.variant_labels.write_full_masks`."""
-    from PIL import Image
-
-    with Image.open(path) as im:
-        return np.asarray(im) > 127

@@ -33,9 +33,7 @@ the identity in the config_key. Layout of ``out``::
                                      contact_sheet.png, render.json, transforms.json (nerfstudio),
                                      coco.json (COCO: the variant's part)
     coco/annotations.json            COCO: every finished variant's images and annotations
-    bop/                             BOP: models/, camera.json, train/000007/ (seed 7's scene);
-                                     the variant's folder then also holds full_k_i.png, the
-                                     whole silhouette of instance i in view k
+    bop/                             BOP: models/, camera.json, train/000007/ (seed 7's scene)
     errors/000007.txt                the traceback of a variant that failed
     baked/                           with the baked renderer: the grids every variant reads
                                      (index.json, scene.safetensors, object_*.safetensors)
@@ -110,9 +108,16 @@ from regnf.core.output_dir import (
 from regnf.core.preflight import JsonInputError, read_json_input
 from regnf.neural_fields.camera import Camera
 
-from .bop import BOP_DIR
+from .bop import BOP_DIR, ModelPlan
 from .coco import COCO_DIR
-from .data_set_formats import write_bop, write_coco
+from .data_set_formats import (
+    bop_scene_folder,
+    commit_bop_scene,
+    variant_bop_scene,
+    write_bop_models,
+    write_coco,
+)
+from .full_masks import full_masks
 from .generate_cameras import (
     CaptureViews,
     at_capture_size,
@@ -127,7 +132,6 @@ from .placement_jitter import manifest_entry, record_in_layer
 from .variant_labels import (
     instance_boxes,
     parse_formats,
-    write_full_masks,
     write_labels,
 )
 from .variation import check_ranges, draw_appearance, vary_views
@@ -332,6 +336,8 @@ class VariantTask(NamedTuple):
     """With capture cameras, the capture frames its cameras are (indices, one per view); None: an orbit."""
     placement: tuple[float, float] = (0.0, 0.0)
     """Largest turn (degrees) and move (metres) of each instance (:mod:`regnf.placement_jitter`)."""
+    bop: ModelPlan | None = None
+    """The run's BOP models when BOP is among the formats: the worker writes the variant's scene."""
 
 
 class VariantOutput(NamedTuple):
@@ -356,6 +362,9 @@ class VariantOutput(NamedTuple):
     placement: dict[str, Any] | None = None
     """Instance id -> its placement jitter (:func:`regnf.placement_jitter.manifest_entry`); None:
     no jitter asked for."""
+    bop_files: dict[str, bytes] | None = None
+    """Its BOP scene, relative path -> content (:func:`regnf.data_set_formats.variant_bop_scene`);
+    None: BOP not asked for."""
 
 
 class GenerationReport(NamedTuple):
@@ -459,18 +468,21 @@ def render_variant(task: VariantTask) -> VariantOutput:
             (Path(tmp) / "transforms.json").write_text(json.dumps(tj, indent=2) + "\n")
         write_labels(Path(tmp), len(task.cameras), scene, selections, comp.instance_ids,
                      f"{VARIANTS_DIR}/{variant_name(task.seed)}", task.formats)
-        if "bop" in task.formats:
+        bop_files = None
+        if task.bop is not None:
             from regnf.compositor.baked_composite import baked_tracing
 
             sphere = baked_tracing(task.render.sphere) if task.baked is not None else task.render.sphere
-            write_full_masks(Path(tmp), field, task.cameras, sphere)
+            poses = {name: inst.object_to_scene for name, inst in comp.scene.instances.items()}
+            bop_files = variant_bop_scene(Path(tmp), task.bop, selections, comp.instance_ids, poses,
+                                          full_masks(Path(tmp), field, task.cameras, sphere))
         # Hidden entries are bookkeeping (the render folder's lock), not the variant's files.
         files = {p.name: p.read_bytes() for p in sorted(Path(tmp).iterdir())
                  if p.is_file() and not p.name.startswith(".")}
     return VariantOutput(task.seed, selections, comp.instance_ids, files, time.perf_counter() - t0,
                          instance_boxes(comp.scene, selections, comp.instance_ids),
                          {"exposure_stops": look.stops, "white_balance": list(look.gains)}, frames=task.frames,
-                         placement=None if placed is None else manifest_entry(placed))
+                         placement=None if placed is None else manifest_entry(placed), bop_files=bop_files)
 
 
 def _jittered(task: VariantTask, scene: Any, selections: dict[str, str], comp: Any) -> tuple[Any, dict[str, Any]]:
@@ -688,6 +700,8 @@ def commit_variant(out: Path, base: Path, output: VariantOutput, key: str) -> di
             record_in_layer(layer, {i: np.asarray(p["object_to_scene"]) for i, p in output.placement.items()
                                     if p["moved"]})
         replace_entry(staging, final)
+    if output.bop_files is not None:
+        commit_bop_scene(out, output.seed, output.bop_files, json.loads(output.files[RENDER_JSON])["cameras"][0])
     files = {f: sha256_file(final / f) for f in sorted(output.files) if f not in UNHASHED}
     views = sum(1 for f in output.files if f.startswith("rgb_"))
     return sealed({
@@ -763,7 +777,11 @@ def generate(
         base, key = prepare_output(stage, out, config, source, capture)
         state = read_manifest(out, key)
         rows = dict(state.rows)
-        done = [s for s in config.seeds if s in rows and (rows[s]["status"] == "ok" or not config.retry_failed)]
+        # A finished variant whose BOP scene is gone (removed, or a run killed between the two)
+        # is made again.
+        done = [s for s in config.seeds if s in rows and (rows[s]["status"] == "ok" or not config.retry_failed)
+                and not ("bop" in config.formats and rows[s]["status"] == "ok"
+                         and not bop_scene_folder(out, s).is_dir())]
         kept = set(done)
         todo = [s for s in config.seeds if s not in kept]
         for s in todo:
@@ -772,13 +790,13 @@ def generate(
         made: list[int] = []
         failed: dict[int, str] = {}
         timings: dict[str, float] = {}
+        plan, notes = write_bop_models(out, base, source) if "bop" in config.formats else (None, [])
         if todo:
             _make_variants(out, base, key, config, todo, rows, made, failed, progress, on_variant, timings,
-                           capture)
+                           capture, plan)
             write_manifest(out, rows.values())  # sorted by seed again
         if "coco" in config.formats:
             write_coco(out, rows, config.cameras.n, source)
-        notes = write_bop(out, base, rows, set(made), source) if "bop" in config.formats else []
     return GenerationReport(out, out / MANIFEST_NAME, sorted(made), done, failed, state.problems,
                             time.perf_counter() - t0, timings.get("bake", 0.0), tuple(notes))
 
@@ -786,9 +804,10 @@ def generate(
 def _make_variants(out: Path, base: Path, key: str, config: GenerateConfig, todo: list[int],
                    rows: dict[int, dict[str, Any]], made: list[int], failed: dict[int, str], progress: bool,
                    on_variant: Callable[[dict[str, Any]], None] | None, timings: dict[str, float],
-                   capture: CaptureViews | None = None) -> None:
+                   capture: CaptureViews | None = None, bop_plan: ModelPlan | None = None) -> None:
     """Run the variants of ``todo`` and commit each as it finishes (``rows``, ``made``, ``failed``
-    and ``timings`` are updated); their cameras are ``capture``'s frames when it is given."""
+    and ``timings`` are updated); their cameras are ``capture``'s frames when it is given, and
+    their BOP scenes are made with ``bop_plan`` when it is given."""
     from regnf.compositor.cameras_io import field_bounds_metres
     from regnf.compositor.from_stage import composite_from_stage
 
@@ -824,14 +843,14 @@ def _make_variants(out: Path, base: Path, key: str, config: GenerateConfig, todo
                                                        reserve_bytes=len(todo) * variant_bytes(config))
             baked = str(index)
         _run_variants(out, base, key, config, todo, rows, made, failed, progress, on_variant, bounds, render,
-                      baked, stack, warm, capture)
+                      baked, stack, warm, capture, bop_plan)
 
 
 def _run_variants(out: Path, base: Path, key: str, config: GenerateConfig, todo: list[int],
                   rows: dict[int, dict[str, Any]], made: list[int], failed: dict[int, str], progress: bool,
                   on_variant: Callable[[dict[str, Any]], None] | None, bounds: np.ndarray, render: RenderConfig,
                   baked: str | None, stack: contextlib.ExitStack, warm: Any,
-                  capture: CaptureViews | None = None) -> None:
+                  capture: CaptureViews | None = None, bop_plan: ModelPlan | None = None) -> None:
     """The variants of :func:`_make_variants`, :data:`TASKS_PER_BATCH` at a time; the first
     batch in the pool ``warm`` (started early, closed with ``stack``) when there is one."""
     from tqdm import tqdm
@@ -844,7 +863,7 @@ def _run_variants(out: Path, base: Path, key: str, config: GenerateConfig, todo:
             tasks = [VariantTask(str(base), s, variant_cameras(bounds, config, s, capture), layer_name(s),
                                  config.composite, render, config.device, str(scratch), baked, config.formats,
                                  (config.exposure_stops, config.white_balance),
-                                 placement=(config.jitter_yaw_deg, config.jitter_shift),
+                                 placement=(config.jitter_yaw_deg, config.jitter_shift), bop=bop_plan,
                                  frames=None if capture is None else tuple(variant_frames(config, s,
                                                                                           len(capture.cameras))))
                      for s in todo[first:first + TASKS_PER_BATCH]]

@@ -366,3 +366,17 @@ def test_render_many_without_normals() -> None:
     assert without.normals is None and with_n.normals is not None
     for name in ("rgb", "depth", "instance_id", "mask", "evals_per_pixel"):
         assert torch.equal(getattr(with_n, name), getattr(without, name))
+
+
+def test_t_max_stops_each_ray_before_what_lies_beyond() -> None:
+    # Two unit spheres on the x axis, centres at 3 and 6; rays from the origin along +x.
+    field = Union(Sphere(1.0, np.array([3.0, 0.0, 0.0])), Sphere(1.0, np.array([6.0, 0.0, 0.0])))
+    o = torch.zeros(3, 3)
+    d = torch.tensor([[1.0, 0.0, 0.0]] * 3)
+    t_min = torch.tensor([0.0, 4.5, 4.5])  # the third ray starts past the first sphere
+    t_max = torch.tensor([10.0, 10.0, 4.9])  # and stops before the second
+    hits = trace(field, o, d, SphereTracerConfig(grid_resolution=0), t_min=t_min, t_max=t_max)
+    assert hits.hit.tolist() == [True, True, False]
+    np.testing.assert_allclose(hits.t[:2].numpy(), [2.0, 5.0], atol=1e-4)
+    with pytest.raises(ValueError, match="t_max"):
+        trace(field, o, d, t_max=torch.zeros(2))

@@ -148,6 +148,24 @@ def test_the_poses_project_the_models_onto_the_whole_masks(data_set: Path) -> No
     assert checked >= 6, "too few objects in view to test anything"
 
 
+def test_a_variant_whose_bop_scene_is_gone_is_made_again(data_set: Path, tmp_path: Path) -> None:
+    import shutil
+
+    copy = tmp_path / "data"
+    shutil.copytree(data_set, copy, symlinks=True)
+    scene = copy / "bop" / "train" / f"{1:06d}"
+    before = {p.relative_to(scene): p.read_bytes() for p in scene.rglob("*") if p.is_file()}
+    shutil.rmtree(scene)
+    stage = load(copy / "generation.json")["source_stage"]  # the stage the fixture made
+    cfg = GenerateConfig(format="bop", variants=2, cameras=ORBIT, executor=ExecutorConfig(kind="local", workers=1))
+    report = generate(stage, copy, cfg, progress=False)
+    assert report.made == [1] and report.skipped == [0] and not report.failed
+    after = {p.relative_to(scene): p.read_bytes() for p in scene.rglob("*") if p.is_file()}
+    assert sorted(after) == sorted(before)
+    for rel in ("scene_gt.json", "scene_camera.json"):  # the same variant again: the same poses
+        assert load(scene / rel) == json.loads(before[Path(rel)])
+
+
 def test_a_model_is_the_library_objects_source_mesh_when_it_has_one() -> None:
     from types import SimpleNamespace
 

@@ -30,9 +30,9 @@ from regnf.compositor.from_stage import composite_from_stage
 from regnf.compositor.render_folder import RenderConfig, render_views
 from regnf.core.image_io import read_instance_png
 from regnf.demo import DemoConfig, run_demo
+from regnf.full_masks import full_masks
 from regnf.neural_fields.cache import Cache
 from regnf.synthetic.library import make_library_object
-from regnf.variant_labels import full_mask_file, write_full_masks
 
 SCRIPT = Path(__file__).parents[1] / "compositor" / "blender_render.py"
 ORBIT = OrbitConfig(n=3, width=512, height=384)
@@ -63,7 +63,7 @@ def test_blender_shows_the_demos_substituted_chairs_with_their_materials_and_non
     cameras = orbit_around_bounds(field_bounds_metres(comp.field.scene), ORBIT)
     render = RenderConfig(progress=False)
     render_views(comp.field, cameras, tmp_path / "regnf", render)
-    write_full_masks(tmp_path / "regnf", comp.field, cameras, render.sphere)
+    whole = full_masks(tmp_path / "regnf", comp.field, cameras, render.sphere)
     S = comp.field.scene.to_world.detach().cpu().double().numpy()
     checked = set()
     for k, cam in enumerate(cameras):
@@ -84,8 +84,7 @@ def test_blender_shows_the_demos_substituted_chairs_with_their_materials_and_non
             with Image.open(job["alone"][name]) as im:
                 alone = np.all(np.abs(np.asarray(im.convert("RGB")).astype(np.int64) - 255 * np.asarray(colour)) < 60,
                                axis=-1)
-            with Image.open(tmp_path / "regnf" / full_mask_file(k, comp.instance_ids[name])) as im:
-                full = np.asarray(im) > 0
+            full = whole[comp.instance_ids[name]][k]
             if full.sum() < 600:  # outside this view, or a sliver at its edge
                 continue
             iou = (alone & full).sum() / (alone | full).sum()
