@@ -183,7 +183,7 @@ def write_models(bop: Path, keys: Sequence[ModelKey], meshes: Mapping[str, Any],
         if getattr(mesh.visual, "kind", None) == "vertex":
             model.visual.vertex_colors = mesh.visual.vertex_colors
         model.vertex_normals  # noqa: B018 (computed so the PLY carries them)
-        write_bytes(folder / f"obj_{k + 1:06d}.ply", trimesh.exchange.ply.export_ply(model, encoding="ascii",
+        write_bytes(folder / f"obj_{k + 1:06d}.ply", trimesh.exchange.ply.export_ply(model, encoding="binary",
                                                                                        include_attributes=False,
                                                                                        vertex_normal=True))
         lo, hi = vertices.min(axis=0), vertices.max(axis=0)

@@ -57,25 +57,51 @@ def load(path: Path) -> dict:
     return json.loads(path.read_text())
 
 
+NEAR_MM = 1.0
+"""Faces are clipped to this camera depth (mm) before they are drawn."""
+
+
+def clip_to_near(polygon: np.ndarray, near: float) -> np.ndarray:
+    """The part (m, 3) of a convex polygon (k, 3), camera mm, with z >= near (Sutherland-Hodgman)."""
+    kept = []
+    for a, b in zip(polygon, np.roll(polygon, -1, axis=0), strict=True):  # a loop over edges
+        if a[2] >= near:
+            kept.append(a)
+        if (a[2] >= near) != (b[2] >= near):
+            kept.append(a + (near - a[2]) / (b[2] - a[2]) * (b - a))
+    return np.asarray(kept).reshape(-1, 3)
+
+
+def fill_triangle(out: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> None:
+    """Set the pixels of ``out`` (h, w) whose centre ``(u + 0.5, v + 0.5)`` lies in the 2D triangle."""
+    height, width = out.shape
+    lo = np.maximum(np.floor(np.minimum(np.minimum(a, b), c) - 0.5), 0).astype(int)
+    hi = np.minimum(np.ceil(np.maximum(np.maximum(a, b), c) - 0.5), [width - 1, height - 1]).astype(int)
+    if (hi < lo).any():
+        return
+    u, v = np.meshgrid(np.arange(lo[0], hi[0] + 1) + 0.5, np.arange(lo[1], hi[1] + 1) + 0.5)
+    p = np.stack([u, v], axis=-1)
+    d = [(q[0] - p0[0]) * (p[..., 1] - p0[1]) - (q[1] - p0[1]) * (p[..., 0] - p0[0])
+         for p0, q in ((a, b), (b, c), (c, a))]
+    inside = ((d[0] >= 0) & (d[1] >= 0) & (d[2] >= 0)) | ((d[0] <= 0) & (d[1] <= 0) & (d[2] <= 0))
+    out[lo[1]:hi[1] + 1, lo[0]:hi[0] + 1] |= inside
+
+
 def silhouette(vertices: np.ndarray, faces: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarray,
                width: int, height: int) -> np.ndarray:
     """The model's silhouette: the pixels whose centre ``(u + 0.5, v + 0.5)`` lies in a face
-    projected with ``K [R | t]``."""
+    projected with ``K [R | t]``; a model that reaches behind the camera is drawn in front of it
+    (its faces clipped to ``z >= NEAR_MM``)."""
     cam = vertices @ R.T + t
-    uv = cam @ K.T
-    uv = uv[:, :2] / uv[:, 2:3]
     out = np.zeros((height, width), dtype=bool)
-    for a, b, c in uv[faces]:  # a loop over faces, each over the pixels of its box
-        lo = np.maximum(np.floor(np.minimum(np.minimum(a, b), c) - 0.5), 0).astype(int)
-        hi = np.minimum(np.ceil(np.maximum(np.maximum(a, b), c) - 0.5), [width - 1, height - 1]).astype(int)
-        if (hi < lo).any():
+    for tri in cam[faces]:  # a loop over faces, each over the pixels of its box
+        poly = tri if (tri[:, 2] >= NEAR_MM).all() else clip_to_near(tri, NEAR_MM)
+        if len(poly) < 3:
             continue
-        u, v = np.meshgrid(np.arange(lo[0], hi[0] + 1) + 0.5, np.arange(lo[1], hi[1] + 1) + 0.5)
-        p = np.stack([u, v], axis=-1)
-        d = [(q[0] - p0[0]) * (p[..., 1] - p0[1]) - (q[1] - p0[1]) * (p[..., 0] - p0[0])
-             for p0, q in ((a, b), (b, c), (c, a))]
-        inside = ((d[0] >= 0) & (d[1] >= 0) & (d[2] >= 0)) | ((d[0] <= 0) & (d[1] <= 0) & (d[2] <= 0))
-        out[lo[1]:hi[1] + 1, lo[0]:hi[0] + 1] |= inside
+        uv = poly @ K.T
+        uv = uv[:, :2] / uv[:, 2:3]
+        for j in range(1, len(uv) - 1):  # the clipped polygon as a fan of triangles
+            fill_triangle(out, uv[0], uv[j], uv[j + 1])
     return out
 
 
