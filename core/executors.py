@@ -20,6 +20,8 @@ import concurrent.futures as cf
 import contextlib
 import multiprocessing
 import os
+import threading
+import time
 import traceback
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
@@ -78,6 +80,26 @@ def pin_threads(threads: int) -> None:
     torch.set_num_threads(threads)
 
 
+PARENT_POLL_S = 1.0
+"""How often a pool worker checks that the process that started it is still there, seconds."""
+
+
+def start_worker(threads: int, parent: int) -> None:
+    """A pool worker's start: pin its threads, and end it when its parent (pid ``parent``) is gone.
+
+    A run killed without its process group (``kill PID``, a job scheduler's SIGKILL) would
+    otherwise leave its workers waiting for tasks that never come, holding their memory.
+    """
+    pin_threads(threads)
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(PARENT_POLL_S)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="regnf-parent-watch", daemon=True).start()
+
+
 def call_pinned(fn: Callable[[Any], Any], threads: int, task: Any) -> tuple[Any, str | None]:
     """``fn(task)`` with pinned threads; an exception comes back as text (it may not pickle)."""
     pin_threads(threads)
@@ -133,7 +155,8 @@ def local_pool(workers: int, threads_per_task: int = 1) -> Iterator[cf.ProcessPo
     shut down when the block ends; on an exception, tasks not yet started are cancelled."""
     # spawn, not fork: a forked child inherits the parent's torch thread pools and locks.
     ctx = multiprocessing.get_context("spawn")
-    pool = cf.ProcessPoolExecutor(workers, mp_context=ctx, initializer=pin_threads, initargs=(threads_per_task,))
+    pool = cf.ProcessPoolExecutor(workers, mp_context=ctx, initializer=start_worker,
+                                  initargs=(threads_per_task, os.getpid()))
     try:
         yield pool
     except BaseException:
