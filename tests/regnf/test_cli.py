@@ -28,6 +28,32 @@ def test_unknown_command_is_an_error(capsys: pytest.CaptureFixture[str]) -> None
     assert "unknown command" in capsys.readouterr().err
 
 
+def test_version_is_the_installed_packages(capsys: pytest.CaptureFixture[str]) -> None:
+    from importlib.metadata import version
+
+    assert main(["--version"]) == 0
+    assert capsys.readouterr().out.strip() == f"regnf {version('regnf')}"
+
+
+@pytest.mark.parametrize("group", ["stage", "bench"])
+def test_a_group_lists_its_subcommands(capsys: pytest.CaptureFixture[str], group: str) -> None:
+    assert main([group, "--help"]) == 0
+    listed = [line.split()[1] for line in capsys.readouterr().out.splitlines() if line.startswith(f"  {group} ")]
+    expected = {"stage": ["new", "add-instance", "show", "export"]}.get(group)
+    assert listed == expected if expected else len(listed) >= 5
+    assert main([group]) == 2  # a group alone names no command
+    assert f"{group} " in capsys.readouterr().err
+
+
+@pytest.mark.skipif(__import__("torch").cuda.is_available(), reason="this machine has CUDA")
+def test_a_cuda_device_without_cuda_is_refused_in_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # Refused before the (missing) stage is even read.
+    assert main(["render", str(tmp_path / "none.usda"), "--device", "cuda", "--out", str(tmp_path / "o")]) == 1
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and err.startswith("regnf render: --device cuda: CUDA is not available")
+    assert not (tmp_path / "o").exists()
+
+
 def test_command_help_explains_options(capsys: pytest.CaptureFixture[str]) -> None:
     with pytest.raises(SystemExit) as done:
         main(["train", "--help"])
