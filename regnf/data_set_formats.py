@@ -25,8 +25,8 @@ from . import bop
 
 
 def _variant_name(seed: int) -> str:
-    """Folder name of a variant (:func:`regnf.generate.variant_name`)."""
-    from .generate import variant_name
+    """Folder name of a variant (:func:`regnf.generate_worker.variant_name`)."""
+    from .generate_worker import variant_name
 
     return variant_name(seed)
 
