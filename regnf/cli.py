@@ -236,7 +236,11 @@ def main(argv: list[str] | None = None) -> int:
     if "--debug" in rest:
         debug, rest = True, [a for a in rest if a != "--debug"]
     cls = commands[name]
-    command = tyro.cli(cls, args=rest, prog=f"regnf {name}", description=cls.__doc__)
+    try:
+        command = tyro.cli(cls, args=rest, prog=f"regnf {name}", description=cls.__doc__)
+    except BrokenPipeError:  # the help went to a reader that stopped early (`| head`): nothing is wrong
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return EXIT_OK
     if argv is None:
         # A command's process: training's large per-step buffers are reused, not faulted in
         # anew each step (core.allocator; called in-process, main leaves the caller's be).

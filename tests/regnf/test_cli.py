@@ -149,3 +149,15 @@ def test_cache_keys_ignore_new_options_left_at_their_default() -> None:
     assert config_key(cfg) != config_key(dataclasses.replace(cfg, w_volume_color=0.5))
     # An option at its default contributes nothing to the key.
     assert config_key(RGBDTrainConfig()) == config_key(RGBDTrainConfig(w_volume_color=0.0))
+
+
+def test_help_into_a_reader_that_stops_early_is_no_error() -> None:
+    import subprocess
+    import sys
+
+    run = subprocess.Popen([sys.executable, "-m", "regnf", "discover", "--help"], stdout=subprocess.PIPE,
+                           stderr=subprocess.PIPE)
+    assert run.stdout.readline().startswith(b"usage: regnf discover")  # help longer than a pipe holds
+    run.stdout.close()  # as `| head -1` does
+    _, err = run.communicate(timeout=120)
+    assert run.returncode == 0 and b"Traceback" not in err, err.decode()[-2000:]
