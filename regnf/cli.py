@@ -236,8 +236,11 @@ def main(argv: list[str] | None = None) -> int:
     if "--debug" in rest:
         debug, rest = True, [a for a in rest if a != "--debug"]
     cls = commands[name]
+    from regnf.help_text import install, plain_help
+
+    install()
     try:
-        command = tyro.cli(cls, args=rest, prog=f"regnf {name}", description=cls.__doc__)
+        command = tyro.cli(cls, args=rest, prog=f"regnf {name}", description=plain_help(cls.__doc__ or "", [cls.__module__]))
     except BrokenPipeError:  # the help went to a reader that stopped early (`| head`): nothing is wrong
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return EXIT_OK

@@ -161,3 +161,17 @@ def test_help_into_a_reader_that_stops_early_is_no_error() -> None:
     run.stdout.close()  # as `| head -1` does
     _, err = run.communicate(timeout=120)
     assert run.returncode == 0 and b"Traceback" not in err, err.decode()[-2000:]
+
+
+def test_no_sphinx_markup_in_any_help(capsys: pytest.CaptureFixture[str]) -> None:
+    import re
+
+    from regnf.cli import _commands
+
+    for name in _commands():  # a loop over the commands
+        with pytest.raises(SystemExit):
+            main([*name.split(), "--help"])
+        out = capsys.readouterr().out
+        assert out.startswith(f"usage: regnf {name}"), name
+        found = re.findall(r":(?:func|data|attr|mod|class|meth|obj|exc):`[^`]*", out)
+        assert not found, (name, found[:3])
