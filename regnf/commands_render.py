@@ -14,6 +14,7 @@ from tyro.conf import Positional, arg
 from regnf.compositor.render_folder import MAX_PIXELS, RenderConfig
 from regnf.compositor.stage_config import StageCompositeConfig
 from regnf.core.preflight import check_image_size, check_output_dir
+from regnf.generate_config import SubstitutionConfig
 
 if TYPE_CHECKING:
     from regnf.compositor import Camera, CompositeField
@@ -60,9 +61,8 @@ class _Views:
     (fields that overestimate), ``--render.sequence gif``, ``--render.overwrite``."""
     composite: StageCompositeConfig = field(default_factory=StageCompositeConfig)
     """What is cut out and placed per instance: ``--composite.removal shell``, ``--composite.box-pad``,
-    ``--composite.tint``, ... ``regnf render`` renders ``--composite.mode`` (``scene``: the scene field
-    alone; ``substitute``, the default: every instance replaced by its library field); ``regnf
-    replace`` always substitutes."""
+    ``--composite.tint``, ... and ``--composite.mode`` (``scene``: the scene field alone;
+    ``substitute``, the default: every instance replaced by its library field)."""
     allow_outside: bool = False
     """Open asset paths of the stage that lie outside its folder (refused by default: a stage is
     a self-contained folder, and a path out of it may name anybody's file)."""
@@ -155,6 +155,9 @@ class RenderStage(_Views):
 class ReplaceInstances(_Views):
     """Swap every instance for a random library object of its class, render it, write transforms.json."""
 
+    composite: SubstitutionConfig = field(default_factory=SubstitutionConfig)
+    """What is cut out and placed per instance: ``--composite.removal shell``, ``--composite.box-pad``,
+    ``--composite.tint``, ... (every instance is substituted)."""
     seed: int = 0
     """Seed of the random choices (the same seed gives the same outputs)."""
     allow_size_change: bool = False

@@ -7,6 +7,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
+from tyro.conf import Suppress
+
 from regnf.compositor.cameras_io import OrbitConfig
 from regnf.compositor.render_folder import RenderConfig, check_image_size
 from regnf.compositor.stage_config import StageCompositeConfig
@@ -24,6 +26,15 @@ million entries. Split a larger data set over several output folders (``first_se
 MAX_VIEWS = 10_000
 """Most views per variant: a variant's views travel from its worker to the driver in one
 message, held in memory on both sides."""
+
+@dataclass(frozen=True)
+class SubstitutionConfig(StageCompositeConfig):
+    """The composite settings of a command that always substitutes every instance (``regnf
+    generate``, ``regnf replace``): ``mode`` is not an option there."""
+
+    mode: Suppress[Literal["scene", "substitute"]] = "substitute"
+    """Always ``substitute`` on the command line."""
+
 
 @dataclass(frozen=True)
 class GenerateConfig:
@@ -68,7 +79,7 @@ class GenerateConfig:
     jitter_cameras: bool = True
     """Turn each variant's orbit by a random azimuth (from its seed) so the variants see the room from
     different places; with capture cameras, each variant takes its own random frames (from its seed)."""
-    composite: StageCompositeConfig = field(default_factory=StageCompositeConfig)
+    composite: SubstitutionConfig = field(default_factory=SubstitutionConfig)
     """Removal settings of the substituted instances (the mode is always substitute)."""
     render: RenderConfig = field(default_factory=lambda: RenderConfig(progress=False, views_per_trace=16))
     """Renderer settings (the progress bar per variant is off: the run shows one over variants).

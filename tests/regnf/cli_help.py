@@ -26,13 +26,27 @@ def field_docs(cls: type) -> dict[str, str]:
 
 
 def leaf_settings(cls: type, prefix: str) -> list[tuple[str, str | None]]:
-    """(option, docstring) of every leaf field of the nested dataclass ``cls``, each option
-    ``prefix`` + its dotted path (``prefix``: ``"--"`` at the top, ``"--registration."`` nested)."""
+    """(option, docstring) of every leaf field of the nested dataclass ``cls`` that the command
+    line offers (not the ones marked ``tyro.conf.Suppress``), each option ``prefix`` + its dotted
+    path (``prefix``: ``"--"`` at the top, ``"--registration."`` nested); the docstrings as the
+    help shows them (:func:`regnf.help_text.plain_help`)."""
+    from tyro.conf import Suppress
+
+    from regnf.help_text import plain_help
+
     hints = typing.get_type_hints(cls)
-    docs = field_docs(cls)
+    marked = typing.get_type_hints(cls, include_extras=True)
+    suppress = typing.get_args(Suppress[int])[1:]
+    modules = [c.__module__ for c in cls.__mro__]
+    docs = {}
+    for c in reversed(cls.__mro__[:-1]):  # a field's docstring from the class that declares it last
+        docs |= {k: plain_help(v, modules) for k, v in field_docs(c).items()} if dataclasses.is_dataclass(c) else {}
     out = []
     for f in dataclasses.fields(cls):
         option = f"{prefix}{f.name.replace('_', '-')}"
+        if typing.get_origin(marked[f.name]) is typing.Annotated and \
+                any(m in suppress for m in typing.get_args(marked[f.name])[1:]):
+            continue
         if dataclasses.is_dataclass(hints[f.name]):
             out += leaf_settings(hints[f.name], option + ".")
         else:

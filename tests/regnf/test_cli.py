@@ -175,3 +175,10 @@ def test_no_sphinx_markup_in_any_help(capsys: pytest.CaptureFixture[str]) -> Non
         assert out.startswith(f"usage: regnf {name}"), name
         found = re.findall(r":(?:func|data|attr|mod|class|meth|obj|exc):`[^`]*", out)
         assert not found, (name, found[:3])
+
+
+@pytest.mark.parametrize("command", ["generate", "replace"])
+def test_commands_that_always_substitute_have_no_mode_option(tmp_path: Path, command: str) -> None:
+    with pytest.raises(SystemExit) as exit_info:
+        main([command, str(tmp_path / "s.usda"), "--out", str(tmp_path / "o"), "--composite.mode", "scene"])
+    assert exit_info.value.code == 2 and not (tmp_path / "o").exists()

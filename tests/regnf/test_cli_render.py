@@ -203,10 +203,12 @@ def test_help_lists_every_render_and_composite_setting(command: str, capsys: pyt
                                                        monkeypatch: pytest.MonkeyPatch) -> None:
     from regnf.compositor.render_folder import RenderConfig
     from regnf.compositor.stage_config import StageCompositeConfig
+    from regnf.generate_config import SubstitutionConfig
 
     from .cli_help import assert_documented, help_text, leaf_settings
 
     text = help_text(command, capsys, monkeypatch)
-    settings = leaf_settings(RenderConfig, "--render.") + leaf_settings(StageCompositeConfig, "--composite.")
+    composite = StageCompositeConfig if command == "render" else SubstitutionConfig  # replace: no mode
+    settings = leaf_settings(RenderConfig, "--render.") + leaf_settings(composite, "--composite.")
     assert len(settings) > 35  # both renderers, the folder, the composite
     assert_documented(settings, text)
