@@ -22,13 +22,7 @@ from regnf.core.output_dir import remove_leftovers, replace_entry, staging_dir
 from regnf.core.preflight import read_json_input
 
 from . import bop
-
-
-def _variant_name(seed: int) -> str:
-    """Folder name of a variant (:func:`regnf.generate_worker.variant_name`)."""
-    from .generate_worker import variant_name
-
-    return variant_name(seed)
+from .generate_layout import variant_name
 
 
 def write_coco(out: Path, rows: dict[int, dict[str, Any]], views: int, source: dict[str, Any]) -> Path:
@@ -43,7 +37,7 @@ def write_coco(out: Path, rows: dict[int, dict[str, Any]], views: int, source: d
 
 def bop_scene_folder(out: Path, seed: int) -> Path:
     """``bop/train/<seed>``: where a variant's BOP scene goes."""
-    return out / bop.BOP_DIR / bop.SPLIT / _variant_name(seed)
+    return out / bop.BOP_DIR / bop.SPLIT / variant_name(seed)
 
 
 def write_bop_models(out: Path, base: Path, source: dict[str, Any]) -> tuple[bop.ModelPlan, list[str]]:

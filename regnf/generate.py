@@ -123,16 +123,8 @@ from .generate_cameras import (
 )
 from .generate_config import GenerateConfig
 from .generate_disk import check_generation_disk, variant_bytes
-from .generate_worker import (
-    STAGE_DIR,
-    VARIANTS_DIR,
-    VariantOutput,
-    VariantTask,
-    layer_name,
-    render_variant,
-    variant_name,
-    warm_worker,
-)
+from .generate_layout import STAGE_DIR, VARIANTS_DIR, layer_name, variant_name
+from .generate_worker import VariantOutput, VariantTask, render_variant, warm_worker
 from .manifest import MANIFEST_NAME, append_row, read_manifest, sealed, sha256_file, write_manifest
 from .placement_jitter import record_in_layer
 

@@ -22,7 +22,7 @@ from regnf.compositor.render_folder import check_image_size
 from regnf.neural_fields.camera import Camera
 
 if TYPE_CHECKING:
-    from .generate import GenerateConfig
+    from .generate_config import GenerateConfig
 
 
 CAPTURE_FRAMES_STREAM = 11

@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING
 from regnf.core.preflight import check_free_space
 
 if TYPE_CHECKING:
-    from regnf.generate import GenerateConfig
+    from regnf.generate_config import GenerateConfig
 
 BYTES_PER_VIEW_PIXEL = 10
 """Bytes a view's pixel takes in the files of its variant, uncompressed: RGB (3), 16-bit depth (2),
@@ -36,7 +36,7 @@ def variant_bytes(config: GenerateConfig) -> int:
 
 def pending_variants(out: Path, config: GenerateConfig) -> int:
     """How many of ``config``'s seeds have no variant folder in ``out`` yet (one listing, no file read)."""
-    from regnf.generate import VARIANTS_DIR, variant_name
+    from regnf.generate_layout import VARIANTS_DIR, variant_name
 
     try:
         made = set(os.listdir(out / VARIANTS_DIR))
@@ -47,7 +47,7 @@ def pending_variants(out: Path, config: GenerateConfig) -> int:
 
 def export_bytes(stage: Path, out: Path) -> int:
     """Bytes the export of ``stage`` into ``out/stage/`` writes: its checkpoints (0 once it is there)."""
-    from regnf.generate import STAGE_DIR
+    from regnf.generate_layout import STAGE_DIR
     from regnf.scene_graph import read_stage
 
     if (out / STAGE_DIR / (stage.stem + ".usda")).is_file():

@@ -22,14 +22,10 @@ from regnf.neural_fields.camera import Camera
 from .bop import ModelPlan
 from .data_set_formats import variant_bop_scene
 from .full_masks import full_masks
+from .generate_layout import STAGE_DIR, VARIANTS_DIR, variant_name
 from .placement_jitter import manifest_entry
 from .variant_labels import instance_boxes, write_labels
 from .variation import draw_appearance, vary_views
-
-STAGE_DIR = "stage"
-"""Folder of the base stage and the replacement layers."""
-VARIANTS_DIR = "variants"
-"""Folder of the per-variant folders."""
 
 
 class VariantTask(NamedTuple):
@@ -93,16 +89,6 @@ class VariantOutput(NamedTuple):
     """Its BOP scene, relative path -> content (:func:`regnf.data_set_formats.variant_bop_scene`);
     None: BOP not asked for."""
 
-
-
-def variant_name(seed: int) -> str:
-    """Folder name of a variant: the seed on 6 digits."""
-    return f"{seed:06d}"
-
-
-def layer_name(seed: int) -> str:
-    """File name of a variant's replacement layer."""
-    return f"variant_{variant_name(seed)}.usda"
 
 
 # Per worker process: the stage as read and its loaded fields, kept across the variants it runs.
