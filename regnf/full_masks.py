@@ -149,8 +149,8 @@ def full_masks(folder: Path, field: Any, cameras: Sequence[Any], sphere: Any) ->
             # A surface the view shows beyond the whole box: the ray crossed the box and met nothing.
             c2w = np.asarray(cam.camera_to_world, np.float64)
             farthest = float(((corners - c2w[:3, 3]) @ c2w[:3, 2]).max())
-            d = depth[y0:y1, x0:x1]
-            rows, cols = np.nonzero((ids[y0:y1, x0:x1] != iid) & (d > 0) & (d - FULL_MASK_MARGIN <= farthest))
+            shown = depth[y0:y1, x0:x1]
+            rows, cols = np.nonzero((ids[y0:y1, x0:x1] != iid) & (shown > 0) & (shown - FULL_MASK_MARGIN <= farthest))
             if rows.size == 0:
                 continue
             rows, cols = rows + y0, cols + x0
