@@ -451,11 +451,14 @@ def generate(
         made: list[int] = []
         failed: dict[int, str] = {}
         timings: dict[str, float] = {}
-        plan, notes = write_bop_models(out, base, source) if "bop" in config.formats else (None, [])
+        models = (lambda: write_bop_models(out, base, source)) if "bop" in config.formats else None
+        notes: list[str] = []
         if todo:
             _make_variants(out, base, key, config, todo, rows, made, failed, progress, on_variant, timings,
-                           capture, plan)
+                           capture, models, notes)
             write_manifest(out, rows.values())  # sorted by seed again
+        elif models is not None:
+            notes += models()[1]
         if "coco" in config.formats:
             write_coco(out, rows, config.cameras.n, source)
     return GenerationReport(out, out / MANIFEST_NAME, sorted(made), done, failed, state.problems,
@@ -465,10 +468,13 @@ def generate(
 def _make_variants(out: Path, base: Path, key: str, config: GenerateConfig, todo: list[int],
                    rows: dict[int, dict[str, Any]], made: list[int], failed: dict[int, str], progress: bool,
                    on_variant: Callable[[dict[str, Any]], None] | None, timings: dict[str, float],
-                   capture: CaptureViews | None = None, bop_plan: ModelPlan | None = None) -> None:
+                   capture: CaptureViews | None = None,
+                   bop_models: Callable[[], tuple[ModelPlan, list[str]]] | None = None,
+                   notes: list[str] | None = None) -> None:
     """Run the variants of ``todo`` and commit each as it finishes (``rows``, ``made``, ``failed``
     and ``timings`` are updated); their cameras are ``capture``'s frames when it is given, and
-    their BOP scenes are made with ``bop_plan`` when it is given."""
+    their BOP scenes are made with the models ``bop_models`` writes when it is given (its notes
+    go to ``notes``)."""
     from regnf.compositor.cameras_io import field_bounds_metres
     from regnf.compositor.from_stage import composite_from_stage
 
@@ -483,6 +489,11 @@ def _make_variants(out: Path, base: Path, key: str, config: GenerateConfig, todo
         for _ in range(width):
             warm.submit(call_pinned, warm_worker, config.executor.threads_per_task, str(base))
     with stack:
+        bop_plan = None
+        if bop_models is not None:  # while the warm workers start: the models need no baking
+            bop_plan, said = bop_models()
+            if notes is not None:
+                notes += said
         scene_only = composite_from_stage(base, dataclasses.replace(config.composite, mode="scene"), "cpu")
         bounds = field_bounds_metres(scene_only.field.scene)
         del scene_only
