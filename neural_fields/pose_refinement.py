@@ -32,6 +32,8 @@ from typing import Literal, NamedTuple
 
 import torch
 
+from regnf.neural_fields.similarity import cross_matrices
+
 Maps = tuple[torch.Tensor, torch.Tensor]
 """Per-frame world-space maps ``(D (n, 3, 3), b (n, 3))``: ``p' = p + D p + b``."""
 
@@ -117,16 +119,6 @@ def pose_refine_line(config: PoseRefineConfig, poses_estimated: bool, recorded: 
         return "pose refinement: no corrections recorded in the field"
 
 
-def _hat(w: torch.Tensor) -> torch.Tensor:
-    """(n, 3, 3) cross-product matrices of (n, 3) vectors."""
-    z = torch.zeros_like(w[:, 0])
-    return torch.stack([
-        torch.stack([z, -w[:, 2], w[:, 1]], -1),
-        torch.stack([w[:, 2], z, -w[:, 0]], -1),
-        torch.stack([-w[:, 1], w[:, 0], z], -1),
-    ], -2)
-
-
 def se3_exp(xi: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """The SE(3) exponential of twists ``xi = (w, u)``: rotation vector ``w``, translation part ``u``.
 
@@ -153,7 +145,7 @@ def se3_exp(xi: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     a = torch.where(small, 1 - q2 / 6 + q2 * q2 / 120, torch.sin(q) / q)
     b = torch.where(small, 0.5 - q2 / 24 + q2 * q2 / 720, (1 - torch.cos(q)) / (q * q))
     c = torch.where(small, 1 / 6 - q2 / 120 + q2 * q2 / 5040, (q - torch.sin(q)) / (q * q * q))
-    W = _hat(w)
+    W = cross_matrices(w)
     W2 = W @ W
     eye = torch.eye(3, dtype=xi.dtype, device=xi.device).expand_as(W)
     R = eye + a[:, None, None] * W + b[:, None, None] * W2

@@ -120,3 +120,13 @@ def decompose_similarity(M: Array, rtol: float = DEFAULT_RTOL) -> tuple[Array, A
     if as_torch:
         return R, t.clone(), s
     return R.numpy(), t.numpy().copy(), s.numpy()
+
+
+def cross_matrices(w: torch.Tensor) -> torch.Tensor:
+    """(n, 3, 3) cross-product matrices ``[w]_x`` of vectors ``w`` (n, 3)."""
+    z = torch.zeros_like(w[:, 0])
+    return torch.stack([
+        torch.stack([z, -w[:, 2], w[:, 1]], dim=-1),
+        torch.stack([w[:, 2], z, -w[:, 0]], dim=-1),
+        torch.stack([-w[:, 1], w[:, 0], z], dim=-1),
+    ], dim=-2)

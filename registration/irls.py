@@ -151,6 +151,17 @@ def segment_gram(J: torch.Tensor, a: torch.Tensor, group: torch.Tensor, k: int) 
     return _gram(a[:, None] * J, J, group, k)
 
 
+def segment_mean(values: torch.Tensor, group: torch.Tensor, counts: torch.Tensor) -> torch.Tensor:
+    """(k,) mean of ``values`` (n,) per group (n,) long, ``counts`` (k,) float."""
+    out = values.new_zeros(counts.shape[0])
+    return out.index_add(0, group, values) / counts.clamp(min=1)
+
+
+def segment_sum(values: torch.Tensor, group: torch.Tensor, k: int) -> torch.Tensor:
+    """(k,) sum of ``values`` (n,) per group (n,) long."""
+    return values.new_zeros(k).index_add(0, group, values)
+
+
 def _gram(aJ: torch.Tensor, J: torch.Tensor, group: torch.Tensor, k: int) -> torch.Tensor:
     p = J.shape[1]
     H = J.new_zeros(k, p * p).index_add_(0, group, (aJ[:, :, None] * J[:, None, :]).reshape(-1, p * p))

@@ -19,9 +19,9 @@ from regnf.neural_fields.analytic import (
     Union,
 )
 from regnf.neural_fields.field import Field
+from regnf.registration.point_sets import NearestPoints
 from regnf.registration.refinement import (
     RefineConfig,
-    _Nearest,
     reference_length,
     refine,
     refine_many,
@@ -171,8 +171,8 @@ def test_regulariser_pulls_scene_samples_to_the_library(problem: dict) -> None:
 def test_nearest_neighbour_backends_agree() -> None:
     gen = torch.Generator().manual_seed(7)
     pts, q = torch.rand(500, 3, generator=gen), torch.rand(300, 3, generator=gen)
-    tree = _Nearest(pts)
-    brute = _Nearest(pts)
+    tree = NearestPoints(pts)
+    brute = NearestPoints(pts)
     brute.tree = None  # the GPU path: chunked cdist
     assert torch.equal(tree.query(q), brute.query(q))
     assert torch.equal(tree.query(q), torch.cdist(q, pts).argmin(dim=1))
@@ -371,12 +371,12 @@ def test_same_bits_on_any_thread_count_and_the_count_is_restored(problem: dict, 
 def test_lm_jacobian_matches_finite_differences(problem: dict) -> None:
     """The Jacobian written out in ``linearise`` against central differences of the residuals
     under the same local updates (rotation, log scale, translation, offset latent)."""
-    from regnf.registration.refinement import _Batch
+    from regnf.registration.refine_batch import HypothesisBatch
 
     T0 = perturbed(problem["T_gt"], 0.1, [0.02, -0.01, 0.0], 1.04)
     A, B = problem["A"].double(), problem["B"].double()
     cfg = replace(TEST_CFG, max_offset=0.01, trim_fraction=1.0)
-    batch = _Batch(problem["scene"], problem["lib"], A, B, [T0], cfg)
+    batch = HypothesisBatch(problem["scene"], problem["lib"], A, B, [T0], cfg)
     with torch.no_grad():
         batch.delta[0] = 0.004  # off zero, so that the offset's tanh bound matters
     lin = batch.linearise()
@@ -424,11 +424,11 @@ def test_motion_about_a_continuous_symmetry_axis_is_no_motion() -> None:
     by nothing modulo a continuous symmetry, and by the turn without one; a tilt or a shift
     along the axis still counts."""
     from regnf.registration.metrics import ObjectSymmetry
-    from regnf.registration.refinement import _Batch
+    from regnf.registration.refine_batch import HypothesisBatch
 
     lib = Cylinder(radius=0.4, half_height=0.3, center=(0.1, -0.2, 0.3))
     A = surface_samples(lib, 500, seed=3)
-    batch = _Batch(lib, lib, A, A, [SimilarityTransform(np.eye(3), np.zeros(3), 1.0)], TEST_CFG)
+    batch = HypothesisBatch(lib, lib, A, A, [SimilarityTransform(np.eye(3), np.zeros(3), 1.0)], TEST_CFG)
     before = batch.pose_snapshot()
     axis, centre = np.array([0.0, 0.0, 1.0]), lib.bounds.double().mean(dim=0).numpy()
     round_table = ObjectSymmetry(0, axis)
