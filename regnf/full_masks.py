@@ -7,15 +7,18 @@ and met nothing. Only the other pixels whose ray crosses the object's box in fro
 surface the view shows are traced, each from just before that surface (the object lies
 behind it) to where it leaves the box.
 
-Every object's rays go in one trace: the objects stand side by side in a field of lanes
-(:class:`Lanes`), each ray moved into its object's lane and stopped where it leaves the
-object's box, so that it meets no other object. One trace pays the tracer's per-step cost
-once for all the objects, not once per object.
+Every object's rays go in one trace: the objects stand side by side, each in its own frame,
+in a field of lanes (:class:`Lanes`). Each ray is brought into its object's frame (where the
+object's own box is tighter than the box around the placed object, and no placement is
+applied at every step) and into its lane, and is stopped where it leaves the object's box,
+so that it meets no other object. One trace pays the tracer's per-step cost once for all the
+objects, not once per object.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -37,9 +40,11 @@ class Lanes(Field):
     Parameters
     ----------
     fields : sequence of Field
-        One frame (the same ``to_world``) and device.
+        On one device. Each is evaluated in its own units; the lanes' ``to_world`` is the
+        first one's, so a trace of them takes each ray's span from its caller (``t_min``,
+        ``t_max``), not from ``near`` and ``far``.
     shifts : (k,) float
-        Each field's move along x, field units, increasing; lanes must not overlap.
+        Each field's move along x, in its units, increasing; lanes must not overlap.
     """
 
     def __init__(self, fields: Sequence[Field], shifts: Sequence[float]) -> None:
@@ -114,33 +119,37 @@ def full_masks(folder: Path, field: Any, cameras: Sequence[Any], sphere: Any) ->
     from regnf.compositor.render_folder import view_files
     from regnf.core.cameras import ray_aabb, rays_through
     from regnf.core.image_io import read_depth_png, read_instance_png
-    from regnf.neural_fields.analytic import Transformed
     from regnf.neural_fields.sphere_tracer import trace
 
     views = [(read_instance_png(folder / view_files(k).instance), read_depth_png(folder / view_files(k).depth))
              for k in range(len(cameras))]
     ids_of = [int(i) for i in field.instance_ids]
     masks = {iid: [ids == iid for ids, _ in views] for iid in ids_of}
-    alone = [Transformed(p.mapped.child, p.mapped.matrix, to_world=field.to_world) for p in field.placements]
-    if not alone:
+    objects = [p.mapped.child for p in field.placements]
+    if not objects:
         return masks
     to_world = field.to_world.detach().cpu().double()
     world_to_field = torch.linalg.inv(to_world)
-    scale = float(alone[0].world_scale)  # metres per field unit, the same for every lane
-    boxes = [a.bounds.detach().cpu().double() for a in alone]
-    widths = torch.stack([hi - lo for lo, hi in boxes])
-    gap = float(widths.norm(dim=1).max()) + 2 * sphere.bounds_pad
+    scale = float(field.world_scale)  # metres per field unit
+    # Each placement x -> s R x + t, object frame to field frame.
+    R = torch.stack([p.mapped.rotation.detach().cpu().double() for p in field.placements])  # (k, 3, 3)
+    t = torch.stack([p.mapped.translation.detach().cpu().double() for p in field.placements])  # (k, 3)
+    s = torch.stack([p.mapped.scale.detach().cpu().double().reshape(()) for p in field.placements])  # (k,)
+    # Each object's own box, its frame (an oriented box in the field's), padded as the tracer pads.
+    own = torch.stack([o.bounds.detach().cpu().double() for o in objects])  # (k, 2, 3)
+    own = own + (sphere.bounds_pad / s)[:, None, None] * torch.tensor([-1.0, 1.0], dtype=torch.float64)[None, :, None]
+    # The objects side by side in their own frames, each a gap after the last.
+    gap = float((own[:, 1] - own[:, 0]).norm(dim=1).max())
     shifts, edge = [], 0.0
-    for lo, hi in boxes:  # a loop over instances: each lane starts a gap after the last one
+    for lo, hi in own:  # a loop over instances
         shifts.append(0.0 if not shifts else edge + gap - float(lo[0]))
         edge = float(hi[0]) + shifts[-1]
-    near, far = sphere.near / scale, sphere.far / scale
-    parts: dict[str, list[torch.Tensor]] = {"o": [], "d": [], "start": [], "stop": [], "angle": []}
-    where = []
-    for lane, (iid, (lo, hi)) in enumerate(zip(ids_of, boxes, strict=True)):  # a loop over instances
-        lo, hi = lo - sphere.bounds_pad, hi + sphere.bounds_pad
-        corners = torch.stack(torch.meshgrid(*(torch.stack((lo[i], hi[i])) for i in range(3)), indexing="ij"), dim=-1).reshape(-1, 3)
-        corners = (corners @ to_world[:3, :3].T + to_world[:3, 3]).numpy()
+    # The pixels to trace, as (lane, view, rows, columns).
+    picked: list[tuple[int, int, np.ndarray, np.ndarray]] = []
+    for lane, iid in enumerate(ids_of):  # a loop over instances
+        corners = torch.stack(torch.meshgrid(*own[lane].T, indexing="ij"), dim=-1).reshape(-1, 3)
+        corners = (s[lane] * corners @ R[lane].T + t[lane]) @ to_world[:3, :3].T + to_world[:3, 3]
+        corners = corners.numpy()
         for k, (cam, (ids, depth)) in enumerate(zip(cameras, views, strict=True)):  # a loop over views
             window = box_window(cam, corners)
             if window is None:
@@ -151,41 +160,54 @@ def full_masks(folder: Path, field: Any, cameras: Sequence[Any], sphere: Any) ->
             farthest = float(((corners - c2w[:3, 3]) @ c2w[:3, 2]).max())
             shown = depth[y0:y1, x0:x1]
             rows, cols = np.nonzero((ids[y0:y1, x0:x1] != iid) & (shown > 0) & (shown - FULL_MASK_MARGIN <= farthest))
-            if rows.size == 0:
-                continue
-            rows, cols = rows + y0, cols + x0
-            C = world_to_field @ torch.as_tensor(cam.camera_to_world, dtype=torch.float64)
-            o, d, z = rays_through(torch.as_tensor(cam.K, dtype=torch.float64), C,
-                                   torch.from_numpy(cols + 0.5), torch.from_numpy(rows + 0.5))
-            t_in, t_out = ray_aabb(o, d, lo, hi)
-            # Metres of z-depth to field units along the ray, less a margin for the depth's rounding.
-            behind = (torch.from_numpy(depth[rows, cols].astype(np.float64)) - FULL_MASK_MARGIN) / scale / z
-            start = torch.maximum(torch.maximum(t_in, behind), torch.full_like(t_in, near))
-            stop = t_out.clamp(max=far)
-            keep = (start <= stop).nonzero().squeeze(1)
-            if keep.numel() == 0:
-                continue
-            o = o[keep].clone()
-            o[:, 0] += shifts[lane]
-            parts["o"].append(o)
-            parts["d"].append(d[keep])
-            parts["start"].append(start[keep])
-            parts["stop"].append(stop[keep])
-            parts["angle"].append(torch.full((keep.numel(),), 1.0 / float(min(cam.K[0, 0], cam.K[1, 1])),
-                                             dtype=torch.float64))
-            where.append((iid, k, rows[keep.numpy()], cols[keep.numpy()]))
-    if not where:
+            if rows.size:
+                picked.append((lane, k, rows + y0, cols + x0))
+    if not picked:
         return masks
-    lanes = Lanes(alone, shifts)
+    lane = torch.from_numpy(np.concatenate([np.full(len(r), g) for g, _, r, _ in picked]))
+    view = np.concatenate([np.full(len(r), k) for _, k, r, _ in picked])
+    rows = np.concatenate([r for _, _, r, _ in picked])
+    cols = np.concatenate([c for _, _, _, c in picked])
+    n = len(rows)
+    o, d = torch.empty(n, 3, dtype=torch.float64), torch.empty(n, 3, dtype=torch.float64)
+    z, angle, shown = (torch.empty(n, dtype=torch.float64) for _ in range(3))
+    for k, cam in enumerate(cameras):  # a loop over views: each view's rays at once
+        at = torch.from_numpy(np.nonzero(view == k)[0])
+        if at.numel() == 0:
+            continue
+        C = world_to_field @ torch.as_tensor(cam.camera_to_world, dtype=torch.float64)
+        o[at], d[at], z[at] = rays_through(torch.as_tensor(cam.K, dtype=torch.float64), C,
+                                           torch.from_numpy(cols[at] + 0.5), torch.from_numpy(rows[at] + 0.5))
+        angle[at] = 1.0 / float(min(cam.K[0, 0], cam.K[1, 1]))
+        shown[at] = torch.from_numpy(views[k][1][rows[at], cols[at]].astype(np.float64))
+    # The rays in their object's frame, where t is the field's over the object's scale.
+    o_own = torch.einsum("ni,nij->nj", o - t[lane], R[lane]) / s[lane, None]
+    d_own = torch.einsum("ni,nij->nj", d, R[lane])
+    t_in, t_out = ray_aabb(o_own, d_own, own[lane, 0], own[lane, 1])
+    # Metres of z-depth to the object's units along the ray, less a margin for the depth's rounding.
+    behind = (shown - FULL_MASK_MARGIN) / scale / z / s[lane]
+    start = torch.maximum(torch.maximum(t_in, behind), sphere.near / scale / s[lane])
+    stop = torch.minimum(t_out, sphere.far / scale / s[lane])
+    keep = (start <= stop).nonzero().squeeze(1)
+    if keep.numel() == 0:
+        return masks
+    o_own = o_own[keep]
+    o_own[:, 0] += torch.tensor(shifts, dtype=torch.float64)[lane[keep]]
+    lanes = Lanes(objects, shifts)
     dtype, dev = lanes.bounds.dtype, lanes.device
-    cat = {n: torch.cat(v).to(device=dev, dtype=dtype) for n, v in parts.items()}
+    rays = [v.to(device=dev, dtype=dtype) for v in (o_own, d_own[keep], angle[keep], start[keep], stop[keep])]
     # Few rays, each starting near its surface: a distance grid would cost more than it saves.
-    plain = dataclasses.replace(sphere, grid_resolution=0)
-    hit = trace(lanes, cat["o"], cat["d"], plain, None, cat["angle"], cat["start"], cat["stop"]).hit.cpu().numpy()
-    first = 0
-    for iid, k, rows, cols in where:  # a loop over instances and views
-        masks[iid][k][rows, cols] |= hit[first:first + len(rows)]
-        first += len(rows)
+    # Near and far are in each ray's span already (in its object's units).
+    plain = dataclasses.replace(sphere, grid_resolution=0, near=0.0, far=math.inf)
+    hit = trace(lanes, rays[0], rays[1], plain, None, *rays[2:]).hit.cpu().numpy()
+    kept = keep.numpy()[hit]
+    lane_hit, view_hit, rows_hit, cols_hit = lane.numpy()[kept], view[kept], rows[kept], cols[kept]
+    for k in range(len(cameras)):  # a loop over views: every hit of the view at once
+        at = view_hit == k
+        whole = np.stack([masks[iid][k] for iid in ids_of])
+        whole[lane_hit[at], rows_hit[at], cols_hit[at]] = True
+        for g, iid in enumerate(ids_of):  # a loop over instances
+            masks[iid][k] = whole[g]
     return masks
 
 
