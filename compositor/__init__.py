@@ -22,7 +22,7 @@ _EXPORTS = {
     "build_composite": "substitution",
     "composite_from_stage": "from_stage",
     "StageCompositeConfig": "stage_config",
-    "render": "regnf.neural_fields.sphere_tracer",
+    "render": "regnf.neural_fields.sphere_render",
     "SphereTracerConfig": "regnf.neural_fields.sphere_tracer",
     "render_volume": "volume_renderer",
     "VolumeRendererConfig": "volume_renderer",
@@ -39,7 +39,8 @@ if TYPE_CHECKING:  # static analysers see the real names
     from regnf.core.cameras import look_at
     from regnf.core.render_result import Render
     from regnf.neural_fields.camera import Camera, orbit_cameras
-    from regnf.neural_fields.sphere_tracer import SphereTracerConfig, render
+    from regnf.neural_fields.sphere_render import render
+    from regnf.neural_fields.sphere_tracer import SphereTracerConfig
 
     from .composite_field import CompositeConfig, CompositeField
     from .from_stage import composite_from_stage

@@ -53,7 +53,8 @@ from regnf.neural_fields.camera import Camera
 from regnf.neural_fields.distance_grid import DistanceGrid
 from regnf.neural_fields.field import Field
 from regnf.neural_fields.shading import check_camera_outside
-from regnf.neural_fields.sphere_tracer import SphereTracerConfig, render_many
+from regnf.neural_fields.sphere_render import render_many
+from regnf.neural_fields.sphere_tracer import SphereTracerConfig
 
 from .baked_composite import bake_for_views, baked_tracing
 from .contact_sheets import contact_sheet
@@ -118,7 +119,7 @@ class RenderConfig:
     """Show a progress bar."""
     views_per_trace: int = 3
     """Views the sphere tracer traces together, their rays in one wavefront
-    (:func:`regnf.neural_fields.sphere_tracer.render_many`: the slow rays at the end of a trace
+    (:func:`regnf.neural_fields.sphere_render.render_many`: the slow rays at the end of a trace
     are traced once a batch, not once a view), at most :data:`TRACE_PIXELS` pixels a batch
     unless a view alone is larger. The batches are consecutive views, set by this and the
     views' sizes, not by ``workers``, so the images are the same on any machine. 3: the demo's

@@ -233,7 +233,7 @@ def render_volume(
 ) -> Render:
     """Volume-render one view of ``field`` from ``camera`` (posed in the field's metres).
 
-    Same outputs and conventions as :func:`regnf.neural_fields.sphere_tracer.render`: depth is the
+    Same outputs and conventions as :func:`regnf.neural_fields.sphere_render.render`: depth is the
     opacity-normalised expected z-depth in metres (0 off the mask), normals in the world
     frame, instance id of the heaviest interval (-1 off the mask), no grid look-ups.
     Raises ``ValueError`` for a camera inside matter or non-finite field values; an empty

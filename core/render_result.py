@@ -1,6 +1,6 @@
 """The one image structure every renderer returns.
 
-The field renderers (:func:`regnf.neural_fields.sphere_tracer.render`,
+The field renderers (:func:`regnf.neural_fields.sphere_render.render`,
 :func:`regnf.compositor.volume_renderer.render_volume`) fill every entry; the mesh rasteriser
 that makes the synthetic captures and the benchmarks' references
 (:class:`regnf.synthetic.render.RGBDRenderer`) has no normals and no evaluation counts, and

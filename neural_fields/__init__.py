@@ -31,7 +31,7 @@ _EXPORTS = {
     "Camera": "camera",
     "SphereTracerConfig": "sphere_tracer",
     "trace": "sphere_tracer",
-    "render": "sphere_tracer",
+    "render": "sphere_render",
 }
 __all__ = list(_EXPORTS)
 __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
@@ -44,5 +44,6 @@ if TYPE_CHECKING:  # static analysers see the real names
     from .meshing import extract_mesh
     from .neural_sdf import NeuralSDF, NeuralSDFConfig
     from .oriented_box import OrientedBox
-    from .sphere_tracer import SphereTracerConfig, render, trace
+    from .sphere_render import render
+    from .sphere_tracer import SphereTracerConfig, trace
     from .training import RGBDTrainConfig, train_rgbd

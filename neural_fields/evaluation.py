@@ -19,7 +19,8 @@ from regnf.neural_fields.camera import Camera
 from regnf.neural_fields.field import Field
 from regnf.neural_fields.meshing import extract_mesh
 from regnf.neural_fields.rgbd_samples import capture_where
-from regnf.neural_fields.sphere_tracer import SphereTracerConfig, render
+from regnf.neural_fields.sphere_render import render
+from regnf.neural_fields.sphere_tracer import SphereTracerConfig
 
 
 class SurfaceError(NamedTuple):
@@ -115,7 +116,7 @@ def heldout_psnr(
 
     Renders are supersampled (``supersample``^2 rays per pixel through a regular sub-grid,
     box filtered) because the ground-truth colour images are multisample anti-aliased. Each
-    view is rendered by :func:`~regnf.neural_fields.sphere_tracer.render` from the frame's
+    view is rendered by :func:`~regnf.neural_fields.sphere_render.render` from the frame's
     camera in metres (so any field of the object, in any frame, can be measured).
 
     Raises

@@ -275,7 +275,7 @@ def _completion(stage: Path, room: Room, config: DemoConfig, out: Path) -> dict[
     from regnf.core.threads import map_one_thread_each
     from regnf.neural_fields.distance_grid import DistanceGrid
     from regnf.neural_fields.evaluation import psnr
-    from regnf.neural_fields.sphere_tracer import render_many
+    from regnf.neural_fields.sphere_render import render_many
 
     sphere = RenderConfig().sphere
     fields = {mode: composite_from_stage(stage, StageCompositeConfig(mode=mode, box_pad=config.completion_box_pad),

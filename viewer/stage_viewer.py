@@ -58,7 +58,8 @@ from regnf.core.cameras import look_at
 from regnf.core.image_io import rgb_to_uint8
 from regnf.neural_fields.camera import Camera
 from regnf.neural_fields.distance_grid import DistanceGrid
-from regnf.neural_fields.sphere_tracer import SphereTracerConfig, render
+from regnf.neural_fields.sphere_render import render
+from regnf.neural_fields.sphere_tracer import SphereTracerConfig
 from regnf.scene_graph import (
     SCENE_PRIM,
     ComposedScene,

@@ -18,7 +18,7 @@ from regnf.neural_fields.cache import Cache
 from regnf.neural_fields.camera import Camera
 from regnf.neural_fields.checkpoint import verify_checkpoint
 from regnf.neural_fields.neural_sdf import NeuralSDFConfig
-from regnf.neural_fields.sphere_tracer import render
+from regnf.neural_fields.sphere_render import render
 from regnf.neural_fields.training import RGBDTrainConfig
 from tests.neural_fields import capture_helpers as C
 

@@ -13,7 +13,8 @@ from regnf.compositor.regions import OrientedBoxRegion
 from regnf.neural_fields.baked_field import BakeConfig, BakedField
 from regnf.neural_fields.camera import Camera
 from regnf.neural_fields.similarity import similarity_matrix
-from regnf.neural_fields.sphere_tracer import SphereTracerConfig, render
+from regnf.neural_fields.sphere_render import render
+from regnf.neural_fields.sphere_tracer import SphereTracerConfig
 
 from . import helpers as H
 

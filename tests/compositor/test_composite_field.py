@@ -241,7 +241,8 @@ def test_invalid_inputs_are_refused() -> None:
 def test_meshing_and_plain_sphere_tracing_accept_a_composite() -> None:
     from regnf.neural_fields.camera import Camera
     from regnf.neural_fields.meshing import extract_mesh
-    from regnf.neural_fields.sphere_tracer import SphereTracerConfig, render
+    from regnf.neural_fields.sphere_render import render
+    from regnf.neural_fields.sphere_tracer import SphereTracerConfig
 
     comp = make_composite()
     box = np.stack([H.PLACED_CENTER - 0.3, H.PLACED_CENTER + 0.3])

@@ -17,8 +17,8 @@ from collections.abc import Iterator
 import pytest
 import torch
 
-import regnf.neural_fields.sphere_tracer as tracer
 from regnf.compositor import CompositeField
+from regnf.neural_fields import sphere_render
 from regnf.neural_fields.shading import Shaded
 
 from . import golden as GD
@@ -67,13 +67,13 @@ def _offset_sdf(monkeypatch: pytest.MonkeyPatch, delta: float) -> None:
 
 
 def _flip_normals(monkeypatch: pytest.MonkeyPatch) -> None:
-    shade = tracer.shade_hits
+    shade = sphere_render.shade_hits
 
     def flipped(*args, **kwargs):
         s = shade(*args, **kwargs)
         return Shaded(s.rgb, -s.normals)
 
-    monkeypatch.setattr(tracer, "shade_hits", flipped)
+    monkeypatch.setattr(sphere_render, "shade_hits", flipped)
 
 
 def _swap_channels(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -3,7 +3,7 @@
 The object is the union of an axis-aligned box (flat faces, sharp edges) and a sphere
 sitting on it, both with constant colours. It fills the normalised frame like a library
 object does (longest extent ~1.5 of the [-1, 1] box). Forty 64 x 64 views on a sphere
-around it are sphere-traced with :func:`regnf.neural_fields.sphere_tracer.render` (OpenCV
+around it are sphere-traced with :func:`regnf.neural_fields.sphere_render.render` (OpenCV
 cameras, z-depth in the normalised frame) and written with
 :func:`regnf.captures.sdfstudio.write_capture` in METRES through a known similarity
 ``WORLDTOGT``, so loading the capture exercises the metres -> normalised conversion too.
@@ -22,7 +22,8 @@ from regnf.captures.sdfstudio import load_capture, write_capture
 from regnf.core.cameras import look_at
 from regnf.neural_fields.analytic import Box, Sphere, Union
 from regnf.neural_fields.camera import Camera
-from regnf.neural_fields.sphere_tracer import SphereTracerConfig, render
+from regnf.neural_fields.sphere_render import render
+from regnf.neural_fields.sphere_tracer import SphereTracerConfig
 from regnf.synthetic.trajectories import fibonacci_directions, viewing_distance
 
 BOX_HALF = np.array([0.75, 0.55, 0.35])

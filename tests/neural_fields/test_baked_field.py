@@ -11,7 +11,8 @@ import torch
 from regnf.neural_fields.analytic import Sphere, Union
 from regnf.neural_fields.baked_field import BakeConfig, BakedField, bake, bake_cell, grid_nodes
 from regnf.neural_fields.camera import Camera
-from regnf.neural_fields.sphere_tracer import SphereTracerConfig, render
+from regnf.neural_fields.sphere_render import render
+from regnf.neural_fields.sphere_tracer import SphereTracerConfig
 
 RED, BLUE = (0.9, 0.1, 0.1), (0.1, 0.2, 0.9)
 CELL = 0.02

@@ -15,7 +15,7 @@ from regnf.compositor.from_stage import composite_from_stage
 from regnf.compositor.stage_config import StageCompositeConfig
 from regnf.core.cameras import look_at
 from regnf.neural_fields.camera import Camera
-from regnf.neural_fields.sphere_tracer import render
+from regnf.neural_fields.sphere_render import render
 from regnf.scene_graph import add_instance, read_stage
 from regnf.viewer.stage_viewer import (
     RenderWorker,

@@ -28,7 +28,7 @@ from regnf.compositor.stage_config import StageCompositeConfig
 from regnf.core.cameras import look_at
 from regnf.core.image_io import rgb_to_uint8
 from regnf.neural_fields.camera import Camera
-from regnf.neural_fields.sphere_tracer import render
+from regnf.neural_fields.sphere_render import render
 from regnf.scene_graph import add_instance, read_stage
 from regnf.viewer import StageViewer, ViewerConfig
 from regnf.viewer.stage_viewer import client_pose, wxyz_of
