@@ -40,17 +40,12 @@ problem (and the tensor or header key).
 
 from __future__ import annotations
 
-import hashlib
-import io
 import json
 import math
 import os
-import re
-import time
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
 from pathlib import Path
-from typing import BinaryIO, NamedTuple
+from typing import NamedTuple
 
 import torch
 from safetensors import SafetensorError, safe_open
@@ -58,8 +53,20 @@ from safetensors.torch import save as save_to_bytes
 
 from regnf.core.atomic_io import write_bytes
 from regnf.core.preflight import input_file_problem
+from regnf.neural_fields.checkpoint_checks import (
+    ArchitectureLimits,
+    CheckpointError,
+    check_architecture,
+    check_visibility,
+)
+from regnf.neural_fields.checkpoint_digest import (
+    DIGEST_KEY,
+    HEADER_KEY,
+    check_digest,
+    content_digest,
+)
 from regnf.neural_fields.field import FieldInfo, Symmetry
-from regnf.neural_fields.neural_sdf import ARCHITECTURE, NeuralSDF, NeuralSDFConfig, parameter_count
+from regnf.neural_fields.neural_sdf import ARCHITECTURE, NeuralSDF, NeuralSDFConfig
 from regnf.neural_fields.rgbd_samples import CaptureLike, capture_where
 from regnf.neural_fields.similarity import decompose_similarity
 from regnf.neural_fields.visibility import (
@@ -69,17 +76,11 @@ from regnf.neural_fields.visibility import (
     build_visibility,
 )
 
-HEADER_KEY = "regnf"
-"""Key of the JSON header in the safetensors metadata."""
-
 FORMAT_VERSION = 2
 """Written by :func:`save_field`. 2: the header records :data:`DIGEST_KEY`."""
 
 LEGACY_FORMAT_VERSIONS = (1,)
 """Older versions: refused unless ``allow_legacy=True`` (see the module docstring)."""
-
-DIGEST_KEY = "sha256"
-"""Header key of the content digest (64 lowercase hex digits)."""
 
 VISIBILITY_KEY = "visibility"
 """Header key of the visibility grid's metadata (:meth:`VisibilityGrid.to_json`), or null."""
@@ -91,164 +92,6 @@ STORED_TWICE = {"bounds": "bounds", "to_world": "to_world"}
 """Header keys that the weights also hold as a buffer (header key -> tensor name). A reader of
 the header alone (a stage) and the loaded field must see the same numbers, so the two copies
 must be equal (compared in float64, which holds both exactly)."""
-
-# -- limits on the architecture a header may ask for --------------------------------------
-# A header is checked against these before any model (not even a weightless meta-device
-# skeleton, which builds one module per level and per layer) is constructed: a forged
-# ``levels = 10**8`` otherwise loops for minutes, and a forged size allocates gigabytes.
-# Each is far above anything regnf trains; pass ``ArchitectureLimits(...)`` to go beyond.
-
-MAX_LEVELS = 32
-"""Grid levels (presets: 6-7; instant-NGP: 16). Levels are a geometric series from the base
-to the finest resolution: beyond 32 they are a few percent apart and only cost memory."""
-
-MAX_HIDDEN_LAYERS = 64
-"""Hidden layers of the SDF MLP (presets: 2). One module each."""
-
-MAX_WIDTH = 4096
-"""``hidden_dim``, ``geo_feature_dim`` and ``color_hidden_dim`` (presets: 64, 15, 64)."""
-
-MAX_FEATURES_PER_LEVEL = 64
-"""Feature channels per grid level (presets: 4; instant-NGP: 2)."""
-
-MAX_RESOLUTION = 2**16
-"""``base_resolution`` and ``finest_resolution``, cells along the longest axis (presets: up
-to 256). Also keeps the hash encoding's integer corner products far from int64 overflow."""
-
-MAX_HASH_TABLE_SIZE_LOG2 = 26
-"""Hash encoding: at most 2**26 rows per level (instant-NGP: 2**19 to 2**24)."""
-
-MAX_PARAMETERS = 2**28
-"""Trainable values in all (268 M, 1 GiB of float32; presets: 4 M for an object, about 30 M
-for a room). Bounds what building the field allocates, whatever the other values combine to."""
-
-MAX_VISIBILITY_RESOLUTION = 1024
-"""Voxels along any axis of a visibility grid (training's default: 128 on the longest)."""
-
-MAX_VISIBILITY_VOXELS = 2**26
-"""Voxels of a visibility grid in all (67 M: 64 MiB of uint8 counts and the 256 MiB float32
-lookup volume built on load; training's default: at most 2.1 M)."""
-
-
-@dataclass(frozen=True)
-class ArchitectureLimits:
-    """The largest architecture a checkpoint header may ask for (defaults: the MAX_* constants)."""
-
-    max_levels: int = MAX_LEVELS
-    """See :data:`MAX_LEVELS`."""
-    max_hidden_layers: int = MAX_HIDDEN_LAYERS
-    """See :data:`MAX_HIDDEN_LAYERS`."""
-    max_width: int = MAX_WIDTH
-    """See :data:`MAX_WIDTH`."""
-    max_features_per_level: int = MAX_FEATURES_PER_LEVEL
-    """See :data:`MAX_FEATURES_PER_LEVEL`."""
-    max_resolution: int = MAX_RESOLUTION
-    """See :data:`MAX_RESOLUTION`."""
-    max_hash_table_size_log2: int = MAX_HASH_TABLE_SIZE_LOG2
-    """See :data:`MAX_HASH_TABLE_SIZE_LOG2`."""
-    max_parameters: int = MAX_PARAMETERS
-    """See :data:`MAX_PARAMETERS`."""
-    max_visibility_resolution: int = MAX_VISIBILITY_RESOLUTION
-    """See :data:`MAX_VISIBILITY_RESOLUTION`."""
-    max_visibility_voxels: int = MAX_VISIBILITY_VOXELS
-    """See :data:`MAX_VISIBILITY_VOXELS`."""
-
-
-class CheckpointError(ValueError):
-    """A checkpoint that cannot be used; the one-line message names the file and the problem."""
-
-    def __init__(self, path: str | os.PathLike, problem: str) -> None:
-        self.path = Path(path)
-        # One line, even when the problem quotes a library's multi-line message.
-        self.problem = re.sub(r"\s*[\r\n]+\s*", " ", problem)
-        super().__init__(f"{self.path}: {self.problem}")
-
-
-def check_architecture(
-    config: NeuralSDFConfig, extent: torch.Tensor, limits: ArchitectureLimits | None = None
-) -> int:
-    """Refuse an architecture beyond ``limits``, cheaply (nothing is built or allocated).
-
-    Parameters
-    ----------
-    config : NeuralSDFConfig
-        A parsed (type-checked) config.
-    extent : (3,) float
-        Size of the field's bounds box (its aspect ratio sets the dense grids' shapes).
-    limits : ArchitectureLimits, optional
-        Defaults to the module's MAX_* constants.
-
-    Returns
-    -------
-    int
-        The field's number of trainable values.
-
-    Raises
-    ------
-    ValueError
-        Naming the first value over its limit, or the parameter count.
-    """
-    lim = limits or ArchitectureLimits()
-    bounded = [
-        ("levels", config.levels, lim.max_levels, "max_levels"),
-        ("hidden_layers", config.hidden_layers, lim.max_hidden_layers, "max_hidden_layers"),
-        ("hidden_dim", config.hidden_dim, lim.max_width, "max_width"),
-        ("geo_feature_dim", config.geo_feature_dim, lim.max_width, "max_width"),
-        ("color_hidden_dim", config.color_hidden_dim, lim.max_width, "max_width"),
-        ("features_per_level", config.features_per_level, lim.max_features_per_level,
-         "max_features_per_level"),
-        ("base_resolution", config.base_resolution, lim.max_resolution, "max_resolution"),
-        ("finest_resolution", config.finest_resolution, lim.max_resolution, "max_resolution"),
-        ("hash_table_size_log2", config.hash_table_size_log2, lim.max_hash_table_size_log2,
-         "max_hash_table_size_log2"),
-    ]
-    for name, value, limit, knob in bounded:
-        if value > limit:
-            raise ValueError(f"{name} = {value} exceeds the limit {limit} (ArchitectureLimits.{knob})")
-    count = parameter_count(config, extent)  # one step per level: levels is bounded above
-    if count > lim.max_parameters:
-        raise ValueError(
-            f"{count} parameters exceed the limit {lim.max_parameters} (ArchitectureLimits.max_parameters)"
-        )
-    return count
-
-
-def check_visibility(meta: Mapping, limits: ArchitectureLimits | None = None) -> int:
-    """Refuse a visibility grid beyond ``limits``, from its parsed metadata (nothing allocated).
-
-    Parameters
-    ----------
-    meta : Mapping
-        :meth:`VisibilityGrid.parse_json` of the header's block.
-    limits : ArchitectureLimits, optional
-        Defaults to the module's MAX_* constants.
-
-    Returns
-    -------
-    int
-        The grid's number of voxels.
-
-    Raises
-    ------
-    ValueError
-        Naming the axis or the voxel count over its limit.
-    """
-    lim = limits or ArchitectureLimits()
-    resolution = meta["resolution"]
-    for axis, n in zip("xyz", resolution):
-        if n > lim.max_visibility_resolution:
-            raise ValueError(
-                f"{n} voxels along {axis} exceed the limit {lim.max_visibility_resolution} "
-                "(ArchitectureLimits.max_visibility_resolution)"
-            )
-    voxels = math.prod(resolution)
-    if voxels > lim.max_visibility_voxels:
-        raise ValueError(
-            f"{voxels} voxels exceed the limit {lim.max_visibility_voxels} "
-            "(ArchitectureLimits.max_visibility_voxels)"
-        )
-    return voxels
-
 
 def field_header(field: NeuralSDF) -> dict:
     """The JSON header describing ``field`` (everything but the weights and the digest)."""
@@ -265,146 +108,6 @@ def field_header(field: NeuralSDF) -> dict:
         "provenance": field.info.provenance,
         VISIBILITY_KEY: None if visibility is None else visibility.to_json(),
     }
-
-
-# -- the content digest ---------------------------------------------------------------------
-
-_DIGEST_DOMAIN = b"regnf.checkpoint.sha256/2\n"
-"""Prefix of every digest, so that it never equals a hash of anything else."""
-
-_CHUNK = 1 << 20
-"""Bytes hashed at a time: a checkpoint of any size is verified in constant memory."""
-
-
-def content_digest(header: Mapping, tensors: Mapping[str, torch.Tensor]) -> str:
-    """The :data:`DIGEST_KEY` of a checkpoint made of ``header`` and ``tensors``.
-
-    Parameters
-    ----------
-    header : Mapping
-        The JSON header (its own :data:`DIGEST_KEY`, if any, is left out of the digest).
-    tensors : Mapping[str, torch.Tensor]
-        Contiguous CPU tensors, as they will be saved.
-
-    Returns
-    -------
-    str
-        64 hex digits: SHA-256 of the canonical JSON of the header and of every tensor's name,
-        dtype, shape and bytes, in name order. Equal to :func:`checkpoint_digest` of the file
-        that :func:`save_field` writes; the tensors are serialised by safetensors here so that
-        both hash the very same bytes with one implementation.
-    """
-    blob = save_to_bytes(dict(tensors), metadata={HEADER_KEY: json.dumps(dict(header))})
-    return _serialised_digest(io.BytesIO(blob), len(blob), Path("<checkpoint in memory>"))
-
-
-def checkpoint_digest(path: str | os.PathLike) -> str:
-    """The digest of the checkpoint file at ``path`` as stored (see :func:`content_digest`).
-
-    Reads the file once, :data:`_CHUNK` bytes at a time; builds nothing.
-
-    Raises
-    ------
-    CheckpointError
-        Unreadable, truncated, or not a safetensors file with a ``regnf`` header.
-    """
-    path = Path(path)
-    try:
-        with open(path, "rb") as f:
-            return _serialised_digest(f, os.fstat(f.fileno()).st_size, path)
-    except OSError as exc:
-        raise CheckpointError(path, f"cannot read the file ({exc})") from exc
-
-
-def _serialised_digest(f: BinaryIO, size: int, where: Path) -> str:
-    """SHA-256 of a serialised checkpoint read from ``f`` (``size`` bytes); see content_digest."""
-    def corrupt(what: str) -> CheckpointError:
-        return CheckpointError(where, f"not a readable safetensors file ({what})")
-
-    raw = f.read(8)
-    if len(raw) < 8:
-        raise corrupt("shorter than its header length")
-    n = int.from_bytes(raw, "little")
-    if n > size - 8:
-        raise corrupt(f"header length {n} beyond the end of the file")
-    try:
-        index = json.loads(f.read(n))
-        header = json.loads(index.pop("__metadata__")[HEADER_KEY])
-    except (ValueError, KeyError, TypeError, AttributeError, UnicodeDecodeError) as exc:
-        raise corrupt(f"no readable '{HEADER_KEY}' header: {exc}") from exc
-    if not isinstance(header, dict):
-        raise CheckpointError(where, "the JSON header is not an object")
-    h = hashlib.sha256(_DIGEST_DOMAIN)
-    canonical = json.dumps(
-        {k: v for k, v in header.items() if k != DIGEST_KEY}, sort_keys=True, separators=(",", ":")
-    ).encode()
-    # Length prefixes make the concatenation unambiguous (no two inputs share a byte stream).
-    h.update(len(canonical).to_bytes(8, "little") + canonical)
-    base = 8 + n
-    for name in sorted(index):
-        entry = index[name]
-        try:
-            start, end = (int(v) for v in entry["data_offsets"])
-            record = json.dumps([name, str(entry["dtype"]), [int(d) for d in entry["shape"]], end - start])
-        except (KeyError, TypeError, ValueError) as exc:
-            raise corrupt(f"bad index entry for tensor '{name}'") from exc
-        if not 0 <= start <= end or base + end > size:
-            raise CheckpointError(where, f"truncated or corrupted tensor data (tensor '{name}' ends beyond the file)")
-        h.update(len(record).to_bytes(8, "little") + record.encode())
-        f.seek(base + start)
-        remaining = end - start
-        while remaining:
-            chunk = f.read(min(remaining, _CHUNK))
-            if not chunk:
-                raise CheckpointError(where, f"truncated or corrupted tensor data (tensor '{name}')")
-            h.update(chunk)
-            remaining -= len(chunk)
-    return h.hexdigest()
-
-
-STABLE_SECONDS = 2.0
-"""A file last modified at least this long before its digest was computed is not hashed again
-in this process while its identity (:func:`_file_identity`) stays the same."""
-_VERIFIED: dict[tuple[int, ...], str] = {}
-"""File identity -> the digest that the file was found to have (see :func:`_check_digest`)."""
-
-
-def _file_identity(path: Path) -> tuple[int, ...] | None:
-    """(device, inode, size, mtime, ctime) of ``path``, or None if it cannot be stated."""
-    try:
-        st = os.stat(path)
-    except OSError:
-        return None
-    return (st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns)
-
-
-def _check_digest(path: Path, header: dict) -> None:
-    """Compare the digest the header records with the file's (no-op for a legacy header).
-
-    A stage is read many times in one run (every render step, every variant's layer) and
-    its scene field alone is over 100 MB: a file whose digest this process has already checked
-    is not hashed again while its device, inode, size and modification and change times stay
-    the same. Any write changes the modification time (and a replacing rename the inode), but
-    file systems keep those times at a coarse grain (milliseconds), so a file modified within
-    :data:`STABLE_SECONDS` of the check is never remembered: a write that follows so soon could
-    leave every field of the identity as it was (the "racily clean" case of git's index).
-    """
-    want = header.get(DIGEST_KEY)
-    if want is None:
-        return  # a legacy file read with allow_legacy=True
-    before = _file_identity(path)  # stated BEFORE hashing: a write during it changes the identity
-    if before is not None and _VERIFIED.get(before) == want:
-        return
-    checked_at = time.time()
-    got = checkpoint_digest(path)
-    if got == want and before is not None and checked_at - max(before[3], before[4]) / 1e9 >= STABLE_SECONDS:
-        _VERIFIED[before] = got
-    if got != want:
-        raise CheckpointError(
-            path,
-            f"content digest mismatch (header sha256 {want[:16]}..., file {got[:16]}...): the file "
-            "was corrupted or edited after it was saved; retrain or copy it again",
-        )
 
 
 def _check_stored_twice(path: Path, header: dict, tensors: Mapping[str, torch.Tensor]) -> None:
@@ -606,7 +309,7 @@ def verify_checkpoint(path: str | os.PathLike, limits: ArchitectureLimits | None
     """
     path = Path(path)
     header, parsed = _read(path, limits, allow_legacy=False)
-    _check_digest(path, header)
+    check_digest(path, header)
     visibility = _expected_visibility(parsed)
     try:
         with safe_open(str(path), framework="pt") as f:
@@ -745,7 +448,7 @@ def load_field(
                 if stored != shape:
                     raise CheckpointError(path, f"tensor '{name}' has shape {stored}, expected {shape}")
             # Sizes are right: hash the whole file before trusting any value in it.
-            _check_digest(path, header)
+            check_digest(path, header)
             state = {}
             for name, (_, dtype) in expected.items():
                 t = f.get_tensor(name)

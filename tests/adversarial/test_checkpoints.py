@@ -18,16 +18,16 @@ from regnf.neural_fields.checkpoint import (
     DIGEST_KEY,
     FORMAT_VERSION,
     HEADER_KEY,
-    MAX_LEVELS,
     ArchitectureLimits,
     CheckpointError,
-    checkpoint_digest,
     content_digest,
     load_field,
     read_header,
     save_field,
     verify_checkpoint,
 )
+from regnf.neural_fields.checkpoint_checks import MAX_LEVELS
+from regnf.neural_fields.checkpoint_digest import checkpoint_digest
 from regnf.neural_fields.field import FieldInfo
 from regnf.neural_fields.neural_sdf import NeuralSDF, NeuralSDFConfig
 
@@ -133,13 +133,13 @@ def test_a_file_edited_in_place_right_after_its_check_is_refused(tmp_path: Path)
 
 
 def test_a_stable_file_is_hashed_once_until_it_changes(tmp_path: Path, monkeypatch) -> None:
-    import regnf.neural_fields.checkpoint as ckpt
+    import regnf.neural_fields.checkpoint_digest as digests
 
-    monkeypatch.setattr(ckpt, "STABLE_SECONDS", 0.0)  # as if the file were older
+    monkeypatch.setattr(digests, "STABLE_SECONDS", 0.0)  # as if the file were older
     path = saved(tmp_path)
     hashed: list[Path] = []
-    real = ckpt.checkpoint_digest
-    monkeypatch.setattr(ckpt, "checkpoint_digest", lambda p: hashed.append(p) or real(p))
+    real = digests.checkpoint_digest
+    monkeypatch.setattr(digests, "checkpoint_digest", lambda p: hashed.append(p) or real(p))
     verify_checkpoint(path)
     load_field(path)
     verify_checkpoint(path)
