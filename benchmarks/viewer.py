@@ -11,7 +11,7 @@
    the first instance's two registration sample sets over the scene field.
 3. Correction: each instance of the stage whose capture instance is known is dragged off its
    true pose (``drag_yaw`` radians about the vertical, ``drag_offset`` metres) and refined from
-   there (:func:`regnf.viewer.stage_viewer.refine_from_pose`, what the viewer's refine button
+   there (:func:`regnf.viewer.editing.refine_from_pose`, what the viewer's refine button
    runs); the result is measured against the ground truth with the registration bars.
 """
 
@@ -128,7 +128,9 @@ def run_viewer_benchmark(stage: Path, instances: list[Instance], images: Path,
     from PIL import Image
     from scipy.spatial.transform import Rotation
 
-    from regnf.viewer.stage_viewer import StageViewer, ViewerConfig, refine_from_pose
+    from regnf.viewer.editing import refine_from_pose
+    from regnf.viewer.stage_viewer import StageViewer
+    from regnf.viewer.viewer_config import ViewerConfig
 
     images.mkdir(parents=True, exist_ok=True)
     viewer = StageViewer(stage, ViewerConfig(port=free_port()))

@@ -10,7 +10,7 @@ from pathlib import Path
 from rich.console import Console
 from tyro.conf import Positional
 
-from regnf.viewer.stage_viewer import ViewerConfig
+from regnf.viewer.viewer_config import ViewerConfig
 
 console = Console(stderr=True)
 

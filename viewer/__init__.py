@@ -14,10 +14,11 @@ from regnf.core.lazy_exports import lazy_exports
 _EXPORTS = {
     "serve": "stage_viewer",
     "StageViewer": "stage_viewer",
-    "ViewerConfig": "stage_viewer",
+    "ViewerConfig": "viewer_config",
 }
 __all__ = list(_EXPORTS)
 __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
 
 if TYPE_CHECKING:  # static analysers see the real names
-    from .stage_viewer import StageViewer, ViewerConfig, serve
+    from .stage_viewer import StageViewer, serve
+    from .viewer_config import ViewerConfig

@@ -33,7 +33,7 @@ from regnf.core.cameras import look_at
 from regnf.scene_graph import InstanceRecord, add_instance, read_stage, write_stage
 from regnf.viewer import StageViewer, ViewerConfig, stage_viewer
 from regnf.viewer.messages import MAX_ASPECT
-from regnf.viewer.stage_viewer import wxyz_of
+from regnf.viewer.render_worker import wxyz_of
 from tests.adversarial.disk import changes, snapshot
 from tests.regnf.cli_helpers import assert_fails, run_cli
 from tests.scene_graph.helpers import make_stage, registration_json, similarity

@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from regnf.scene_graph import add_instance, add_instance_from_registration, read_stage
-from regnf.viewer.stage_viewer import instance_table
+from regnf.viewer.edit_panel import instance_table
 from tests.scene_graph.helpers import make_stage, registration_json, similarity
 
 

@@ -17,14 +17,14 @@ from regnf.core.cameras import look_at
 from regnf.neural_fields.camera import Camera
 from regnf.neural_fields.sphere_render import render
 from regnf.scene_graph import add_instance, read_stage
-from regnf.viewer.stage_viewer import (
+from regnf.viewer.render_worker import (
     RenderWorker,
-    ViewerConfig,
     ViewRequest,
     crop_to_aspect,
     opening_view,
     viewer_camera,
 )
+from regnf.viewer.viewer_config import ViewerConfig
 from tests.scene_graph.helpers import make_stage, similarity
 
 

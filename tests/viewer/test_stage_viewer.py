@@ -31,7 +31,7 @@ from regnf.neural_fields.camera import Camera
 from regnf.neural_fields.sphere_render import render
 from regnf.scene_graph import add_instance, read_stage
 from regnf.viewer import StageViewer, ViewerConfig
-from regnf.viewer.stage_viewer import client_pose, wxyz_of
+from regnf.viewer.render_worker import client_pose, wxyz_of
 from tests.scene_graph.helpers import make_stage, similarity
 
 WINDOW = (800, 600)
