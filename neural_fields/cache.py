@@ -46,6 +46,7 @@ from regnf.captures.model import Capture
 from regnf.captures.sdfstudio import load_capture
 from regnf.core.file_lock import LockUnavailable, file_lock
 from regnf.core.preflight import check_output_dir
+from regnf.neural_fields.capture_fingerprint import capture_fingerprint
 from regnf.neural_fields.checkpoint import (
     VISIBILITY_KEY,
     CheckpointError,
@@ -68,7 +69,6 @@ from regnf.neural_fields.source_mesh import SourceMeshError, keep_source_mesh, r
 from regnf.neural_fields.training import (
     TRAIN_VERSION,
     RGBDTrainConfig,
-    capture_fingerprint,
     train_rgbd,
 )
 from regnf.synthetic.capture import (
@@ -307,7 +307,7 @@ class Cache:
         """The cache file of the field trained on ``capture`` with ``config``, and the data hash.
 
         The key hashes the bytes of the capture's metadata file and of every image and depth (see
-        :func:`regnf.neural_fields.training.capture_fingerprint`), so it is the same for any
+        :func:`regnf.neural_fields.capture_fingerprint.capture_fingerprint`), so it is the same for any
         spelling of the capture's path and differs as soon as one input file does. It holds the
         training frames ``indices`` unless they are every training frame, and the ``up``
         recorded in the field's provenance unless it is the format's own (``Capture.up``), so

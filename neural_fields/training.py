@@ -46,20 +46,17 @@ a :class:`regnf.neural_fields.visibility.VisibilityGrid` over its bounds (see
 
 from __future__ import annotations
 
-import hashlib
 import json
-import os
 import time
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
-from pathlib import Path
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 
 from regnf.captures.depth_uncertainty import DepthNoiseModel
-from regnf.captures.model import META_NAME, CaptureError, capture_file
+from regnf.captures.model import CaptureError
 from regnf.neural_fields.field import FieldInfo
 from regnf.neural_fields.floater_pool import FloaterPool
 from regnf.neural_fields.neural_sdf import (
@@ -281,55 +278,6 @@ class _ViewStack:
 
 _POOL_CAPACITY = 1 << 16
 """Points the floater pool keeps (a mining pass over a room adds a few thousand)."""
-
-FINGERPRINT_VERSION = b"regnf.capture-fingerprint/2\n"
-"""Prefix of every capture fingerprint; changing how it is computed changes this."""
-
-_CHUNK = 1 << 20
-"""Bytes hashed at a time (captures hold hundreds of megabytes)."""
-
-
-def capture_fingerprint(root: str | os.PathLike, files: Sequence[str | os.PathLike],
-                        meta_name: str = META_NAME) -> str:
-    """SHA-256 of a capture's training data: its metadata file and every file in ``files``.
-
-    The key of a trained field: it depends on the bytes of the inputs and on their names
-    inside the capture folder only, not on how the folder was named (relative, absolute,
-    ``./x``, through a symlink) nor where it lies.
-
-    Parameters
-    ----------
-    root : str or PathLike
-        The capture folder.
-    files : sequence of str or PathLike
-        Files the training reads (images, depths); absolute, or relative to ``root``.
-    meta_name : str
-        The capture's metadata file in ``root`` (``Capture.meta_name``).
-
-    Returns
-    -------
-    str
-        64 hex digits.
-
-    Raises
-    ------
-    CaptureError
-        A file that does not exist or lies outside ``root`` (symlinks resolved): a key that
-        silently skipped it would let another capture's field be reused.
-    """
-    root = Path(root)
-    base = os.path.realpath(root)
-    h = hashlib.sha256(FINGERPRINT_VERSION)
-    for name in [meta_name, *files]:
-        # The loader's rule: an existing file inside the folder (an absolute name stays as is).
-        real = os.path.realpath(capture_file(root, os.fspath(name), f"{root / meta_name}: training input"))
-        # Name and length first: the concatenation of (name, bytes) records is unambiguous.
-        h.update(f"{Path(os.path.relpath(real, base)).as_posix()}\0{os.path.getsize(real)}\0".encode())
-        with open(real, "rb") as f:
-            while chunk := f.read(_CHUNK):
-                h.update(chunk)
-    return h.hexdigest()
-
 
 def free_stop(t: torch.Tensor, sigma: torch.Tensor | None, margin: float, multiple: float) -> torch.Tensor:
     """Where free space in front of an observed depth ``t`` (n,) stops: ``t - max(margin, multiple * sigma)``.

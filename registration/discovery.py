@@ -16,7 +16,7 @@
    scored within ``shortlist_margin`` of the best
    (:meth:`Ranking.shortlisted`); the candidate is the accepted object of highest confidence, or
    unmatched: none was accepted, or the two best accepted ones differ only where the views did
-   not look (ambiguous, :func:`observed_difference`).
+   not look (ambiguous, :func:`~regnf.registration.observed_difference.observed_difference`).
 4. The chosen registration is refined once more, from its pose, in the registered object's
    box (:func:`object_box`).
 
@@ -65,6 +65,7 @@ from regnf.registration.candidates import (
     find_candidates,
 )
 from regnf.registration.initialisation import Hypothesis, InitConfig
+from regnf.registration.observed_difference import observed_difference
 from regnf.registration.pipeline import (
     RegistrationConfig,
     check_fields,
@@ -124,12 +125,12 @@ class DiscoveryConfig:
     unobserved_difference: float = 0.05
     """When the two best accepted objects of a candidate differ only where the views observed
     less than this (the mean observation weight of the surface where they differ, both at
-    their registered poses, :func:`observed_difference`), the candidate is ambiguous and left
+    their registered poses, :func:`~regnf.registration.observed_difference.observed_difference`), the candidate is ambiguous and left
     unmatched instead of given a coin toss: no registration can rank them on that evidence
     (docs/decisions/discovery-ranking.md)."""
     difference_tolerance: float = 0.01
     """Surface farther than this fraction of the object's diagonal from the other object's
-    surface is where two objects differ (:func:`observed_difference`)."""
+    surface is where two objects differ (:func:`~regnf.registration.observed_difference.observed_difference`)."""
     join_overlap: float = 0.02
     """Two candidates whose boxes overlap by at least this IoU are examined first as one
     candidate (their points' union); 0 never joins. A part the views observed poorly can split
@@ -243,37 +244,6 @@ class DiscoveryResult(NamedTuple):
     def skipped(self) -> list[Discovery]:
         """The candidates that could not be examined (:attr:`Discovery.skipped`)."""
         return [d for d in self.discoveries if d.skipped is not None]
-
-
-def observed_difference(scene_field: Field, field_a: Field, result_a: RegistrationResult, field_b: Field,
-                        result_b: RegistrationResult, tolerance: float = 0.01) -> float:
-    """How much of what tells two registered library objects apart the scene's views observed.
-
-    Each object's library samples are placed at its registered pose; those farther from the
-    other object's surface (its SDF there, in scene field units) than ``tolerance`` times the
-    diagonal are where the two differ, and the scene's visibility grid is read there.
-
-    Returns
-    -------
-    float
-        The mean observation weight in [0, 1] of the differing surface (1 without a visibility
-        grid); nan when the two do not differ beyond the tolerance.
-    """
-    placed = [r.transform.inverse().apply(np.asarray(r.samples[1], dtype=np.float64)) for r in (result_a, result_b)]
-    parts = []
-    diag = float(np.linalg.norm(placed[0].max(axis=0) - placed[0].min(axis=0)))
-    for points, other, result in ((placed[0], field_b, result_b), (placed[1], field_a, result_a)):
-        x = torch.as_tensor(result.transform.apply(points), dtype=torch.float32, device=other.device)
-        with torch.no_grad():
-            distance = other.sdf(x).abs().double().cpu().numpy().reshape(-1) / result.transform.s
-        parts.append(points[distance > tolerance * diag])
-    differ = np.concatenate(parts)
-    if len(differ) == 0:
-        return float("nan")
-    if scene_field.visibility is None:
-        return 1.0
-    x = torch.as_tensor(differ, dtype=torch.float32, device=scene_field.device)
-    return float(scene_field.visibility.observed(x).mean())
 
 
 def object_box(result: RegistrationResult) -> OrientedBox:

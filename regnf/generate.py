@@ -124,8 +124,17 @@ from .generate_cameras import (
 from .generate_config import GenerateConfig
 from .generate_disk import check_generation_disk, variant_bytes
 from .generate_layout import STAGE_DIR, VARIANTS_DIR, layer_name, variant_name
+from .generate_source import check_source, check_variant_sizes, source_summary
 from .generate_worker import VariantOutput, VariantTask, render_variant, warm_worker
-from .manifest import MANIFEST_NAME, append_row, read_manifest, sealed, sha256_file, write_manifest
+from .manifest import (
+    MANIFEST_NAME,
+    append_row,
+    load_rows,
+    read_manifest,
+    sealed,
+    sha256_file,
+    write_manifest,
+)
 from .placement_jitter import record_in_layer
 
 GENERATION_JSON = "generation.json"
@@ -185,20 +194,6 @@ def _settings_key(settings: dict[str, Any]) -> str:
     return hashlib.sha256(json.dumps(settings, sort_keys=True).encode()).hexdigest()[:16]
 
 
-def source_summary(stage: Path) -> dict[str, Any]:
-    """What of the source stage the variants depend on: its instances, library and scene field."""
-    from regnf.scene_graph import read_stage
-
-    scene = read_stage(stage)
-    return {
-        "scene": scene.scene.name,
-        "library": {n: r.label for n, r in sorted(scene.library.items())},
-        "instances": {i: {"library_name": r.library_name,
-                          "object_to_scene": np.round(r.object_to_scene, 9).tolist()}
-                      for i, r in sorted(scene.instances.items())},
-    }
-
-
 def _legacy_entries(out: Path) -> list[str]:
     """The data set an earlier regnf version wrote in ``out`` (before output markers), if any.
 
@@ -212,33 +207,6 @@ def _legacy_entries(out: Path) -> list[str]:
     if not isinstance(meta, dict) or not isinstance(meta.get("config_key"), str):
         return []
     return [name for name in LAYOUT if os.path.lexists(out / name)]
-
-
-def check_variant_sizes(stage: Path) -> None:
-    """Refuse a stage where a variant could swap in an object of another size
-    (:func:`regnf.compositor.size_change.check_swap_sizes` over every object a seed may pick)."""
-    from regnf.compositor.replace import replacement_candidates
-    from regnf.compositor.size_change import check_swap_sizes
-    from regnf.scene_graph import read_stage
-
-    scene = read_stage(stage)
-    check_swap_sizes(scene, replacement_candidates(scene), stage)
-
-
-def check_source(stage: str | os.PathLike, out: str | os.PathLike) -> None:
-    """Refuse a source stage inside ``out/stage/``, where the base stage and the layers are written.
-
-    Raises
-    ------
-    ValueError
-        The stage (or the file it links to) is inside ``out/stage/``, or is that folder.
-    """
-    src = Path(stage).absolute()
-    stage_dir = Path(out).absolute() / STAGE_DIR
-    for s, d in ((src, stage_dir), (Path(os.path.realpath(src)), Path(os.path.realpath(stage_dir)))):
-        if s == d or s.is_relative_to(d):
-            raise ValueError(f"{src}: the source stage is inside {stage_dir}, where generate writes its base "
-                             "stage and layers; copy the stage elsewhere, or choose another output folder")
 
 
 def prepare_output(stage: str | os.PathLike, out: str | os.PathLike, config: GenerateConfig,
@@ -572,17 +540,6 @@ def variants_per_minute(report: GenerationReport) -> float:
     """Variants made per minute of wall time in a run (NaN if none)."""
     n = len(report.made) + len(report.failed)
     return n / (report.seconds / 60.0) if n and report.seconds > 0 else math.nan
-
-
-def load_rows(out: str | os.PathLike) -> list[dict[str, Any]]:
-    """The rows of ``out/manifest.jsonl`` as written (unchecked), in seed order.
-
-    During a run (or after a killed one) the file holds rows in the order variants finished;
-    they are sorted here.
-    """
-    path = Path(out) / MANIFEST_NAME
-    rows = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
-    return sorted(rows, key=lambda r: r["seed"])
 
 
 def tile_sheet(out: str | os.PathLike, seeds: Sequence[int] | None = None, columns: int = 0,

@@ -160,3 +160,14 @@ def append_row(root: str | os.PathLike, row: Mapping[str, Any]) -> Path:
     finally:
         os.close(fd)
     return path
+
+
+def load_rows(out: str | os.PathLike) -> list[dict[str, Any]]:
+    """The rows of ``out/manifest.jsonl`` as written (unchecked), in seed order.
+
+    During a run (or after a killed one) the file holds rows in the order variants finished;
+    they are sorted here.
+    """
+    path = Path(out) / MANIFEST_NAME
+    rows = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+    return sorted(rows, key=lambda r: r["seed"])

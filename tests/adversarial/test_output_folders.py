@@ -31,8 +31,8 @@ from regnf.core.atomic_io import TEMP_PREFIX
 from regnf.core.file_lock import LOCK_NAME
 from regnf.core.output_dir import MARKER_NAME, OutputFolderError, claim_output_dir
 from regnf.demo import REMADE, DemoConfig, demo_folder
-from regnf.generate import GenerateConfig, generate, load_rows, prepare_output
-from regnf.manifest import MANIFEST_NAME, read_manifest
+from regnf.generate import GenerateConfig, generate, prepare_output
+from regnf.manifest import MANIFEST_NAME, load_rows, read_manifest
 from regnf.scene_graph import add_instance
 from tests.adversarial.disk import changes, snapshot
 from tests.compositor import golden_scenes as G

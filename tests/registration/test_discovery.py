@@ -70,7 +70,7 @@ def test_two_objects_that_differ_only_where_no_view_looked_are_ambiguous(pillow_
 
     from regnf.neural_fields.analytic import Sphere
     from regnf.neural_fields.visibility import VisibilityGrid
-    from regnf.registration.discovery import observed_difference
+    from regnf.registration.observed_difference import observed_difference
     from regnf.registration.result import RegistrationResult
     from regnf.registration.sampling import sample_surface
 

@@ -34,8 +34,8 @@ from regnf.core.atomic_io import TEMP_PREFIX
 from regnf.core.executors import ExecutorConfig
 from regnf.core.file_lock import LOCK_NAME
 from regnf.core.image_io import read_depth_png, read_instance_png, read_rgb_png
-from regnf.generate import GenerateConfig, generate, load_rows, prepare_output, variant_cameras
-from regnf.manifest import MANIFEST_NAME
+from regnf.generate import GenerateConfig, generate, prepare_output, variant_cameras
+from regnf.manifest import MANIFEST_NAME, load_rows
 from regnf.scene_graph import add_instance, read_stage
 from regnf.scene_graph import layout as L
 from tests.scene_graph.helpers import make_stage, similarity

@@ -29,10 +29,10 @@ from regnf.generate import (
     GenerateConfig,
     _settings_key,
     generate,
-    load_rows,
     prepare_output,
-    source_summary,
 )
+from regnf.generate_source import source_summary
+from regnf.manifest import load_rows
 from regnf.neural_fields.camera import Camera
 from tests.regnf.test_generate import ORBIT, assert_same_images, config, stage  # noqa: F401 (a fixture)
 

@@ -26,7 +26,8 @@ from regnf.compositor.stage_config import StageCompositeConfig
 from regnf.compositor.substitution import SubstitutedInstance, build_composite
 from regnf.core.executors import ExecutorConfig
 from regnf.core.image_io import read_instance_png
-from regnf.generate import GenerateConfig, generate, load_rows, variant_cameras
+from regnf.generate import GenerateConfig, generate, variant_cameras
+from regnf.manifest import load_rows
 from regnf.neural_fields.analytic import Box, Union
 from regnf.placement_jitter import STREAM, candidates, collision_test, draw_placements
 from regnf.scene_graph import ProxyMesh, add_instance, read_stage
