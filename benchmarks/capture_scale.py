@@ -216,7 +216,7 @@ def run_capture_scale(cache, room: str = "ac-room", frames: tuple[int, ...] = (1
 
     Parameters
     ----------
-    cache : regnf.neural_fields.cache.Cache
+    cache : regnf.synthetic.cache.Cache
         Where the capture is made (its ``size`` applies: keep it ``full``).
     room : str
         The room captured.

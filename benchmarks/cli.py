@@ -14,7 +14,7 @@ from rich.console import Console
 
 from regnf.core.atomic_io import write_json
 from regnf.core.preflight import check_output_file
-from regnf.neural_fields.cache import Cache, default_cache_dir
+from regnf.synthetic.cache import Cache, default_cache_dir
 
 console = Console(stderr=True)
 

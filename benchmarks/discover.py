@@ -17,13 +17,13 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from regnf.neural_fields.cache import Cache
 from regnf.neural_fields.checkpoint import load_field
 from regnf.neural_fields.oriented_box import OrientedBox
 from regnf.registration.discovery import DiscoveryResult, FieldFiles, discover
 from regnf.registration.discovery_view import draw_top_view
-from regnf.registration.ground_truth import match_boxes, score_discovery
+from regnf.synthetic.cache import Cache
 from regnf.synthetic.capture import RoomCaptureConfig
+from regnf.synthetic.ground_truth import match_boxes, score_discovery
 
 ROOMS = ("ac-room", "atbl-room", "mix-room")
 LIBRARY = ("c", "dc", "fc", "fc-nop", "mc", "et", "t", "wt")

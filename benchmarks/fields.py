@@ -16,10 +16,10 @@ import torch
 from tqdm import tqdm
 
 from regnf.core.atomic_io import write_json
-from regnf.neural_fields.cache import Cache
 from regnf.neural_fields.checkpoint import load_field
 from regnf.neural_fields.evaluation import chamfer_relative, heldout_psnr, surface_error
 from regnf.neural_fields.field import Field
+from regnf.synthetic.cache import Cache
 from regnf.synthetic.capture import RoomCaptureConfig
 from regnf.synthetic.library import LIBRARY_NAMES, instance_mesh, make_library_object
 from regnf.synthetic.rooms import ROOM_NAMES

@@ -3,7 +3,7 @@ with the results of the CUDA-marked tests, in one JSON and one Markdown table.
 
 ``make gpu-check`` runs ``pytest -m cuda --device cuda --junitxml out/gpu_check_tests.xml``,
 then ``regnf bench gpu-check --device cuda --tests out/gpu_check_tests.xml``. The tests run this
-module on the CPU at the tiny size (:attr:`regnf.neural_fields.cache.Cache.size`), so the path a
+module on the CPU at the tiny size (:attr:`regnf.synthetic.cache.Cache.size`), so the path a
 GPU machine takes is the one CI runs.
 
 The JSON (documented in ``docs/benchmarks.md``)::
@@ -28,7 +28,7 @@ from pathlib import Path
 import torch
 
 from regnf.core.preflight import PreflightError
-from regnf.neural_fields.cache import Cache
+from regnf.synthetic.cache import Cache
 
 FIELD_KEYS = ("name", "source", "train_seconds", "surface_error_mean_rel", "psnr_heldout",
               "eval_points_per_second")

@@ -42,17 +42,10 @@ from tqdm import tqdm
 from regnf.benchmarks.observed_difference import observed_difference
 from regnf.core.executors import ExecutorConfig, run_tasks
 from regnf.neural_fields.analytic import Transformed
-from regnf.neural_fields.cache import Cache
 from regnf.neural_fields.checkpoint import load_field
 from regnf.neural_fields.field import Field
 from regnf.neural_fields.similarity import similarity_matrix
 from regnf.registration.baselines import register_fgr, register_init_only, register_nerf2nerf
-from regnf.registration.ground_truth import (
-    evaluate,
-    find_instance,
-    pair_truth,
-    proposal_from_instance,
-)
 from regnf.registration.metrics import RegistrationErrors
 from regnf.registration.pipeline import (
     RegistrationConfig,
@@ -62,7 +55,14 @@ from regnf.registration.pipeline import (
     single_hypothesis,
 )
 from regnf.registration.result import RegistrationResult
+from regnf.synthetic.cache import Cache
 from regnf.synthetic.capture import RoomCaptureConfig
+from regnf.synthetic.ground_truth import (
+    evaluate,
+    find_instance,
+    pair_truth,
+    proposal_from_instance,
+)
 from regnf.synthetic.library import LIBRARY_NAMES, make_library_object
 from regnf.synthetic.rooms import ROOM_CONTENTS
 

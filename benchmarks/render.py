@@ -36,16 +36,16 @@ from regnf.compositor.substitution import SubstitutedInstance, build_composite
 from regnf.compositor.volume_renderer import VolumeRendererConfig
 from regnf.core.image_io import rgb_to_uint8
 from regnf.neural_fields.baked_field import BakeConfig
-from regnf.neural_fields.cache import Cache
 from regnf.neural_fields.checkpoint import load_field
 from regnf.neural_fields.distance_grid import DistanceGrid
 from regnf.neural_fields.evaluation import psnr, world_to_field
 from regnf.neural_fields.field import Field
 from regnf.neural_fields.meshing import extract_mesh
 from regnf.neural_fields.sphere_tracer import SphereTracerConfig
-from regnf.registration.ground_truth import proposal_from_instance
 from regnf.registration.pipeline import register
+from regnf.synthetic.cache import Cache
 from regnf.synthetic.capture import RoomCaptureConfig
+from regnf.synthetic.ground_truth import proposal_from_instance
 from regnf.synthetic.render import RGBDRenderer
 from regnf.synthetic.rooms import Room, make_room
 from regnf.synthetic.shading import shaded_copy

@@ -41,15 +41,15 @@ from regnf.benchmarks.discover import LIBRARY, score_room
 from regnf.benchmarks.registration import TABLE_I_PAIRS, run_pair, wrong_pairs
 from regnf.benchmarks.sensor_report import summarise
 from regnf.core.preflight import PreflightError
-from regnf.neural_fields.cache import Cache
 from regnf.neural_fields.checkpoint import load_field
 from regnf.neural_fields.evaluation import surface_error
 from regnf.neural_fields.field import Field
 from regnf.registration.discovery import FieldFiles, discover
-from regnf.registration.ground_truth import find_instance
 from regnf.registration.metrics import BARS, within_bars
 from regnf.registration.pipeline import RegistrationConfig
+from regnf.synthetic.cache import Cache
 from regnf.synthetic.capture import RoomCaptureConfig
+from regnf.synthetic.ground_truth import find_instance
 from regnf.synthetic.library import instance_mesh, make_library_object
 from regnf.synthetic.sensor_noise import NOISE_LEVELS
 

@@ -28,10 +28,10 @@ from pathlib import Path
 import numpy as np
 
 from regnf.captures.instance import Instance
-from regnf.registration.ground_truth import pair_truth
 from regnf.registration.metrics import registration_errors, within_bars
 from regnf.registration.transform import SimilarityTransform
 from regnf.scene_graph import instance_path
+from regnf.synthetic.ground_truth import pair_truth
 
 
 @dataclass(frozen=True)

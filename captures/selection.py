@@ -2,7 +2,7 @@
 
 A pure function of the capture's training frame indices, so that the same options select the
 same frames on every run (the selection is part of a trained field's cache key where it is not
-every training frame, :meth:`regnf.neural_fields.cache.Cache.rgbd_field`).
+every training frame, :meth:`regnf.synthetic.cache.Cache.rgbd_field`).
 """
 
 from __future__ import annotations

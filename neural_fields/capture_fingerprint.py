@@ -1,5 +1,5 @@
 """The key of a trained field: a SHA-256 of the capture files its training read
-(:mod:`regnf.neural_fields.cache`)."""
+(:mod:`regnf.synthetic.cache`)."""
 
 from __future__ import annotations
 

@@ -30,7 +30,7 @@ written before grids existed have no ``visibility`` key) still load, with
 Format versions: 2 (this one) added the digest. Version-1 files carry none, so nothing proves
 their weights are the ones that were saved: :func:`read_header`, :func:`load_field` and
 :func:`verify_checkpoint` refuse them with a message saying to retrain the field (the cache,
-:data:`regnf.neural_fields.cache.CACHE_VERSION` 3, remakes its own) or to re-save it:
+:data:`regnf.synthetic.cache.CACHE_VERSION` 3, remakes its own) or to re-save it:
 ``save_field(load_field(path, allow_legacy=True), path)`` loads it with every other check and
 writes it as version 2.
 

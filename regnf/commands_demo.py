@@ -10,7 +10,7 @@ from typing import Annotated
 from tyro.conf import OmitArgPrefixes
 
 from regnf.demo import DemoConfig
-from regnf.neural_fields.cache import default_cache_dir
+from regnf.synthetic.cache import default_cache_dir
 
 
 @dataclass
@@ -28,7 +28,7 @@ class Demo:
     def run(self) -> None:
         from regnf.core.preflight import check_output_dir
         from regnf.demo import run_demo
-        from regnf.neural_fields.cache import Cache
+        from regnf.synthetic.cache import Cache
 
         check_output_dir(self.out)
         check_output_dir(self.cache_dir, "--cache-dir")  # the demo writes its baked grids there, cached or not

@@ -25,13 +25,13 @@ from regnf.core.preflight import (
     check_output_dir,
     check_output_file,
 )
-from regnf.neural_fields.cache import Cache, capture_info, default_cache_dir
 from regnf.neural_fields.checkpoint import load_field, read_header
 from regnf.neural_fields.field import FieldInfo, Symmetry
 from regnf.neural_fields.mesh_writing import written_rounding
 from regnf.neural_fields.meshing import MESH_FORMATS, extract_mesh, save_mesh
 from regnf.neural_fields.pose_refinement import pose_refine_line
 from regnf.neural_fields.presets import object_mesh_preset, object_rgbd_preset, scene_rgbd_preset
+from regnf.synthetic.cache import Cache, capture_info, default_cache_dir
 from regnf.synthetic.capture import (
     ObjectCaptureConfig,
     RoomCaptureConfig,

@@ -96,7 +96,7 @@ class Register:
     def proposal_corners(self) -> np.ndarray:
         """(8, 3) corners of the proposal box in scene metres, from --box or --capture/--instance."""
         from regnf.captures.formats import read_capture
-        from regnf.registration.ground_truth import find_instance
+        from regnf.synthetic.ground_truth import find_instance
 
         if self.box is not None:
             return load_box_metres(self.box)

@@ -57,8 +57,8 @@ import numpy as np
 import torch
 from rich.console import Console
 
-from regnf.neural_fields.cache import Cache, default_cache_dir
 from regnf.registration.metrics import BARS
+from regnf.synthetic.cache import Cache, default_cache_dir
 
 from .tool_export import ToolExportConfig
 
@@ -208,8 +208,8 @@ def _discover_all(stage: Path, out: Path, scene_path: Path, library_paths: dict[
     from regnf.registration.discovery import FieldFiles, discover
     from regnf.registration.discovery_records import instance_payloads
     from regnf.registration.discovery_view import draw_top_view
-    from regnf.registration.ground_truth import score_discovery
     from regnf.scene_graph import add_instance_from_registration
+    from regnf.synthetic.ground_truth import score_discovery
 
     scene = load_field(scene_path, device=device)
     library = {name: load_field(p, device=device) for name, p in library_paths.items()}

@@ -1,8 +1,10 @@
 """The package's layers: a module imports only from its own layer or the layers below it.
 
 Bottom to top: ``regnf.core`` (atomic writes, locks, output folders, executors, pre-flight
-checks), ``captures``, ``synthetic``, ``neural_fields``, ``registration``, ``scene_graph``,
-``compositor``, ``viewer``, ``benchmarks``, and the command line (the modules directly in ``regnf/``). Every import
+checks), ``captures``, ``neural_fields``, ``registration``, ``scene_graph``, ``compositor``,
+``viewer`` (the library), then ``synthetic`` (the synthetic data set and its cache of trained
+fields), ``benchmarks``, and the command line (the modules directly in ``regnf/``): the library
+imports neither the synthetic data set nor the benchmarks. Every import
 counts, including those inside functions, and nothing imports the folders by their bare names
 (``import compositor`` would load a second copy of the module beside ``regnf.compositor``).
 """
@@ -16,8 +18,8 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 
-LAYERS = ("core", "captures", "synthetic", "neural_fields", "registration", "scene_graph", "compositor",
-          "viewer", "benchmarks", "cli")
+LAYERS = ("core", "captures", "neural_fields", "registration", "scene_graph", "compositor", "viewer",
+          "synthetic", "benchmarks", "cli")
 """Bottom to top; ``cli`` is the root package ``regnf`` itself (regnf/*.py)."""
 
 FOLDERS = {layer: ROOT / ("regnf" if layer == "cli" else layer) for layer in LAYERS}
@@ -88,6 +90,8 @@ def test_every_module_imports_only_from_below() -> None:
 @pytest.mark.parametrize(("module", "source", "expected"), [
     ("regnf.neural_fields.training", "from regnf.registration.pipeline import register\n", 1),
     ("regnf.neural_fields.training", "def f():\n    import regnf.compositor.composite_field\n", 1),
+    ("regnf.registration.pipeline", "from regnf.synthetic.library import make_library_object\n", 1),
+    ("regnf.neural_fields.training", "def f():\n    from regnf.synthetic import cache\n", 1),
     ("regnf.registration.metrics", "from regnf.benchmarks import registration\n", 1),
     ("regnf.registration.metrics", "from regnf import demo\n", 1),
     ("regnf.compositor.placement", "from . import substitution\nfrom ..scene_graph import read_stage\n", 0),
@@ -108,3 +112,17 @@ def test_every_layer_is_an_installed_package() -> None:
     dirs = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["package-dir"]
     assert {f"regnf.{layer}" for layer in LAYERS[:-1]} | {"regnf"} <= set(dirs)
     assert set(dirs.values()) - {"regnf"} == set(LAYERS[:-1])
+
+
+def test_the_library_loads_without_the_synthetic_data_set_or_the_benchmarks() -> None:
+    # Every module of the library imported in a fresh interpreter: none pulls in either.
+    import subprocess
+    import sys
+
+    library = [module_name(p) for layer in LAYERS[:LAYERS.index("synthetic")] for p in sorted(FOLDERS[layer].glob("*.py"))]
+    code = ("import importlib, sys\n"
+            f"for m in {library!r}: importlib.import_module(m)\n"
+            "print(sorted(m for m in sys.modules if m.startswith(('regnf.synthetic', 'regnf.benchmarks'))))")
+    out = subprocess.run([sys.executable, "-c", code], check=False, capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.strip() == "[]", out.stdout

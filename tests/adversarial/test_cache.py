@@ -13,13 +13,13 @@ import numpy as np
 import pytest
 
 from regnf.captures.sdfstudio import load_capture, write_capture
-from regnf.neural_fields import cache as cache_module
-from regnf.neural_fields.cache import Cache
 from regnf.neural_fields.camera import Camera
 from regnf.neural_fields.checkpoint import verify_checkpoint
 from regnf.neural_fields.neural_sdf import NeuralSDFConfig
 from regnf.neural_fields.sphere_render import render
 from regnf.neural_fields.training import RGBDTrainConfig
+from regnf.synthetic import cache as cache_module
+from regnf.synthetic.cache import Cache
 from tests.neural_fields import capture_helpers as C
 
 TINY = NeuralSDFConfig(levels=2, finest_resolution=16, hidden_dim=16, base_resolution=8,

@@ -27,8 +27,8 @@ from regnf.core.atomic_io import TEMP_PREFIX, write_json
 from regnf.core.executors import ExecutorConfig
 from regnf.core.preflight import PreflightError
 from regnf.generate import BAKED_DIR, GenerateConfig, generate
-from regnf.neural_fields import cache as cache_module
 from regnf.scene_graph import add_instance
+from regnf.synthetic import cache as cache_module
 from tests.adversarial.disk import changes, snapshot
 from tests.adversarial.mounts import tmpfs
 from tests.regnf.cli_helpers import assert_fails

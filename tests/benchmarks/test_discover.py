@@ -6,7 +6,7 @@ import numpy as np
 
 from regnf.benchmarks.discover import markdown_table
 from regnf.neural_fields.oriented_box import OrientedBox
-from regnf.registration.ground_truth import match_boxes
+from regnf.synthetic.ground_truth import match_boxes
 
 
 def _box(x: float, size: float = 1.0) -> OrientedBox:

@@ -17,9 +17,9 @@ from regnf.benchmarks.sensor_report import summarise
 from regnf.captures.instance import Instance, box_corners
 from regnf.captures.model import Capture, CaptureFrame
 from regnf.cli import main
-from regnf.neural_fields import cache as cache_module
-from regnf.neural_fields.cache import Cache
 from regnf.registration.metrics import BARS, within_bars
+from regnf.synthetic import cache as cache_module
+from regnf.synthetic.cache import Cache
 from regnf.synthetic.capture import RoomCaptureConfig
 from regnf.synthetic.sensor_noise import TRUE_POSES_NAME, write_true_poses
 from tests.adversarial.disk import changes, snapshot

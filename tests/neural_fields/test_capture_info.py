@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from regnf.captures.model import Capture
-from regnf.neural_fields.cache import capture_info
+from regnf.synthetic.cache import capture_info
 
 
 def _capture(meta: dict) -> Capture:

@@ -307,8 +307,8 @@ def test_each_sample_knows_its_frame(tmp_path: Path) -> None:
 
 
 def test_a_capture_with_a_noise_model_gets_its_own_cache_key(tmp_path: Path) -> None:
-    from regnf.neural_fields.cache import Cache
     from regnf.neural_fields.presets import object_rgbd_preset
+    from regnf.synthetic.cache import Cache
 
     cache, cfg = Cache(tmp_path / "cache"), object_rgbd_preset()
     noisy = write(tmp_path / "n", [step_depth()], None)

@@ -174,9 +174,9 @@ def test_a_bad_override_is_refused_at_load(tmp_path: Path) -> None:
 def test_a_capture_whose_zeros_are_unknown_gets_its_own_cache_key(tmp_path: Path) -> None:
     """A field trained when zeros were taken as empty is never reused for a capture whose zeros are
     unknown; a capture whose zeros are empty keeps the key it always had."""
-    from regnf.neural_fields.cache import Cache, config_key
     from regnf.neural_fields.presets import object_rgbd_preset
     from regnf.neural_fields.training import TRAIN_VERSION
+    from regnf.synthetic.cache import Cache, config_key
     from tests.neural_fields.capture_helpers import write_analytic_capture
 
     empty = write_analytic_capture(tmp_path / "a")

@@ -22,9 +22,7 @@ from safetensors.torch import load_file, save_file
 
 from regnf.captures.model import Capture, CaptureError
 from regnf.captures.sdfstudio import load_capture, write_capture
-from regnf.neural_fields import cache as cache_module
 from regnf.neural_fields.analytic import Box
-from regnf.neural_fields.cache import Cache, reusable
 from regnf.neural_fields.checkpoint import (
     DIGEST_KEY,
     HEADER_KEY,
@@ -43,6 +41,8 @@ from regnf.neural_fields.field import FieldInfo
 from regnf.neural_fields.neural_sdf import NeuralSDF, NeuralSDFConfig
 from regnf.neural_fields.training import RGBDTrainConfig
 from regnf.neural_fields.visibility import VisibilityGrid, build_visibility
+from regnf.synthetic import cache as cache_module
+from regnf.synthetic.cache import Cache, reusable
 
 from .capture_helpers import WORLD_OFFSET, WORLD_SCALE, WORLDTOGT
 

@@ -139,9 +139,9 @@ def test_train_rejects_a_bad_loss_weight(tmp_path: Path, capsys: pytest.CaptureF
 def test_cache_keys_ignore_new_options_left_at_their_default() -> None:
     import dataclasses
 
-    from regnf.neural_fields.cache import config_key
     from regnf.neural_fields.presets import object_rgbd_preset
     from regnf.neural_fields.training import RGBDTrainConfig
+    from regnf.synthetic.cache import config_key
 
     cfg = object_rgbd_preset()
     assert config_key(cfg) == config_key(dataclasses.replace(cfg))

@@ -31,7 +31,7 @@ from regnf.compositor.render_folder import RenderConfig, render_views
 from regnf.core.image_io import read_instance_png
 from regnf.demo import DemoConfig, run_demo
 from regnf.full_masks import full_masks
-from regnf.neural_fields.cache import Cache
+from regnf.synthetic.cache import Cache
 from regnf.synthetic.library import make_library_object
 
 SCRIPT = Path(__file__).parents[1] / "compositor" / "blender_render.py"

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from regnf.captures.model import check_rigid_pose
-from regnf.neural_fields.cache import non_default
+from regnf.synthetic.cache import non_default
 from regnf.synthetic.capture import RoomCaptureConfig, capture_room
 from regnf.synthetic.pose_noise import PoseNoiseConfig, perturb_poses
 from regnf.synthetic.sensor_noise import (
