@@ -79,3 +79,61 @@ def install() -> None:
     _docstrings.get_field_docstring = get_field_docstring
     _docstrings.get_callable_description = get_callable_description
     _docstrings._regnf_plain_help = True
+
+
+BOX_TOP, BOX_BOTTOM, BOX_SIDE, BOX_RULE = "╭─ ", "╰", "│", "│ ─"
+"""How tyro draws the boxes of a help text: a titled top border, a bottom border, the sides and
+the rule between a group's description and its options."""
+
+
+def compact_help(text: str, command: str) -> str:
+    """The help of ``command`` with only its own options: each group of settings (a nested config,
+    ``--registration.*``) shown by its description and the number of its options.
+
+    Parameters
+    ----------
+    text : str
+        The full help tyro renders for the command (``--help-all``).
+    command : str
+        The command's name (``register``), for the pointer to the full help.
+    """
+    out: list[str] = []
+    boxes: list[tuple[str, list[str]]] = []  # (group path, lines) of each box, in order
+    for line in text.splitlines():
+        if line.startswith(BOX_TOP):
+            title = line[len(BOX_TOP):].rstrip("─╮ ")
+            group = title.removesuffix(" options") if title.endswith(" options") else ""
+            boxes.append((group, [line]))
+            out.append(f"\0{len(boxes) - 1}")  # where the box goes
+        elif boxes and boxes[-1][1][-1].startswith((BOX_TOP, BOX_SIDE)):
+            boxes[-1][1].append(line)
+        else:
+            out.append(line)
+    shown: list[str] = []
+    summed = False
+    for line in out:
+        if not line.startswith("\0"):
+            shown.append(line)
+            continue
+        group, lines = boxes[int(line[1:])]
+        if not group:  # the command's own options and positional arguments
+            shown += lines
+        elif "." not in group:  # a group of settings: its description and its size
+            summed = True
+            count = sum(_options(ls) for g, ls in boxes if g == group or g.startswith(f"{group}."))
+            head = f"{BOX_TOP}{group} options ({count}, listed by --help-all) "
+            width = len(lines[0])
+            shown.append(head + "─" * max(1, width - len(head) - 1) + "╮")
+            body = lines[1:-1]
+            rule = next((i for i, x in enumerate(body) if x.startswith(BOX_RULE)), 0)
+            shown += [*body[:rule], lines[-1]]
+    if summed:
+        shown.append(f"Every setting of every group: regnf {command} --help-all")
+    return "\n".join(shown) + "\n"
+
+
+def _options(lines: list[str]) -> int:
+    """The options a box of tyro's help lists: lines that start one, less the second half of a
+    flag pair (``--x,`` / ``--no-x``) wrapped onto its own line."""
+    starts = [i for i, x in enumerate(lines) if x.startswith(f"{BOX_SIDE} -")]
+    return sum(1 for i in starts if not lines[i - 1].rstrip("│ ").endswith(","))

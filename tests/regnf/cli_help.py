@@ -1,4 +1,4 @@
-"""What a command's ``--help`` must show: every leaf setting of its config, with its docstring."""
+"""What a command's ``--help-all`` must show: every leaf setting of its config, with its docstring."""
 
 from __future__ import annotations
 
@@ -63,9 +63,9 @@ def assert_documented(settings: list[tuple[str, str | None]], help_text: str) ->
 
 
 def help_text(command: str, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch) -> str:
-    """What ``regnf COMMAND --help`` prints (wide, box drawing and line wrapping undone)."""
+    """What ``regnf COMMAND --help-all`` prints (wide, box drawing and line wrapping undone)."""
     monkeypatch.setenv("COLUMNS", "200")
     with pytest.raises(SystemExit) as done:
-        main([command, "--help"])
+        main([command, "--help-all"])
     assert done.value.code == 0
     return " ".join(capsys.readouterr().out.replace("│", " ").split())

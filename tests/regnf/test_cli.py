@@ -55,9 +55,7 @@ def test_a_cuda_device_without_cuda_is_refused_in_one_line(tmp_path: Path, capsy
 
 
 def test_command_help_explains_options(capsys: pytest.CaptureFixture[str]) -> None:
-    with pytest.raises(SystemExit) as done:
-        main(["train", "--help"])
-    assert done.value.code == 0
+    assert main(["train", "--help"]) == 0
     out = capsys.readouterr().out
     assert "--cache-dir" in out and "Cache directory" in out
 
@@ -155,7 +153,7 @@ def test_help_into_a_reader_that_stops_early_is_no_error() -> None:
     import subprocess
     import sys
 
-    run = subprocess.Popen([sys.executable, "-m", "regnf", "discover", "--help"], stdout=subprocess.PIPE,
+    run = subprocess.Popen([sys.executable, "-m", "regnf", "discover", "--help-all"], stdout=subprocess.PIPE,
                            stderr=subprocess.PIPE)
     assert run.stdout.readline().startswith(b"usage: regnf discover")  # help longer than a pipe holds
     run.stdout.close()  # as `| head -1` does
@@ -169,12 +167,13 @@ def test_no_sphinx_markup_in_any_help(capsys: pytest.CaptureFixture[str]) -> Non
     from regnf.cli import _commands
 
     for name in _commands():  # a loop over the commands
+        assert main([*name.split(), "--help"]) == 0
         with pytest.raises(SystemExit):
-            main([*name.split(), "--help"])
-        out = capsys.readouterr().out
-        assert out.startswith(f"usage: regnf {name}"), name
-        found = re.findall(r":(?:func|data|attr|mod|class|meth|obj|exc):`[^`]*", out)
-        assert not found, (name, found[:3])
+            main([*name.split(), "--help-all"])
+        for out in capsys.readouterr().out.split("usage: ")[1:]:  # the short help, then the full one
+            assert out.startswith(f"regnf {name}"), name
+            found = re.findall(r":(?:func|data|attr|mod|class|meth|obj|exc):`[^`]*", out)
+            assert not found, (name, found[:3])
 
 
 @pytest.mark.parametrize("command", ["generate", "replace"])
@@ -182,3 +181,32 @@ def test_commands_that_always_substitute_have_no_mode_option(tmp_path: Path, com
     with pytest.raises(SystemExit) as exit_info:
         main([command, str(tmp_path / "s.usda"), "--out", str(tmp_path / "o"), "--composite.mode", "scene"])
     assert exit_info.value.code == 2 and not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize(("command", "config", "group"), [
+    ("register", "regnf.registration.pipeline:RegistrationConfig", "registration"),
+    ("discover", "regnf.registration.discovery:DiscoveryConfig", "discovery"),
+])
+def test_help_shows_the_commands_own_options_and_sums_up_each_group(
+        capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch, command: str, config: str,
+        group: str) -> None:
+    import dataclasses
+    import importlib
+    import re
+
+    from regnf.cli import _commands
+    from tests.regnf.cli_help import leaf_settings
+
+    monkeypatch.setenv("COLUMNS", "100")
+    assert main([command, "--help"]) == 0
+    out = capsys.readouterr().out
+    assert len(out.splitlines()) <= 60, len(out.splitlines())
+    for f in dataclasses.fields(_commands()[command]):  # every option of the command's own level
+        if f.name != group:
+            assert re.search(rf"^│ --{f.name.replace('_', '-')}\b", out, re.MULTILINE), f.name
+    assert not re.search(rf"^│ --{group}\.", out, re.MULTILINE)  # no option of the group is listed...
+    module, name = config.split(":")
+    settings = leaf_settings(getattr(importlib.import_module(module), name), f"--{group}.")
+    # ... but the group is there, with the number of its settings, each in the full help.
+    assert re.search(rf"{group} options \({len(settings)}, listed by --help-all\)", out), out[-600:]
+    assert f"regnf {command} --help-all" in out
