@@ -36,6 +36,7 @@ makes stale is refused with a message in the panel.
 
 from __future__ import annotations
 
+import math
 import secrets
 import threading
 import time
@@ -105,7 +106,7 @@ class StageViewer(EditPanel):
         opening = None
         if self.scene.instances:
             self.composites.get("substitution", 0)
-            first = ViewRequest(look_at(eye, target), config.opening_fov, config.opening_aspect,
+            first = ViewRequest(look_at(eye, target), math.radians(config.opening_fov), config.opening_aspect,
                                 "substitution", "rgb", 0)
             wide = round(config.coarse_pixels * config.opening_aspect * 0.75)  # a 4:3 coarse image's height
             opening = (first, render_request(self.composites, first, wide, config))
@@ -118,7 +119,7 @@ class StageViewer(EditPanel):
         warnings.filterwarnings("ignore", message="Queued a .* on a closed connection", category=UserWarning)
         self.server.scene.set_up_direction("+z")
         camera = self.server.initial_camera
-        camera.position, camera.look_at, camera.up, camera.fov = eye, target, (0.0, 0.0, 1.0), config.opening_fov
+        camera.position, camera.look_at, camera.up, camera.fov = eye, target, (0.0, 0.0, 1.0), math.radians(config.opening_fov)
         self._meshes: list[Any] = []
         self._box = None
         self.edit: EditState | None = None

@@ -48,9 +48,9 @@ class ViewerConfig:
     """Seconds a newly opened page's first view waits before it is refined: the browser is still
     building the page, and a render then takes the CPU from it
     (docs/decisions/rendering-speed.md)."""
-    opening_fov: float = 1.1
-    """Vertical field of view (radians) of the camera a browser opens with (viser's default
-    is 1.31: wider than a room needs)."""
+    opening_fov: float = 63.0
+    """Vertical field of view of the camera a browser opens with, degrees (viser's default is
+    75: wider than a room needs)."""
     opening_aspect: float = 2.4
     """The opening view's coarse image is rendered before the server starts, this wide (width
     over height), and cropped to each browser's aspect: any window up to this wide gets its
@@ -78,7 +78,7 @@ class ViewerConfig:
         for name in ("rest_seconds", "opening_rest_seconds"):
             if not (math.isfinite(getattr(self, name)) and getattr(self, name) >= 0):
                 raise ValueError(f"{name} must be finite and >= 0, got {getattr(self, name)}")
-        if not 0.05 < self.opening_fov < 3.0:
-            raise ValueError(f"opening_fov must be in (0.05, 3) radians, got {self.opening_fov}")
+        if not 3.0 < self.opening_fov < 170.0:
+            raise ValueError(f"opening_fov must be in (3, 170) degrees, got {self.opening_fov}")
         if not (math.isfinite(self.opening_aspect) and 1.0 <= self.opening_aspect <= MAX_ASPECT):
             raise ValueError(f"opening_aspect must be in [1, {MAX_ASPECT:g}], got {self.opening_aspect}")

@@ -359,3 +359,9 @@ def test_the_stage_is_watched_and_an_unreadable_one_holds_the_edits(stage: Path,
     finally:
         v.close()
     assert "Traceback" not in capfd.readouterr().err
+
+
+def test_a_browser_opens_at_the_configured_field_of_view_in_degrees(viewer: StageViewer) -> None:
+    import math
+
+    assert math.isclose(viewer.server.initial_camera.fov, math.radians(ViewerConfig().opening_fov), rel_tol=1e-6)
