@@ -13,8 +13,8 @@ import types
 
 import pytest
 
-PACKAGES = ("regnf.core", "regnf.captures", "regnf.synthetic", "regnf.neural_fields", "regnf.registration",
-            "regnf.scene_graph", "regnf.compositor", "regnf.viewer", "regnf.benchmarks")
+PACKAGES = ("regnf.core", "regnf.captures", "regnf.synthetic", "regnf.observations", "regnf.fields", "regnf.meshes", "regnf.io", "regnf.training", "regnf.render", "regnf.registration",
+            "regnf.scene_graph", "regnf.compositor", "regnf.viewer", "regnf.datasets", "regnf.cli", "regnf.benchmarks")
 
 
 @pytest.mark.parametrize("name", PACKAGES)

@@ -1,12 +1,14 @@
 """The package's layers: a module imports only from its own layer or the layers below it.
 
-Bottom to top: ``regnf.core`` (atomic writes, locks, output folders, executors, pre-flight
-checks), ``captures``, ``neural_fields``, ``registration``, ``scene_graph``, ``compositor``,
-``viewer`` (the library), then ``synthetic`` (the synthetic data set and its cache of trained
-fields), ``benchmarks``, and the command line (the modules directly in ``regnf/``): the library
-imports neither the synthetic data set nor the benchmarks. Every import
-counts, including those inside functions, and nothing imports the folders by their bare names
-(``import compositor`` would load a second copy of the module beside ``regnf.compositor``).
+Bottom to top, each a folder of ``src/regnf``: ``core`` (atomic writes, locks, output folders,
+executors, pre-flight checks), ``captures`` (the capture readers), ``observations`` (rays, depth
+samples and the space the views saw), ``fields``, ``meshes``, ``io`` (checkpoints), ``training``,
+``render``, ``registration``, ``scene_graph``, ``compositor``, ``viewer``, ``datasets`` (the
+library), then ``synthetic`` (the synthetic data set and its cache of trained fields),
+``benchmarks``, and ``cli`` (the command line): the library imports neither the synthetic data
+set nor the benchmarks. Every import counts, including those inside functions, and nothing
+imports a folder by its bare name (``import compositor`` would load a second copy of the module
+beside ``regnf.compositor``).
 """
 
 from __future__ import annotations
@@ -17,12 +19,15 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
+PACKAGE = ROOT / "src" / "regnf"
 
-LAYERS = ("core", "captures", "neural_fields", "registration", "scene_graph", "compositor", "viewer",
-          "synthetic", "benchmarks", "cli")
-"""Bottom to top; ``cli`` is the root package ``regnf`` itself (regnf/*.py)."""
+LAYERS = ("core", "captures", "observations", "fields", "meshes", "io", "training", "render",
+          "registration", "scene_graph", "compositor", "viewer", "datasets", "synthetic", "benchmarks", "cli")
+"""Bottom to top."""
+LIBRARY = LAYERS[:LAYERS.index("synthetic")]
+"""The layers below the synthetic data set: what a user of the library imports."""
 
-FOLDERS = {layer: ROOT / ("regnf" if layer == "cli" else layer) for layer in LAYERS}
+FOLDERS = {layer: PACKAGE / layer for layer in LAYERS}
 
 
 def layer_of(module: str) -> str | None:
@@ -30,16 +35,16 @@ def layer_of(module: str) -> str | None:
     parts = module.split(".")
     if parts[0] != "regnf":
         return None
-    if len(parts) > 1 and parts[1] in LAYERS[:-1]:
+    if len(parts) > 1 and parts[1] in LAYERS:
         return parts[1]
-    return "cli"
+    return "cli"  # the package itself and its __main__
 
 
 def module_name(path: Path) -> str:
     """The dotted name a file under one of :data:`FOLDERS` is imported as."""
     for layer, folder in FOLDERS.items():
         if path.parent == folder:
-            package = "regnf" if layer == "cli" else f"regnf.{layer}"
+            package = f"regnf.{layer}"
             return package if path.stem == "__init__" else f"{package}.{path.stem}"
     raise ValueError(f"{path} is in no layer's folder")
 
@@ -71,7 +76,7 @@ def violations(source: str, module: str, is_package: bool = False) -> list[str]:
     bad = []
     for line, name in imported_modules(source, package):
         top = name.split(".")[0]
-        if top in FOLDERS and top not in ("cli", "regnf"):
+        if top in FOLDERS and top != "io":  # the standard library's io is not the layer
             bad.append(f"{module}:{line} imports {name!r} by its bare name (use regnf.{name})")
             continue
         layer = layer_of(name)
@@ -88,10 +93,10 @@ def test_every_module_imports_only_from_below() -> None:
 
 
 @pytest.mark.parametrize(("module", "source", "expected"), [
-    ("regnf.neural_fields.training", "from regnf.registration.pipeline import register\n", 1),
-    ("regnf.neural_fields.training", "def f():\n    import regnf.compositor.composite_field\n", 1),
+    ("regnf.training.training", "from regnf.registration.pipeline import register\n", 1),
+    ("regnf.training.training", "def f():\n    import regnf.compositor.composite_field\n", 1),
     ("regnf.registration.pipeline", "from regnf.synthetic.library import make_library_object\n", 1),
-    ("regnf.neural_fields.training", "def f():\n    from regnf.synthetic import cache\n", 1),
+    ("regnf.training.training", "def f():\n    from regnf.synthetic import cache\n", 1),
     ("regnf.registration.metrics", "from regnf.benchmarks import registration\n", 1),
     ("regnf.registration.metrics", "from regnf import demo\n", 1),
     ("regnf.compositor.placement", "from . import substitution\nfrom ..scene_graph import read_stage\n", 0),
@@ -99,7 +104,7 @@ def test_every_module_imports_only_from_below() -> None:
     ("regnf.captures.model", "from regnf.synthetic.rooms import make_room\n", 1),
     ("regnf.scene_graph.fields", "import compositor.camera\n", 1),
     ("regnf.benchmarks.registration", "from regnf.registration.pipeline import register\n", 0),
-    ("regnf.demo", "from regnf.benchmarks.registration import run_pair\nimport numpy\n", 0),
+    ("regnf.cli.demo", "from regnf.benchmarks.registration import run_pair\nimport numpy\n", 0),
 ])
 def test_the_check_sees_an_upward_import(module: str, source: str, expected: int) -> None:
     # The test above can fail: an upward import, a lazy one or a bare name is each reported.
@@ -109,9 +114,12 @@ def test_the_check_sees_an_upward_import(module: str, source: str, expected: int
 def test_every_layer_is_an_installed_package() -> None:
     import tomllib
 
-    dirs = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["package-dir"]
-    assert {f"regnf.{layer}" for layer in LAYERS[:-1]} | {"regnf"} <= set(dirs)
-    assert set(dirs.values()) - {"regnf"} == set(LAYERS[:-1])
+    setuptools = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]
+    assert setuptools["package-dir"] == {"": "src"}
+    assert {p.name for p in PACKAGE.iterdir() if (p / "__init__.py").exists()} == set(LAYERS)
+    # Every layer but the benchmarks goes into the wheel (tests/test_wheel.py builds it).
+    assert set(setuptools["packages"]) == {f"regnf.{layer}" for layer in LAYERS if layer != "benchmarks"} | {
+        "regnf", "regnf.templates"}
 
 
 def test_the_library_loads_without_the_synthetic_data_set_or_the_benchmarks() -> None:
@@ -119,7 +127,7 @@ def test_the_library_loads_without_the_synthetic_data_set_or_the_benchmarks() ->
     import subprocess
     import sys
 
-    library = [module_name(p) for layer in LAYERS[:LAYERS.index("synthetic")] for p in sorted(FOLDERS[layer].glob("*.py"))]
+    library = [module_name(p) for layer in LIBRARY for p in sorted(FOLDERS[layer].glob("*.py"))]
     code = ("import importlib, sys\n"
             f"for m in {library!r}: importlib.import_module(m)\n"
             "print(sorted(m for m in sys.modules if m.startswith(('regnf.synthetic', 'regnf.benchmarks'))))")

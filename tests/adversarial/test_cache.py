@@ -13,14 +13,14 @@ import numpy as np
 import pytest
 
 from regnf.captures.sdfstudio import load_capture, write_capture
-from regnf.neural_fields.camera import Camera
-from regnf.neural_fields.checkpoint import verify_checkpoint
-from regnf.neural_fields.neural_sdf import NeuralSDFConfig
-from regnf.neural_fields.sphere_render import render
-from regnf.neural_fields.training import RGBDTrainConfig
+from regnf.fields.neural_sdf import NeuralSDFConfig
+from regnf.io.checkpoint import verify_checkpoint
+from regnf.render.camera import Camera
+from regnf.render.sphere_render import render
 from regnf.synthetic import cache as cache_module
 from regnf.synthetic.cache import Cache
-from tests.neural_fields import capture_helpers as C
+from regnf.training.training import RGBDTrainConfig
+from tests.observations import capture_helpers as C
 
 TINY = NeuralSDFConfig(levels=2, finest_resolution=16, hidden_dim=16, base_resolution=8,
                        geo_feature_dim=3, color_hidden_dim=8)

@@ -15,7 +15,7 @@ from regnf.captures.sdfstudio import write_capture
 from tests.adversarial.disk import changes, snapshot
 from tests.captures.ns_helpers import write_nerfstudio
 from tests.captures.scannet_helpers import N_FRAMES, write_matrix, write_scannet
-from tests.regnf.cli_helpers import assert_fails, run_cli
+from tests.cli.cli_helpers import assert_fails, run_cli
 
 
 def _edit(cap: Path, change: Callable[[dict], None]) -> None:

@@ -10,10 +10,10 @@ import pytest
 
 from regnf.captures.model import Capture
 from regnf.core import preflight
-from regnf.neural_fields.sample_memory import training_bytes
+from regnf.observations.sample_memory import training_bytes
 from tests.adversarial.disk import changes, snapshot
 from tests.captures.sphere_helpers import N_VIEWS, H, W, write_sphere_capture
-from tests.regnf.cli_helpers import assert_fails
+from tests.cli.cli_helpers import assert_fails
 
 
 def test_inspect_a_missing_folder(tmp_path: Path, capsys: pytest.CaptureFixture[str],
@@ -64,7 +64,7 @@ def test_bad_frame_options_are_refused_before_the_capture_is_read(
         option: str, value: str, message: str) -> None:
     write_sphere_capture(tmp_path / "cap")
     before = snapshot(tmp_path)
-    monkeypatch.setattr("regnf.commands_fields.read_capture", lambda *a: pytest.fail("capture read"))
+    monkeypatch.setattr("regnf.cli.commands_fields.read_capture", lambda *a: pytest.fail("capture read"))
     line = assert_fails(capsys, ["train", "--capture", str(tmp_path / "cap"), option, value,
                                  "--cache-dir", str(tmp_path / "cache")], message)
     assert line == f"regnf train: {message}"

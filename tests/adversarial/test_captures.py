@@ -20,9 +20,9 @@ from regnf.captures.model import CaptureError, normalisation
 from regnf.captures.sdfstudio import load_capture, write_capture
 from regnf.compositor.cameras_io import cameras_from_capture
 from regnf.core.cameras import look_at
-from regnf.neural_fields.camera import Camera
-from regnf.neural_fields.neural_sdf import NeuralSDFConfig
-from regnf.neural_fields.training import RGBDTrainConfig, train_rgbd
+from regnf.fields.neural_sdf import NeuralSDFConfig
+from regnf.render.camera import Camera
+from regnf.training.training import RGBDTrainConfig, train_rgbd
 
 W, H, N = 16, 12, 3
 K = np.array([[14.0, 0.0, 8.0], [0.0, 15.0, 6.0], [0.0, 0.0, 1.0]])

@@ -14,7 +14,9 @@ import torch
 from safetensors import safe_open
 from safetensors.torch import load_file, save_file
 
-from regnf.neural_fields.checkpoint import (
+from regnf.fields.field import FieldInfo
+from regnf.fields.neural_sdf import NeuralSDF, NeuralSDFConfig
+from regnf.io.checkpoint import (
     DIGEST_KEY,
     FORMAT_VERSION,
     HEADER_KEY,
@@ -26,10 +28,8 @@ from regnf.neural_fields.checkpoint import (
     save_field,
     verify_checkpoint,
 )
-from regnf.neural_fields.checkpoint_checks import MAX_LEVELS
-from regnf.neural_fields.checkpoint_digest import checkpoint_digest
-from regnf.neural_fields.field import FieldInfo
-from regnf.neural_fields.neural_sdf import NeuralSDF, NeuralSDFConfig
+from regnf.io.checkpoint_checks import MAX_LEVELS
+from regnf.io.checkpoint_digest import checkpoint_digest
 
 TINY = NeuralSDFConfig(levels=2, finest_resolution=16, hidden_dim=16, base_resolution=8,
                        geo_feature_dim=3, color_hidden_dim=8)
@@ -133,7 +133,7 @@ def test_a_file_edited_in_place_right_after_its_check_is_refused(tmp_path: Path)
 
 
 def test_a_stable_file_is_hashed_once_until_it_changes(tmp_path: Path, monkeypatch) -> None:
-    import regnf.neural_fields.checkpoint_digest as digests
+    import regnf.io.checkpoint_digest as digests
 
     monkeypatch.setattr(digests, "STABLE_SECONDS", 0.0)  # as if the file were older
     path = saved(tmp_path)

@@ -20,15 +20,15 @@ import pytest
 import torch
 
 import regnf.registration.pipeline as register_module
-from regnf import commands_fields, commands_registration
-from regnf.cli import EXIT_BAD_INPUT, EXIT_INTERNAL, main
+from regnf.cli import commands_fields, commands_registration
+from regnf.cli.app import EXIT_BAD_INPUT, EXIT_INTERNAL, main
 from regnf.compositor.composite_field import MAX_COMPONENTS, CompositeField
 from regnf.compositor.placement import PlacedObject
 from regnf.compositor.render_folder import MAX_PIXELS
-from regnf.neural_fields.analytic import Sphere
+from regnf.fields.analytic import Sphere
 from tests.adversarial.disk import changes, snapshot
 from tests.adversarial.mounts import tmpfs
-from tests.regnf.cli_helpers import assert_fails, run_cli
+from tests.cli.cli_helpers import assert_fails, run_cli
 from tests.scene_graph.helpers import checkpoint
 
 
@@ -206,7 +206,7 @@ def test_usage_errors_keep_status_2(capsys) -> None:
 def test_the_readme_documents_every_exit_status() -> None:
     import re
 
-    from regnf import cli
+    from regnf.cli import app as cli
 
     statuses = {v for k, v in vars(cli).items() if k.startswith("EXIT_")}
     readme = (Path(__file__).parents[2] / "README.md").read_text()
@@ -218,7 +218,7 @@ def test_the_readme_documents_every_exit_status() -> None:
 def test_a_stage_another_process_is_writing_gives_status_busy(tmp_path, monkeypatch, capsys) -> None:
     import sys
 
-    from regnf.cli import EXIT_BUSY
+    from regnf.cli.app import EXIT_BUSY
     from regnf.scene_graph import locking
     from tests.scene_graph.helpers import make_stage, registration_json, similarity
 

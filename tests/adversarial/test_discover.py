@@ -7,7 +7,7 @@ loaded (exit 1, nothing on disk changed); a rerun removes only the files its pre
 recorded.
 
 Checkpoint loading is replaced by exact analytic fields where discovery runs (as in
-``tests/regnf/test_cli_discover.py``); the checkpoints on disk are tiny real ones whose
+``tests/cli/test_cli_discover.py``); the checkpoints on disk are tiny real ones whose
 headers carry the labels.
 """
 
@@ -19,10 +19,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import regnf.commands_discover as commands
-from regnf.neural_fields.analytic import Box as BoxField
-from regnf.neural_fields.analytic import Cylinder, Transformed, Union
-from regnf.neural_fields.oriented_box import OrientedBox
+import regnf.cli.commands_discover as commands
+from regnf.fields.analytic import Box as BoxField
+from regnf.fields.analytic import Cylinder, Transformed, Union
+from regnf.fields.oriented_box import OrientedBox
 from regnf.registration import discovery
 from regnf.registration.candidates import Candidate, Candidates
 from regnf.registration.discovery import Discovery, DiscoveryResult, Tried
@@ -31,8 +31,8 @@ from regnf.registration.sampling import SurfaceSamples
 from regnf.registration.step_failures import StepFailed, attempt
 from regnf.registration.transform import SimilarityTransform
 from tests.adversarial.disk import changes, snapshot
+from tests.cli.cli_helpers import assert_fails, run_cli
 from tests.registration.fixtures import make_object, placement
-from tests.regnf.cli_helpers import assert_fails, run_cli
 from tests.scene_graph.helpers import checkpoint
 
 CHAIR_TO_SCENE = placement([0, 0, 1], 0.7, [1.0, -0.5, 0.0], 1.0)
@@ -92,11 +92,11 @@ def test_a_candidate_with_too_few_samples_is_skipped_and_the_others_are_found(an
     text = " ".join(err.split())
     assert status == 0, err
     assert "discovered 1 instances in 2 candidates, 1 skipped" in text
-    assert ("skipped: ranking the library in its box: ValueError: scene samples: 9 points are too few to "
+    assert ("skipped: ranking the library in its box: RegnfError: scene samples: 9 points are too few to "
             "register (need >= 10)") in text
     saved = json.loads((out / "discovery.json").read_text())
     skipped, = saved["skipped"]
-    assert skipped["reason"].endswith("ValueError: scene samples: 9 points are too few to register (need >= 10)")
+    assert skipped["reason"].endswith("RegnfError: scene samples: 9 points are too few to register (need >= 10)")
     np.testing.assert_allclose(skipped["box_metres"]["center"][:2], LAMP_XY, atol=0.05)
     record = saved["candidates"][skipped["candidate"]]
     assert record["chosen"] is None and record["tried"] == [] and record["skipped"] == skipped["reason"]
@@ -148,7 +148,7 @@ def test_a_room_as_library_object_or_an_object_as_scene_is_refused_before_loadin
 
 
 def test_register_refuses_the_scene_and_the_library_swapped(files, tmp_path, capsys, monkeypatch) -> None:
-    import regnf.commands_registration as register_command
+    import regnf.cli.commands_registration as register_command
 
     chair, room = make_object(), Union(BoxField((3.0, 3.0, 0.05), (0.0, 0.0, -0.05)), label="scene")
     fields = {str(files["c"]): chair, str(files["room"]): room}

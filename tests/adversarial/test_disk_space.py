@@ -19,20 +19,20 @@ import numpy as np
 import pytest
 import trimesh
 
-import regnf.demo as demo_module
+import regnf.cli.demo as demo_module
 from regnf.captures.sdfstudio import write_capture
-from regnf.cli import EXIT_BAD_INPUT, _one_line, exit_status
+from regnf.cli.app import EXIT_BAD_INPUT, _one_line, exit_status
 from regnf.core import atomic_io
 from regnf.core.atomic_io import TEMP_PREFIX, write_json
 from regnf.core.executors import ExecutorConfig
 from regnf.core.preflight import PreflightError
-from regnf.generate import BAKED_DIR, GenerateConfig, generate
+from regnf.datasets.generation import BAKED_DIR, GenerateConfig, generate
 from regnf.scene_graph import add_instance
 from regnf.synthetic import cache as cache_module
 from tests.adversarial.disk import changes, snapshot
 from tests.adversarial.mounts import tmpfs
-from tests.regnf.cli_helpers import assert_fails
-from tests.regnf.test_generate import ORBIT
+from tests.cli.cli_helpers import assert_fails
+from tests.datasets.test_generate import ORBIT
 from tests.scene_graph.helpers import checkpoint, make_stage, similarity
 
 
@@ -99,7 +99,7 @@ def test_a_read_only_cache_is_refused_before_training_or_distilling(tmp_path, re
 
 def test_an_output_folder_nobody_may_write_is_refused_first(tmp_path, stage, read_only, monkeypatch,
                                                              capsys) -> None:
-    from regnf import commands_discover
+    from regnf.cli import commands_discover
 
     monkeypatch.setattr(commands_discover, "load_field", _never)
     scene, chair = checkpoint(tmp_path, "room", "scene", scale=3.0), checkpoint(tmp_path, "c", "chair")

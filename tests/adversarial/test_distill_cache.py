@@ -11,14 +11,14 @@ import numpy as np
 import trimesh
 
 from regnf.core.file_lock import file_lock
-from regnf.neural_fields.checkpoint import load_field
-from regnf.neural_fields.distill import DistillConfig
-from regnf.neural_fields.evaluation import world_to_field
-from regnf.neural_fields.field import FieldInfo
-from regnf.neural_fields.neural_sdf import NeuralSDFConfig
-from regnf.neural_fields.source_mesh import read_source_mesh, source_mesh_file
+from regnf.fields.field import FieldInfo
+from regnf.fields.neural_sdf import NeuralSDFConfig
+from regnf.io.checkpoint import load_field
+from regnf.meshes.source_mesh import read_source_mesh, source_mesh_file
+from regnf.render.evaluation import world_to_field
 from regnf.synthetic import cache as cache_module
 from regnf.synthetic.cache import Cache, mesh_digest
+from regnf.training.distill import DistillConfig
 
 TINY = NeuralSDFConfig(levels=3, features_per_level=2, base_resolution=8, finest_resolution=16,
                        hidden_dim=16, color_hidden_dim=16)

@@ -22,11 +22,11 @@ from pathlib import Path
 import pytest
 from pxr import Gf, Usd
 
-from regnf import commands_registration
+from regnf.cli import commands_registration
 from regnf.core.preflight import MAX_JSON_BYTES
 from regnf.scene_graph import add_instance
 from tests.adversarial.disk import changes, snapshot
-from tests.regnf.cli_helpers import assert_fails, run_cli
+from tests.cli.cli_helpers import assert_fails, run_cli
 from tests.scene_graph.helpers import make_stage, registration_json, similarity
 
 AT_ONCE_S = 1.0

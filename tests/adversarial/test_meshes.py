@@ -18,10 +18,10 @@ import numpy as np
 import pytest
 import trimesh
 
-from regnf.neural_fields.checkpoint import read_header
-from regnf.neural_fields.mesh_reading import load_mesh_file
+from regnf.io.checkpoint import read_header
+from regnf.meshes.mesh_reading import load_mesh_file
 from tests.adversarial.disk import changes, snapshot
-from tests.regnf.cli_helpers import assert_fails, run_cli
+from tests.cli.cli_helpers import assert_fails, run_cli
 
 BLOCKED_S = 60.0
 """Seconds after which a command that has not returned is taken to be blocked."""

@@ -23,20 +23,20 @@ from pathlib import Path
 
 import pytest
 
-from regnf.cli import EXIT_BAD_INPUT, main
+from regnf.cli.app import EXIT_BAD_INPUT, main
+from regnf.cli.demo import REMADE, DemoConfig, demo_folder
 from regnf.compositor.cameras_io import OrbitConfig
 from regnf.compositor.render_folder import RenderConfig, render_views
 from regnf.compositor.stage_config import StageCompositeConfig
 from regnf.core.atomic_io import TEMP_PREFIX
 from regnf.core.file_lock import LOCK_NAME
 from regnf.core.output_dir import MARKER_NAME, OutputFolderError, claim_output_dir
-from regnf.demo import REMADE, DemoConfig, demo_folder
-from regnf.generate import GenerateConfig, generate, prepare_output
-from regnf.manifest import MANIFEST_NAME, load_rows, read_manifest
+from regnf.datasets.generation import GenerateConfig, generate, prepare_output
+from regnf.datasets.manifest import MANIFEST_NAME, load_rows, read_manifest
 from regnf.scene_graph import add_instance
 from tests.adversarial.disk import changes, snapshot
 from tests.compositor import golden_scenes as G
-from tests.regnf.test_generate import CLI_VIEWS, ORBIT
+from tests.datasets.test_generate import CLI_VIEWS, ORBIT
 from tests.scene_graph.helpers import make_stage, similarity
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -46,7 +46,7 @@ ENV = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1", "PYOPENGL_
 
 @pytest.fixture(scope="module")
 def stage(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """The tiny stage of tests/regnf/test_generate.py: three registered instances, a spare chair."""
+    """The tiny stage of tests/datasets/test_generate.py: three registered instances, a spare chair."""
     path = make_stage(tmp_path_factory.mktemp("output_folders"), names=("c", "dc", "fc", "fc-nop", "t"))
     add_instance(path, "c", similarity(0.5, (2.2, -0.5, 0.0), 1.0))
     add_instance(path, "dc", similarity(1.5, (-2.2, 0.4, 0.0), 1.0))
@@ -128,7 +128,7 @@ RUNNER = textwrap.dedent('''
 
     from regnf.compositor.cameras_io import OrbitConfig
     from regnf.core.executors import ExecutorConfig
-    from regnf.generate import GenerateConfig, generate
+    from regnf.datasets.generation import GenerateConfig, generate
 
     if __name__ == "__main__":
         stage, out, first, ready, go = sys.argv[1:6]

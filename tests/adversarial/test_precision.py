@@ -16,14 +16,14 @@ import pytest
 import torch
 import trimesh
 
-from regnf.neural_fields.analytic import Sphere
-from regnf.neural_fields.checkpoint import load_field, save_field
-from regnf.neural_fields.field import FieldInfo
-from regnf.neural_fields.mesh_writing import written_rounding
-from regnf.neural_fields.meshing import extract_mesh, save_mesh
-from regnf.neural_fields.neural_sdf import NeuralSDF
+from regnf.fields.analytic import Sphere
+from regnf.fields.field import FieldInfo
+from regnf.fields.neural_sdf import NeuralSDF
+from regnf.io.checkpoint import load_field, save_field
+from regnf.meshes.mesh_writing import written_rounding
+from regnf.meshes.meshing import extract_mesh, save_mesh
 from tests.adversarial.disk import changes, snapshot
-from tests.regnf.cli_helpers import run_cli
+from tests.cli.cli_helpers import run_cli
 from tests.scene_graph.helpers import TINY
 
 RADIUS = 0.5

@@ -13,7 +13,7 @@ import pytest
 from regnf.captures.sdfstudio import write_capture
 from tests.adversarial.disk import changes, snapshot
 from tests.captures.ns_helpers import H, W, write_nerfstudio
-from tests.regnf.cli_helpers import assert_fails
+from tests.cli.cli_helpers import assert_fails
 
 
 @pytest.mark.parametrize(

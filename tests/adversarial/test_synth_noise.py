@@ -6,10 +6,10 @@ from pathlib import Path
 
 import pytest
 
-from regnf import commands_fields
-from regnf.cli import EXIT_USAGE
+from regnf.cli import commands_fields
+from regnf.cli.app import EXIT_USAGE
 from tests.adversarial.disk import changes, snapshot
-from tests.regnf.cli_helpers import assert_fails, run_cli
+from tests.cli.cli_helpers import assert_fails, run_cli
 
 
 def _never(*args: object, **kwargs: object) -> None:

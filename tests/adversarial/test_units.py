@@ -14,11 +14,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import regnf.commands_registration as register_command
-from regnf.cli import main
+import regnf.cli.commands_registration as register_command
+from regnf.cli.app import main
 from regnf.compositor.size_change import SIZE_CHANGE_LIMIT
-from regnf.neural_fields.analytic import Transformed
-from regnf.neural_fields.similarity import similarity_matrix
+from regnf.fields.analytic import Transformed
+from regnf.fields.similarity import similarity_matrix
 from regnf.registration.scale_warnings import PLAUSIBLE_SCALE, scale_warnings
 from regnf.scene_graph import (
     StageError,
@@ -28,8 +28,8 @@ from regnf.scene_graph import (
     read_stage,
 )
 from tests.adversarial.disk import changes, snapshot
+from tests.cli.cli_helpers import assert_fails, run_cli
 from tests.registration.fixtures import OBJECT_HI, OBJECT_LO, make_object, make_scene, placement
-from tests.regnf.cli_helpers import assert_fails, run_cli
 from tests.scene_graph.helpers import (
     OBJECTS,
     box_proxy,
@@ -152,7 +152,7 @@ def test_generate_refuses_a_data_set_that_would_swap_in_an_object_of_another_uni
 
 
 def test_discover_warns_of_a_library_in_millimetres(tmp_path, capsys, monkeypatch) -> None:
-    import regnf.commands_discover as discover_command
+    import regnf.cli.commands_discover as discover_command
     from tests.adversarial.test_discover import FAST
 
     src = tmp_path / "src"

@@ -26,16 +26,16 @@ import viser
 from websockets.exceptions import InvalidStatus
 from websockets.sync.client import ClientConnection, connect
 
-from regnf import commands_view
 from regnf.benchmarks.viewer import free_port
-from regnf.cli import EXIT_OK
+from regnf.cli import commands_view
+from regnf.cli.app import EXIT_OK
 from regnf.core.cameras import look_at
 from regnf.scene_graph import InstanceRecord, add_instance, read_stage, write_stage
 from regnf.viewer import StageViewer, ViewerConfig, stage_viewer
 from regnf.viewer.messages import MAX_ASPECT
 from regnf.viewer.render_worker import wxyz_of
 from tests.adversarial.disk import changes, snapshot
-from tests.regnf.cli_helpers import assert_fails, run_cli
+from tests.cli.cli_helpers import assert_fails, run_cli
 from tests.scene_graph.helpers import make_stage, registration_json, similarity
 
 COARSE, REFINED = 16 * 12, 24 * 18

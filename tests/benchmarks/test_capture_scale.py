@@ -10,10 +10,10 @@ from pathlib import Path
 import pytest
 
 from regnf.benchmarks.capture_scale import fitting_stride, measure, run_child
-from regnf.cli import main
-from regnf.neural_fields.sample_memory import training_bytes
+from regnf.cli.app import main
+from regnf.observations.sample_memory import training_bytes
 from tests.adversarial.disk import changes, snapshot
-from tests.regnf.cli_helpers import assert_fails
+from tests.cli.cli_helpers import assert_fails
 
 W, H = 48, 36
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from regnf.benchmarks.discover import markdown_table
-from regnf.neural_fields.oriented_box import OrientedBox
+from regnf.fields.oriented_box import OrientedBox
 from regnf.synthetic.ground_truth import match_boxes
 
 

@@ -12,7 +12,7 @@ import torch
 
 from regnf.benchmarks.registration import METHODS, QUICK_PAIRS
 from regnf.benchmarks.render import QUICK_RENDERERS
-from regnf.cli import main
+from regnf.cli.app import main
 
 # A pytest --junitxml report with one test of each outcome.
 JUNIT = """<?xml version="1.0" encoding="utf-8"?>

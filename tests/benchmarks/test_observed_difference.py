@@ -9,8 +9,8 @@ import torch
 import trimesh
 
 from regnf.benchmarks.observed_difference import observed_difference
-from regnf.neural_fields.analytic import Sphere
-from regnf.neural_fields.visibility import VisibilityGrid
+from regnf.fields.analytic import Sphere
+from regnf.observations.visibility import VisibilityGrid
 
 BOUNDS = np.array([[-2.0, -2.0, -2.0], [2.0, 2.0, 2.0]])
 

@@ -16,14 +16,14 @@ from regnf.benchmarks.sensor import bar_columns, object_diagonal, widened_bars
 from regnf.benchmarks.sensor_report import summarise
 from regnf.captures.instance import Instance, box_corners
 from regnf.captures.model import Capture, CaptureFrame
-from regnf.cli import main
+from regnf.cli.app import main
 from regnf.registration.metrics import BARS, within_bars
 from regnf.synthetic import cache as cache_module
 from regnf.synthetic.cache import Cache
 from regnf.synthetic.capture import RoomCaptureConfig
 from regnf.synthetic.sensor_noise import TRUE_POSES_NAME, write_true_poses
 from tests.adversarial.disk import changes, snapshot
-from tests.regnf.cli_helpers import assert_fails
+from tests.cli.cli_helpers import assert_fails
 
 SCALE = 2.0  # metres per normalised unit of the hand-made capture
 

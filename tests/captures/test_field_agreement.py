@@ -20,10 +20,10 @@ import numpy as np
 from regnf.captures.formats import read_capture
 from regnf.captures.model import Capture
 from regnf.captures.sdfstudio import load_capture, write_capture
-from regnf.neural_fields.evaluation import world_to_field
-from regnf.neural_fields.field import Field
-from regnf.neural_fields.neural_sdf import NeuralSDFConfig
-from regnf.neural_fields.training import RGBDTrainConfig, train_rgbd
+from regnf.fields.field import Field
+from regnf.fields.neural_sdf import NeuralSDFConfig
+from regnf.render.evaluation import world_to_field
+from regnf.training.training import RGBDTrainConfig, train_rgbd
 from tests.captures import ns_helpers, scannet_helpers
 
 CONFIG = RGBDTrainConfig(

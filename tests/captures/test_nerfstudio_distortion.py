@@ -19,7 +19,7 @@ import pytest
 
 from regnf.captures.formats import read_capture
 from regnf.captures.model import Capture
-from regnf.neural_fields.rgbd_samples import build_samples
+from regnf.observations.rgbd_samples import build_samples
 from tests.captures.ns_helpers import CX, CY, FX, FY, ROOM, H, W, truth_poses, write_nerfstudio
 
 LENSES = {

@@ -13,8 +13,8 @@ from scipy.ndimage import maximum_filter, minimum_filter
 from regnf.captures.formats import detect_format, read_capture
 from regnf.captures.model import Capture, CaptureError
 from regnf.captures.resample import resample_to_grid
-from regnf.neural_fields.training import RGBDTrainConfig
 from regnf.synthetic.cache import Cache
+from regnf.training.training import RGBDTrainConfig
 from tests.captures.scannet_helpers import (
     BAD_FRAME,
     FACE_COLOURS,

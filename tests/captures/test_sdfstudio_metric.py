@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from regnf.captures.sdfstudio import load_capture
-from regnf.neural_fields.training import train_rgbd
+from regnf.training.training import train_rgbd
 from tests.captures.ns_helpers import CX, CY, FX, FY, ROOM, H, W, true_depth, truth_poses
 from tests.captures.test_field_agreement import CONFIG
 

@@ -35,7 +35,7 @@ from regnf.core.image_io import (
     write_depth_png,
     write_rgb_png,
 )
-from regnf.neural_fields.field import Field
+from regnf.fields.field import Field
 
 from . import golden_scenes as G
 

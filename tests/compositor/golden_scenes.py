@@ -28,10 +28,10 @@ from scipy.spatial.transform import Rotation
 from regnf.compositor import Camera, CompositeField, look_at
 from regnf.compositor.stage_config import StageCompositeConfig
 from regnf.compositor.substitution import SubstitutedInstance, build_composite
-from regnf.neural_fields.analytic import Box, Cylinder, Transformed, Union
-from regnf.neural_fields.field import Field, FieldInfo
-from regnf.neural_fields.neural_sdf import NeuralSDFConfig
-from regnf.neural_fields.similarity import similarity_matrix
+from regnf.fields.analytic import Box, Cylinder, Transformed, Union
+from regnf.fields.field import Field, FieldInfo
+from regnf.fields.neural_sdf import NeuralSDFConfig
+from regnf.fields.similarity import similarity_matrix
 
 GOLDEN_DIR = Path(__file__).parent / "golden"
 """Where the golden PNGs (and the tiny neural checkpoint) live."""
@@ -197,7 +197,7 @@ def distil(mesh: trimesh.Trimesh, name: str, label: str, steps: int = 300) -> Fi
     """A tiny field distilled from ``mesh``: about 10 s, on one thread so that it is
     deterministic for its seed (bitwise-identical weights run after run; trained fields are
     never committed)."""
-    from regnf.neural_fields.distill import DistillConfig, distill_mesh
+    from regnf.training.distill import DistillConfig, distill_mesh
 
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
@@ -217,7 +217,7 @@ def distil_pouf(steps: int = 300) -> Field:
 def distilled_library(folder: Path) -> list[Path]:
     """Checkpoints of the pouf (a chair) and a crate (a table, 0.6 x 0.4 x 0.35 m standing on
     z = 0), distilled here into ``folder``."""
-    from regnf.neural_fields.checkpoint import save_field
+    from regnf.io.checkpoint import save_field
 
     crate = trimesh.creation.box(extents=(0.6, 0.4, 0.35))
     crate.apply_translation((0.0, 0.0, 0.175))

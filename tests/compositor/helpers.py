@@ -10,9 +10,9 @@ import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
 
-from regnf.neural_fields.analytic import Box, Sphere, Union
-from regnf.neural_fields.field import Field
-from regnf.neural_fields.similarity import similarity_matrix
+from regnf.fields.analytic import Box, Sphere, Union
+from regnf.fields.field import Field
+from regnf.fields.similarity import similarity_matrix
 
 # Scene (scene field frame = metres, identity to_world): a floor slab whose top is z = 0,
 # and a sphere "object" hovering above it.

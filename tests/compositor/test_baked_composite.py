@@ -10,11 +10,11 @@ from regnf.compositor import CompositeConfig, CompositeField
 from regnf.compositor.baked_composite import bake_for_views
 from regnf.compositor.placement import PlacedObject
 from regnf.compositor.regions import OrientedBoxRegion
-from regnf.neural_fields.baked_field import BakeConfig, BakedField
-from regnf.neural_fields.camera import Camera
-from regnf.neural_fields.similarity import similarity_matrix
-from regnf.neural_fields.sphere_render import render
-from regnf.neural_fields.sphere_tracer import SphereTracerConfig
+from regnf.fields.similarity import similarity_matrix
+from regnf.render.baked_field import BakeConfig, BakedField
+from regnf.render.camera import Camera
+from regnf.render.sphere_render import render
+from regnf.render.sphere_tracer import SphereTracerConfig
 
 from . import helpers as H
 
@@ -91,7 +91,7 @@ def test_a_baked_composite_is_not_baked_again() -> None:
 def test_a_library_field_is_baked_for_where_it_stands_in_the_scene() -> None:
     """Its cell is the pixel footprint at its place, in its own units: twice as far, twice the
     cell; placed twice as large, half the cell (in library units)."""
-    from regnf.neural_fields.baked_field import bake_cell
+    from regnf.render.baked_field import bake_cell
 
     ball = H.library_sphere()
     cam = camera()

@@ -26,7 +26,7 @@ from regnf.compositor.from_stage import composite_from_stage
 from regnf.compositor.render_folder import RenderConfig, render_views
 from regnf.compositor.scene_mesh import SceneMeshConfig, edited_scene_mesh
 from regnf.core.image_io import read_instance_png
-from regnf.neural_fields.source_mesh import keep_source_mesh
+from regnf.meshes.source_mesh import keep_source_mesh
 from regnf.scene_graph import ProxyMesh, add_instance, export_stage, new_stage
 from tests.compositor.golden_scenes import distilled_library, pouf_mesh
 from tests.scene_graph.helpers import make_library, similarity

@@ -17,8 +17,8 @@ from regnf.compositor.cameras_io import (
     orbit_around_bounds,
     resized,
 )
-from regnf.neural_fields.analytic import Box, Union
-from tests.neural_fields import capture_helpers as C
+from regnf.fields.analytic import Box, Union
+from tests.observations import capture_helpers as C
 
 from .golden_scenes import sim
 

@@ -10,9 +10,9 @@ from scipy.spatial.transform import Rotation
 from regnf.compositor import CompositeConfig, CompositeField
 from regnf.compositor.placement import PlacedObject
 from regnf.compositor.regions import BoxRegionUnion, OrientedBoxRegion, ShellRegion
-from regnf.neural_fields.analytic import Box, Sphere, Union
-from regnf.neural_fields.field import Field
-from regnf.neural_fields.similarity import similarity_matrix
+from regnf.fields.analytic import Box, Sphere, Union
+from regnf.fields.field import Field
+from regnf.fields.similarity import similarity_matrix
 
 from . import helpers as H
 
@@ -239,10 +239,10 @@ def test_invalid_inputs_are_refused() -> None:
 
 
 def test_meshing_and_plain_sphere_tracing_accept_a_composite() -> None:
-    from regnf.neural_fields.camera import Camera
-    from regnf.neural_fields.meshing import extract_mesh
-    from regnf.neural_fields.sphere_render import render
-    from regnf.neural_fields.sphere_tracer import SphereTracerConfig
+    from regnf.meshes.meshing import extract_mesh
+    from regnf.render.camera import Camera
+    from regnf.render.sphere_render import render
+    from regnf.render.sphere_tracer import SphereTracerConfig
 
     comp = make_composite()
     box = np.stack([H.PLACED_CENTER - 0.3, H.PLACED_CENTER + 0.3])

@@ -14,9 +14,9 @@ from regnf.compositor.from_stage import composite_from_stage
 from regnf.compositor.regions import OrientedBoxRegion, ShellRegion
 from regnf.compositor.stage_config import StageCompositeConfig
 from regnf.compositor.substitution import base_height, check_z_up, library_to_scene
-from regnf.neural_fields.checkpoint import save_field
-from regnf.neural_fields.field import FieldInfo
-from regnf.neural_fields.neural_sdf import NeuralSDF
+from regnf.fields.field import FieldInfo
+from regnf.fields.neural_sdf import NeuralSDF
+from regnf.io.checkpoint import save_field
 from regnf.scene_graph import (
     StageError,
     add_instance,

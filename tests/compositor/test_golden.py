@@ -18,8 +18,8 @@ import pytest
 import torch
 
 from regnf.compositor import CompositeField
-from regnf.neural_fields import sphere_render
-from regnf.neural_fields.shading import Shaded
+from regnf.fields.shading import Shaded
+from regnf.render import sphere_render
 
 from . import golden as GD
 

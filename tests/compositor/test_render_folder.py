@@ -120,7 +120,7 @@ def test_baked_renderer_writes_the_same_files_and_images_close_to_the_sphere_tra
 
 
 def test_the_grids_settings_are_a_data_set_setting_of_the_baked_renderer_only() -> None:
-    from regnf.generate import GenerateConfig
+    from regnf.datasets.generation import GenerateConfig
 
     # They change no file of a sphere-traced data set, so they stay out of its settings key
     # (a data set made before them still resumes).

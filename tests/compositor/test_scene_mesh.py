@@ -16,7 +16,7 @@ from pxr import Usd, UsdGeom
 
 from regnf.compositor.from_stage import composite_from_stage
 from regnf.compositor.scene_mesh import SceneMeshConfig, edited_scene_mesh
-from regnf.neural_fields.meshing import extract_mesh
+from regnf.meshes.meshing import extract_mesh
 from regnf.scene_graph import ProxyMesh, add_instance, export_stage, read_stage
 from regnf.scene_graph import layout as L
 from tests.scene_graph.helpers import make_stage, similarity

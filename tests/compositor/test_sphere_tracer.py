@@ -10,11 +10,11 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from regnf.compositor import Camera, SphereTracerConfig, look_at, orbit_cameras, render
-from regnf.neural_fields.analytic import Box, Sphere, Union
-from regnf.neural_fields.distance_grid import DistanceGrid
-from regnf.neural_fields.field import Field
-from regnf.neural_fields.similarity import similarity_matrix
-from regnf.neural_fields.sphere_tracer import trace
+from regnf.fields.analytic import Box, Sphere, Union
+from regnf.fields.distance_grid import DistanceGrid
+from regnf.fields.field import Field
+from regnf.fields.similarity import similarity_matrix
+from regnf.render.sphere_tracer import trace
 
 from . import helpers as H
 from .test_composite_field import make_composite

@@ -11,13 +11,14 @@ import torch
 import torch.nn.functional as F
 import trimesh
 
-import regnf.neural_fields.field as field_module
+import regnf.fields.field as field_module
 from regnf.core.denormals import denormals_flushed, flushing, pool_denormals_flushed
 from regnf.core.threads import one_thread
-from regnf.neural_fields import neural_sdf, optim
-from regnf.neural_fields.distill import DistillConfig, distill_mesh
-from regnf.neural_fields.field import FieldInfo
-from regnf.neural_fields.neural_sdf import NeuralSDF
+from regnf.fields import neural_sdf
+from regnf.fields.field import FieldInfo
+from regnf.fields.neural_sdf import NeuralSDF
+from regnf.training import optim
+from regnf.training.distill import DistillConfig, distill_mesh
 from tests.core.helpers import torch_threads
 from tests.scene_graph.helpers import TINY
 

@@ -11,10 +11,10 @@ import math
 
 import numpy as np
 
-from regnf.neural_fields.analytic import Box, Cylinder, Sphere, Transformed, Union
-from regnf.neural_fields.field import Field
-from regnf.neural_fields.oriented_box import OrientedBox
-from regnf.neural_fields.similarity import similarity_matrix
+from regnf.fields.analytic import Box, Cylinder, Sphere, Transformed, Union
+from regnf.fields.field import Field
+from regnf.fields.oriented_box import OrientedBox
+from regnf.fields.similarity import similarity_matrix
 
 OBJECT_LO = np.array([-0.4, -0.25, 0.0])
 """Canonical AABB of :func:`make_object` (exact: the union of the parts' boxes)."""

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from regnf.neural_fields.analytic import Box, Cylinder, Sphere, Transformed, Union
-from regnf.neural_fields.oriented_box import OrientedBox
+from regnf.fields.analytic import Box, Cylinder, Sphere, Transformed, Union
+from regnf.fields.oriented_box import OrientedBox
 from regnf.registration.candidates import CandidateConfig, box_iou, find_candidates, upright_box
 
 
@@ -106,7 +106,7 @@ def test_a_field_with_no_objects_has_no_candidates() -> None:
 
 @pytest.mark.parametrize("seen_below", [False, True])
 def test_a_top_whose_underside_no_view_saw_grows_to_the_floor(seen_below: bool) -> None:
-    from regnf.neural_fields.visibility import VisibilityGrid
+    from regnf.observations.visibility import VisibilityGrid
 
     # A table top floating 0.7 m above the floor (its legs unseen, so not in the field).
     room = Union(*ROOM, Box((0.45, 0.45, 0.02), (0.5, -0.5, 0.72)))

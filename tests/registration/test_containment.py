@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from regnf.neural_fields.oriented_box import OrientedBox
+from regnf.fields.oriented_box import OrientedBox
 from regnf.registration.containment import containment
 from regnf.registration.transform import SimilarityTransform
 

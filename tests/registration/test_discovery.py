@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-from regnf.neural_fields.analytic import Box, Cylinder, Transformed, Union
-from regnf.neural_fields.similarity import similarity_matrix
+from regnf.fields.analytic import Box, Cylinder, Transformed, Union
+from regnf.fields.similarity import similarity_matrix
 from regnf.registration.candidates import CandidateConfig
 from regnf.registration.discovery import DiscoveryConfig, discover
 from regnf.registration.transform import SimilarityTransform
@@ -68,8 +68,8 @@ def test_no_library_is_an_error() -> None:
 def test_two_objects_that_differ_only_where_no_view_looked_are_ambiguous(pillow_seen: bool) -> None:
     import torch
 
-    from regnf.neural_fields.analytic import Sphere
-    from regnf.neural_fields.visibility import VisibilityGrid
+    from regnf.fields.analytic import Sphere
+    from regnf.observations.visibility import VisibilityGrid
     from regnf.registration.observed_difference import observed_difference
     from regnf.registration.result import RegistrationResult
     from regnf.registration.sampling import sample_surface
@@ -200,7 +200,7 @@ def test_a_union_that_does_not_explain_its_halves_yields_to_them() -> None:
 
 
 def test_explained_fraction_measures_metres_to_the_registered_surface() -> None:
-    from regnf.neural_fields.analytic import Sphere
+    from regnf.fields.analytic import Sphere
     from regnf.registration.discovery import explained_fraction
     from regnf.registration.result import RegistrationResult
 
@@ -218,7 +218,7 @@ def test_explained_fraction_measures_metres_to_the_registered_surface() -> None:
 
 
 def test_objects_scoring_near_the_best_are_shortlisted_whatever_the_count() -> None:
-    from regnf.neural_fields.oriented_box import OrientedBox
+    from regnf.fields.oriented_box import OrientedBox
     from regnf.registration.discovery import Ranking
     from regnf.registration.sampling import SurfaceSamples
 

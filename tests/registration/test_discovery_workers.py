@@ -16,12 +16,12 @@ import pytest
 import torch
 import trimesh
 
-from regnf.neural_fields.checkpoint import load_field, save_field
-from regnf.neural_fields.distill import DistillConfig, distill_mesh
-from regnf.neural_fields.field import FieldInfo
-from regnf.neural_fields.neural_sdf import NeuralSDFConfig
+from regnf.fields.field import FieldInfo
+from regnf.fields.neural_sdf import NeuralSDFConfig
+from regnf.io.checkpoint import load_field, save_field
 from regnf.registration.candidates import CandidateConfig
 from regnf.registration.discovery import DiscoveryConfig, FieldFiles, discover
+from regnf.training.distill import DistillConfig, distill_mesh
 
 from ..compositor.golden_scenes import pouf_mesh
 
@@ -128,7 +128,7 @@ def test_files_must_name_the_library(fields: FieldFiles) -> None:
 
 
 def test_a_candidate_over_empty_space_is_skipped_in_a_worker_as_here(fields: FieldFiles) -> None:
-    from regnf.neural_fields.oriented_box import OrientedBox
+    from regnf.fields.oriented_box import OrientedBox
     from regnf.registration import discovery_workers
     from regnf.registration.candidates import Candidate
     from regnf.registration.discovery import examine
@@ -144,6 +144,6 @@ def test_a_candidate_over_empty_space_is_skipped_in_a_worker_as_here(fields: Fie
     here = examine(empty, scene, library, samples, cfg)
     for d in (there, here):
         assert d.chosen is None and d.tried == []
-        assert d.skipped.startswith("ranking the library in its box: ValueError: ")
+        assert d.skipped.startswith("ranking the library in its box: RegnfError: ")
         assert "contains no surface" in d.skipped
     assert there.skipped == here.skipped

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from regnf.neural_fields.analytic import Sphere
-from regnf.neural_fields.visibility import VisibilityGrid
+from regnf.fields.analytic import Sphere
+from regnf.observations.visibility import VisibilityGrid
 from regnf.registration.free_space import seen_free_fraction
 from regnf.registration.transform import SimilarityTransform
 
@@ -97,7 +97,7 @@ def test_the_confidence_is_charged_for_the_share_in_seen_free_space() -> None:
     # scored(): inlier fraction x containment x (1 - seen free); a margin of inf leaves it out.
     import dataclasses
 
-    from regnf.neural_fields.oriented_box import OrientedBox
+    from regnf.fields.oriented_box import OrientedBox
     from regnf.registration.pipeline import RegistrationConfig, scored
     from regnf.registration.refinement import RefineResult
 

@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from regnf.neural_fields.field import Symmetry
-from regnf.neural_fields.similarity import similarity_matrix
+from regnf.fields.field import Symmetry
+from regnf.fields.similarity import similarity_matrix
 from regnf.registration.metrics import (
     RegistrationErrors,
     euler_rmse,

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 import torch
 
-from regnf.neural_fields.analytic import Box, Cylinder, Transformed, Union
-from regnf.neural_fields.oriented_box import OrientedBox
-from regnf.neural_fields.similarity import similarity_matrix
+from regnf.fields.analytic import Box, Cylinder, Transformed, Union
+from regnf.fields.oriented_box import OrientedBox
+from regnf.fields.similarity import similarity_matrix
 from regnf.registration.baselines import (
     kabsch,
     register_fgr,

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from regnf.neural_fields.analytic import (
+from regnf.fields.analytic import (
     Box,
     Capsule,
     Cylinder,
@@ -18,7 +18,7 @@ from regnf.neural_fields.analytic import (
     Transformed,
     Union,
 )
-from regnf.neural_fields.field import Field
+from regnf.fields.field import Field
 from regnf.registration.point_sets import NearestPoints
 from regnf.registration.refinement import (
     RefineConfig,

@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 import torch
 
-from regnf.neural_fields.analytic import Transformed
-from regnf.neural_fields.field import Field
-from regnf.neural_fields.oriented_box import OrientedBox
-from regnf.neural_fields.similarity import similarity_matrix
+from regnf.fields.analytic import Transformed
+from regnf.fields.field import Field
+from regnf.fields.oriented_box import OrientedBox
+from regnf.fields.similarity import similarity_matrix
 from regnf.registration.sampling import (
     SamplingConfig,
     SurfaceSamples,

@@ -16,8 +16,8 @@ import pytest
 import torch
 import trimesh
 
-from regnf.neural_fields.analytic import Box, Sphere, Union
-from regnf.neural_fields.visibility import VisibilityGrid
+from regnf.fields.analytic import Box, Sphere, Union
+from regnf.observations.visibility import VisibilityGrid
 from regnf.registration.metrics import geodesic_angle
 from regnf.registration.pipeline import RegistrationConfig, sample_pair, sample_tensors
 from regnf.registration.refinement import RefineConfig, refine, without_steps

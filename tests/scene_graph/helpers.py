@@ -10,9 +10,9 @@ import numpy as np
 import torch
 import trimesh
 
-from regnf.neural_fields.checkpoint import save_field
-from regnf.neural_fields.field import FieldInfo, Symmetry
-from regnf.neural_fields.neural_sdf import NeuralSDF, NeuralSDFConfig
+from regnf.fields.field import FieldInfo, Symmetry
+from regnf.fields.neural_sdf import NeuralSDF, NeuralSDFConfig
+from regnf.io.checkpoint import save_field
 from regnf.scene_graph import new_stage
 
 TINY = NeuralSDFConfig(levels=2, finest_resolution=16, hidden_dim=16, base_resolution=8,

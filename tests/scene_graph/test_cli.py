@@ -1,4 +1,4 @@
-"""The stage commands through ``regnf.cli.main``: new, add-instance, show, export."""
+"""The stage commands through ``regnf.cli.app.main``: new, add-instance, show, export."""
 
 from __future__ import annotations
 
@@ -6,9 +6,9 @@ import json
 
 import numpy as np
 
-from regnf.cli import main
+from regnf.cli.app import main
 from regnf.scene_graph import read_stage
-from tests.regnf.cli_helpers import assert_fails
+from tests.cli.cli_helpers import assert_fails
 
 from .helpers import checkpoint, registration_json, similarity
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from pxr import Usd, UsdGeom, UsdPhysics, UsdSemantics, UsdValidation
 
-from regnf.cli import main
+from regnf.cli.app import main
 from regnf.scene_graph import ProxyMesh, add_instance, export_stage, read_stage
 from regnf.scene_graph import layout as L
 from tests.scene_graph.helpers import OBJECTS, make_stage, similarity

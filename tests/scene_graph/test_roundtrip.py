@@ -99,7 +99,7 @@ def _assert_same(a, b):
 
 
 def test_field_records_match_checkpoints(stage_path):
-    from regnf.neural_fields.checkpoint import read_header
+    from regnf.io.checkpoint import read_header
 
     scene = read_stage(stage_path)
     for rec in [scene.scene, *scene.library.values()]:

@@ -13,7 +13,7 @@ import trimesh
 from PIL import Image
 from pxr import Usd, UsdGeom, UsdShade
 
-from regnf.neural_fields.source_mesh import keep_source_mesh, source_mesh_file
+from regnf.meshes.source_mesh import keep_source_mesh, source_mesh_file
 from regnf.scene_graph import StageError, add_instance, export_stage, new_stage, read_stage
 from regnf.scene_graph import layout as L
 from tests.scene_graph.helpers import make_library, similarity

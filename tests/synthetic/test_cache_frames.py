@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 
 from regnf.captures.model import Capture
-from regnf.neural_fields.capture_fingerprint import capture_fingerprint
-from regnf.neural_fields.checkpoint import load_field
-from regnf.neural_fields.neural_sdf import NeuralSDFConfig
-from regnf.neural_fields.training import TRAIN_VERSION, RGBDTrainConfig
+from regnf.fields.neural_sdf import NeuralSDFConfig
+from regnf.io.checkpoint import load_field
+from regnf.observations.capture_fingerprint import capture_fingerprint
 from regnf.synthetic.cache import Cache, capture_files, capture_info, config_key, entry_stem
 from regnf.synthetic.capture import ObjectCaptureConfig, capture_object
+from regnf.training.training import TRAIN_VERSION, RGBDTrainConfig
 from tests.captures.sphere_helpers import write_sphere_capture
 
 TINY = RGBDTrainConfig(steps=2, visibility_resolution=8, architecture=NeuralSDFConfig(

@@ -14,8 +14,8 @@ import torch
 from regnf.compositor.from_stage import composite_from_stage
 from regnf.compositor.stage_config import StageCompositeConfig
 from regnf.core.cameras import look_at
-from regnf.neural_fields.camera import Camera
-from regnf.neural_fields.sphere_render import render
+from regnf.render.camera import Camera
+from regnf.render.sphere_render import render
 from regnf.scene_graph import add_instance, read_stage
 from regnf.viewer.render_worker import (
     RenderWorker,
@@ -71,8 +71,8 @@ def test_a_browser_wider_than_the_wide_render_gets_no_crop(stage: Path) -> None:
 @pytest.mark.parametrize("blocked", ["nothing", "fill", "unseen"])
 def test_the_opening_camera_stands_in_observed_free_space_and_looks_at_the_instances(
         stage: Path, blocked: str) -> None:
-    from regnf.neural_fields.analytic import Box, Union
-    from regnf.neural_fields.visibility import VisibilityGrid
+    from regnf.fields.analytic import Box, Union
+    from regnf.observations.visibility import VisibilityGrid
 
     scene = read_stage(stage)  # its proxy: a 6 x 5 m floor
     target_truth = np.mean([(0.8, 0.4, 0.0), (0.0, -1.0, 0.0)], axis=0)

@@ -22,13 +22,13 @@ import torch
 from PIL import Image
 
 from regnf.benchmarks.viewer import free_port, headless_chromium, listed_seconds, watch_instances
-from regnf.cli import main
+from regnf.cli.app import main
 from regnf.compositor.from_stage import composite_from_stage
 from regnf.compositor.stage_config import StageCompositeConfig
 from regnf.core.cameras import look_at
 from regnf.core.image_io import rgb_to_uint8
-from regnf.neural_fields.camera import Camera
-from regnf.neural_fields.sphere_render import render
+from regnf.render.camera import Camera
+from regnf.render.sphere_render import render
 from regnf.scene_graph import add_instance, read_stage
 from regnf.viewer import StageViewer, ViewerConfig
 from regnf.viewer.render_worker import client_pose, wxyz_of
@@ -208,8 +208,8 @@ def test_refine_and_accept_in_the_browser_writes_what_the_api_writes(stage: Path
         wait_for(lambda: "written to" in body(), 60, "the stage write")
 
     # The same correction through the Python API, on the untouched copy.
-    from regnf.neural_fields import load_field
-    from regnf.neural_fields.oriented_box import OrientedBox
+    from regnf.fields.oriented_box import OrientedBox
+    from regnf.io import load_field
     from regnf.registration import register
     from regnf.registration.result import registration_payload
     from regnf.registration.transform import SimilarityTransform
@@ -267,7 +267,8 @@ def test_a_box_drawn_in_the_browser_becomes_the_instance_the_api_adds(stage: Pat
         click(browser, "add instance")
         wait_for(lambda: "added to" in body(), 60, "the stage write")
 
-    from regnf.neural_fields import OrientedBox, load_field
+    from regnf.fields import OrientedBox
+    from regnf.io import load_field
     from regnf.registration import register
     from regnf.registration.result import registration_payload
     from regnf.scene_graph import add_instance_from_registration
@@ -318,7 +319,7 @@ def test_the_sample_sets_of_the_selected_instance_lie_on_both_fields_surfaces(st
         assert not viewer._sample_clouds
 
     # Truth, from the checkpoints and the stage's transform, not from the viewer's code.
-    from regnf.neural_fields import load_field
+    from regnf.io import load_field
 
     rec = read_stage(stage)
     inst = rec.instances["dc_1"]

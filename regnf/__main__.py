@@ -1,3 +1,0 @@
-from regnf.cli import main
-
-raise SystemExit(main())

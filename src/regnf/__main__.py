@@ -1,0 +1,3 @@
+from regnf.cli.app import main
+
+raise SystemExit(main())

@@ -1,0 +1,13 @@
+"""The base of regnf's own errors: a problem with what the user gave, named in one line.
+
+The command line reports a :class:`RegnfError` (and an ``OSError``: a missing file, a full disk)
+as bad input, exit status 1, in one line; any other exception is a bug in regnf, reported as an
+internal error (exit status 70) whose traceback ``--debug`` shows. It is a ``ValueError``, so
+code that catches bad values catches it too.
+"""
+
+from __future__ import annotations
+
+
+class RegnfError(ValueError):
+    """A problem with regnf's input (a file, an option, a stage), its message naming it in one line."""

@@ -1,0 +1,42 @@
+"""How much of what tells two registered library objects apart the scene's views observed:
+discovery leaves a candidate unmatched when the two best objects differ only where no view
+looked (:attr:`regnf.registration.discovery.DiscoveryConfig.unobserved_difference`)."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from regnf.fields.field import Field
+from regnf.registration.result import RegistrationResult
+
+
+def observed_difference(scene_field: Field, field_a: Field, result_a: RegistrationResult, field_b: Field,
+                        result_b: RegistrationResult, tolerance: float = 0.01) -> float:
+    """How much of what tells two registered library objects apart the scene's views observed.
+
+    Each object's library samples are placed at its registered pose; those farther from the
+    other object's surface (its SDF there, in scene field units) than ``tolerance`` times the
+    diagonal are where the two differ, and the scene's visibility grid is read there.
+
+    Returns
+    -------
+    float
+        The mean observation weight in [0, 1] of the differing surface (1 without a visibility
+        grid); nan when the two do not differ beyond the tolerance.
+    """
+    placed = [r.transform.inverse().apply(np.asarray(r.samples[1], dtype=np.float64)) for r in (result_a, result_b)]
+    parts = []
+    diag = float(np.linalg.norm(placed[0].max(axis=0) - placed[0].min(axis=0)))
+    for points, other, result in ((placed[0], field_b, result_b), (placed[1], field_a, result_a)):
+        x = torch.as_tensor(result.transform.apply(points), dtype=torch.float32, device=other.device)
+        with torch.no_grad():
+            distance = other.sdf(x).abs().double().cpu().numpy().reshape(-1) / result.transform.s
+        parts.append(points[distance > tolerance * diag])
+    differ = np.concatenate(parts)
+    if len(differ) == 0:
+        return float("nan")
+    if scene_field.visibility is None:
+        return 1.0
+    x = torch.as_tensor(differ, dtype=torch.float32, device=scene_field.device)
+    return float(scene_field.visibility.observed(x).mean())

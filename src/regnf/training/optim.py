@@ -1,0 +1,126 @@
+"""Optimiser and schedule shared by RGB-D training and mesh distillation."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+
+import torch
+from tqdm import tqdm
+
+from regnf.core.denormals import pool_denormals_flushed
+from regnf.core.errors import RegnfError
+from regnf.fields.neural_sdf import NeuralSDF
+
+
+def make_optimizer(
+    field: NeuralSDF, lr_grid: float, lr_mlp: float, grid_decay: float = 0.0,
+    extra_groups: Sequence[dict] = (),
+) -> torch.optim.AdamW:
+    """AdamW with a larger learning rate for the feature grids than for the MLPs.
+
+    Grid features are touched by few samples each step, so they need bigger steps than the
+    MLP weights that every sample updates. ``grid_decay`` (decoupled weight decay on the
+    grids only) pulls features that no loss constrains back to zero, which removes the
+    small floaters that fine-grid noise otherwise leaves in free space. ``extra_groups``
+    are further parameter groups trained alongside the field (the pose corrections of
+    :mod:`regnf.training.pose_refinement`), each with its own ``lr``.
+    """
+    grid_params = list(field.encoding.parameters())
+    grid_ids = {id(p) for p in grid_params}
+    mlp_params = [p for p in field.parameters() if id(p) not in grid_ids]
+    return torch.optim.AdamW(
+        [
+            {"params": grid_params, "lr": lr_grid, "weight_decay": grid_decay},
+            {"params": mlp_params, "lr": lr_mlp, "weight_decay": 0.0},
+            *extra_groups,
+        ],
+        betas=(0.9, 0.99), eps=1e-15,
+        # One fused kernel per step instead of a dozen passes over millions of grid
+        # features: 9x faster on CPU (0.017 s vs 0.149 s for 11.7 M parameters).
+        fused=True,
+    )
+
+
+def lr_factor(step: int, total: int, warmup: int = 50, final: float = 0.01) -> float:
+    """Linear warm-up, then cosine decay from 1 to ``final`` at ``total`` steps."""
+    if step < warmup:
+        return (step + 1) / warmup
+    progress = min(1.0, (step - warmup) / max(1, total - warmup))
+    return final + (1.0 - final) * 0.5 * (1.0 + math.cos(math.pi * progress))
+
+
+def finest_voxel(field: NeuralSDF) -> float:
+    """Edge of a finest-level grid cell, in field units (the natural length scale of losses)."""
+    extent = float((field.bounds[1] - field.bounds[0]).max())
+    return extent / field.config.finest_resolution
+
+
+LOG_EVERY = 50
+"""Steps between two rows of a training log (the last step is always logged)."""
+
+
+def optimise(
+    field: NeuralSDF,
+    steps: int,
+    loss_at: Callable[[int], tuple[torch.Tensor, dict[str, torch.Tensor]]],
+    lr_grid: float,
+    lr_mlp: float,
+    grid_decay: float = 0.0,
+    lr_final: float = 0.01,
+    desc: str = "train",
+    progress: bool = True,
+    postfix: dict[str, str] | None = None,
+    extra_groups: Sequence[dict] = (),
+) -> list[dict[str, float]]:
+    """The training loop of RGB-D training and mesh distillation: AdamW (:func:`make_optimizer`)
+    on the schedule :func:`lr_factor`, one step per call of ``loss_at``.
+
+    Parameters
+    ----------
+    field : NeuralSDF
+        Trained in place.
+    steps : int
+        Optimiser steps.
+    loss_at : callable
+        ``loss_at(step) -> (loss, parts)``: the scalar loss of that step's batch and the named
+        terms to log (scalar tensors).
+    lr_grid, lr_mlp, grid_decay : float
+        As for :func:`make_optimizer`.
+    lr_final : float
+        The learning rates at the last step, as a fraction of ``lr_grid`` and ``lr_mlp``
+        (:func:`lr_factor`'s ``final``).
+    desc, progress : str, bool
+        The progress bar's label, and whether it is shown.
+    postfix : dict of str to str, optional
+        Shown on the bar: label -> a logged term's name.
+    extra_groups : sequence of dict
+        Further parameter groups (:func:`make_optimizer`), on the same schedule.
+
+    Returns
+    -------
+    list of dict
+        Every :data:`LOG_EVERY` steps and at the last: ``step``, ``loss`` and the terms.
+    """
+    if not (math.isfinite(lr_final) and 0.0 <= lr_final <= 1.0):
+        raise RegnfError(f"lr_final is a fraction of the learning rates, in [0, 1]; got {lr_final}")
+    opt = make_optimizer(field, lr_grid, lr_mlp, grid_decay, extra_groups)
+    base_lrs = [g["lr"] for g in opt.param_groups]
+    log: list[dict[str, float]] = []
+    bar = tqdm(range(steps), desc=desc, disable=not progress, leave=False)
+    # Denormals flushed on every torch thread: the softplus's backward and the kernels on torch's
+    # second thread included, which the evaluations' own flushing does not reach (core.denormals).
+    with pool_denormals_flushed():
+        for step in bar:
+            for g, lr in zip(opt.param_groups, base_lrs):
+                g["lr"] = lr * lr_factor(step, steps, final=lr_final)
+            loss, parts = loss_at(step)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            if step % LOG_EVERY == 0 or step == steps - 1:
+                entry = {"step": step, "loss": float(loss.detach()), **{k: float(v.detach()) for k, v in parts.items()}}
+                log.append(entry)
+                if postfix:
+                    bar.set_postfix({label: f"{entry[key]:.3f}" for label, key in postfix.items()})
+    return log
