@@ -13,7 +13,7 @@ import sys
 
 from regnf.compositor.cameras_io import OrbitConfig
 from regnf.core.executors import ExecutorConfig
-from regnf.datasets.generation import GenerateConfig, generate
+from regnf.datasets import GenerateConfig, generate
 
 if __name__ == "__main__":  # the worker processes import this file: run only in the parent
     stage, out = sys.argv[1], sys.argv[2]

@@ -435,8 +435,7 @@ class HypothesisBatch:
         a, c = alpha[lin.group], scale[lin.group]
         W = barron_weight(lin.x, a, c)
         H_irls, g = segment_normal_equations(lin.J, lin.x, lin.a * W, lin.group, k)
-        H_newton = (segment_gram(lin.J, lin.a * barron_curvature(lin.x, a, c), lin.group, k)
-                    if self.cfg.lm_curvature == "newton" else H_irls)
+        H_newton = segment_gram(lin.J, lin.a * barron_curvature(lin.x, a, c), lin.group, k)
         if lin.q.shape[0]:
             Jq = lin.Jq.reshape(-1, 8)
             Hq, gq = segment_normal_equations(Jq, lin.q.reshape(-1), 2.0 * lin.aq.repeat_interleave(3),

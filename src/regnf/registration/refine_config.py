@@ -144,11 +144,6 @@ class RefineConfig:
     """A hypothesis has converged once an LM step would move it less than this in rotation
     (radians), in the mapped centroid of A (*L*), in relative scale and in the level-set
     offset (*L*)."""
-    lm_curvature: Literal["irls", "newton"] = "newton"
-    """Curvature of each robust term in the LM system: ``irls`` the reweighting's ``rho'(x)/x``
-    (a majoriser: safe steps, but linear convergence); ``newton`` the loss's own
-    ``max(rho''(x), 0)`` (a fraction of the iterations to the same pose), falling back to
-    ``irls`` for the next step after a rejected one (docs/decisions/registration-refinement.md)."""
     lm_damping: float = 1e-3
     """Initial Levenberg-Marquardt damping mu (relative to the diagonal), then Nielsen's update
     from the gain ratio (the loss's decrease over the decrease the model predicted)."""

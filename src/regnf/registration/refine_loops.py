@@ -106,7 +106,7 @@ def run_lm(batch: HypothesisBatch, histories: list[list[dict]], steps: list[int]
     free = torch.tensor([True] * 3 + [not cfg.fix_scale] + [True] * 3 + [cfg.level_set_offset], device=dev)
     mu = torch.full((K,), cfg.lm_damping, dtype=torch.float64, device=dev)
     nu = torch.full((K,), 2.0, dtype=torch.float64, device=dev)
-    cautious = torch.full((K,), cfg.lm_curvature == "irls", device=dev)  # use the majoriser
+    cautious = torch.zeros((K,), dtype=torch.bool, device=dev)  # use the majoriser
     fraction = torch.full((K,), -1.0, dtype=torch.float64, device=dev)  # latest inlier fraction
     lin: Linearisation | None = None
     for it in range(cfg.lm_max_iterations):
@@ -166,7 +166,7 @@ def run_lm(batch: HypothesisBatch, histories: list[list[dict]], steps: list[int]
         mu[act] = torch.where(accepted, (mu[act] * shrink).clamp(min=1e-12),
                               torch.where(grow, mu[act] * nu[act], mu[act]))
         nu[act] = torch.where(accepted, torch.full_like(nu[act], 2.0), torch.where(grow, nu[act] * 2, nu[act]))
-        cautious[act] = retry | (grow & (cfg.lm_curvature == "irls")) | (accepted & (cfg.lm_curvature == "irls"))
+        cautious[act] = retry
         lin = lin.merge(trial, accepted)
         for k in batch.active:
             steps[k] += 1

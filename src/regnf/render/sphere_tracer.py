@@ -21,11 +21,9 @@ active):
    ``omega`` and is halved towards 1 after each failure. This keeps the gain on flat
    surfaces seen at moderate incidence, where a fixed ``omega = 1.6`` fails at once (it
    exceeds the verifiable step for any incidence cosine above 0.25).
-   An option, off by default, ``bracket_on_sign_change``: a relaxed step that lands
-   INSIDE matter (``r < 0``) is bracketed and refined directly, overlap or not. That
-   saves the slow approach of oblique rays to convex surfaces (about 20 % fewer
-   evaluations on a sphere), but a thin surface in the unverified gap, in front of a
-   thicker one, can then be skipped in favour of the one behind it.
+   A relaxed step that lands inside matter without that overlap is not a bracket: a thin
+   surface in the unverified gap, in front of a thicker one, could be skipped in favour of
+   the one behind it.
 4. A sample with ``|sdf| < tol(t)`` is a hit, with ``tol(t) = max(tol,
    footprint_fraction * t * pixel_angle)``: never finer than a fraction of the pixel
    footprint. Its ``t`` then gets one free secant correction ``r / m`` (``m`` the slope
@@ -98,9 +96,6 @@ class SphereTracerConfig:
     """Root refinement of a bracketed crossing: ``illinois`` (false position) or ``bisection``."""
     max_refine: int = 32
     """Refinement iterations; then the bracket is interpolated linearly."""
-    bracket_on_sign_change: bool = False
-    """Unsafe speed-up: a relaxed step that lands inside matter brackets the surface even if
-    the unbounding spheres do not overlap (see the module). False: Keinert's fallback."""
     grid_resolution: int = 32
     """Cells per axis of the empty-space-skipping grid; 0 disables skipping."""
     grid_lipschitz: float = 1.0
@@ -396,8 +391,6 @@ def _trace_wavefront(
 
         # Keinert's test: the relaxed step left the union of the two unbounding spheres.
         fail = evaluated & RELAXED & (RP + r.abs() < T - TP)
-        if cfg.bracket_on_sign_change:
-            fail &= r >= 0  # a sign change is a bracket: refine it rather than go back
         ok = evaluated & ~fail
         close = ok & (r.abs() < _tolerance(T, F[_FP], cfg))  # within tolerance on either side
         neg = ok & (r < 0) & ~close

@@ -14,15 +14,12 @@ from regnf.fields.neural_sdf import NeuralSDF
 
 
 def make_optimizer(
-    field: NeuralSDF, lr_grid: float, lr_mlp: float, grid_decay: float = 0.0,
-    extra_groups: Sequence[dict] = (),
+    field: NeuralSDF, lr_grid: float, lr_mlp: float, extra_groups: Sequence[dict] = (),
 ) -> torch.optim.AdamW:
     """AdamW with a larger learning rate for the feature grids than for the MLPs.
 
     Grid features are touched by few samples each step, so they need bigger steps than the
-    MLP weights that every sample updates. ``grid_decay`` (decoupled weight decay on the
-    grids only) pulls features that no loss constrains back to zero, which removes the
-    small floaters that fine-grid noise otherwise leaves in free space. ``extra_groups``
+    MLP weights that every sample updates; neither decays. ``extra_groups``
     are further parameter groups trained alongside the field (the pose corrections of
     :mod:`regnf.training.pose_refinement`), each with its own ``lr``.
     """
@@ -31,7 +28,7 @@ def make_optimizer(
     mlp_params = [p for p in field.parameters() if id(p) not in grid_ids]
     return torch.optim.AdamW(
         [
-            {"params": grid_params, "lr": lr_grid, "weight_decay": grid_decay},
+            {"params": grid_params, "lr": lr_grid, "weight_decay": 0.0},
             {"params": mlp_params, "lr": lr_mlp, "weight_decay": 0.0},
             *extra_groups,
         ],
@@ -66,7 +63,6 @@ def optimise(
     loss_at: Callable[[int], tuple[torch.Tensor, dict[str, torch.Tensor]]],
     lr_grid: float,
     lr_mlp: float,
-    grid_decay: float = 0.0,
     lr_final: float = 0.01,
     desc: str = "train",
     progress: bool = True,
@@ -85,7 +81,7 @@ def optimise(
     loss_at : callable
         ``loss_at(step) -> (loss, parts)``: the scalar loss of that step's batch and the named
         terms to log (scalar tensors).
-    lr_grid, lr_mlp, grid_decay : float
+    lr_grid, lr_mlp : float
         As for :func:`make_optimizer`.
     lr_final : float
         The learning rates at the last step, as a fraction of ``lr_grid`` and ``lr_mlp``
@@ -104,7 +100,7 @@ def optimise(
     """
     if not (math.isfinite(lr_final) and 0.0 <= lr_final <= 1.0):
         raise RegnfError(f"lr_final is a fraction of the learning rates, in [0, 1]; got {lr_final}")
-    opt = make_optimizer(field, lr_grid, lr_mlp, grid_decay, extra_groups)
+    opt = make_optimizer(field, lr_grid, lr_mlp, extra_groups)
     base_lrs = [g["lr"] for g in opt.param_groups]
     log: list[dict[str, float]] = []
     bar = tqdm(range(steps), desc=desc, disable=not progress, leave=False)

@@ -108,8 +108,6 @@ class RGBDTrainConfig:
     """The learning rates at the last step, as a fraction of ``lr_grid`` and ``lr_mlp`` (cosine
     decay after a 50-step warm-up, :func:`regnf.training.optim.lr_factor`;
     docs/decisions/field-training.md)."""
-    grid_decay: float = 0.0
-    """Decoupled weight decay of the grid features (removes free-space floaters)."""
     near_band_m: tuple[float, float] = (0.006, 0.02)
     """Near-surface offsets, metres: up to this far inside and outside (thin parts >= 1.2 cm)."""
     free_margin_m: float = 0.02
@@ -156,8 +154,6 @@ class RGBDTrainConfig:
     """Pool points per step."""
     w_eikonal: float = 0.1
     """Weight of the eikonal loss."""
-    eikonal_surface_only: bool = True
-    """Apply the eikonal loss at surface samples only (see the module docstring)."""
     w_normal: float = 0.05
     """Weight of the normal loss."""
     w_color: float = 1.0
@@ -490,24 +486,19 @@ def train_rgbd(
             xc, vc = xs[:0], ok_idx[:0]
 
         # -- one batched forward pass over every sample --------------------------------------
-        # The uniform points need a gradient only for the eikonal loss on every point; for
-        # their free-space loss alone one evaluation each does (the tetrahedron's four were
-        # 20 % of a room step's points).
-        xu_fd = not cfg.eikonal_surface_only
+        # The eikonal loss is taken at the surface samples only, so the uniform points need no
+        # gradient: one evaluation each for their free-space loss.
         # Noisy depth needs the gradient at every surface point (surface_distance).
-        fd_base = [xs] + ([xs_all] if weighted else []) + ([xu] if xu_fd else [])
+        fd_base = [xs] + ([xs_all] if weighted else [])
         fd_pts = tetrahedral_points(torch.cat(fd_base), h_fd)
-        direct = torch.cat([xs, xs_all, xn, xf, xe_free, xg, xo, xc] + ([] if xu_fd else [xu]))
+        direct = torch.cat([xs, xs_all, xn, xf, xe_free, xg, xo, xc, xu])
         sdf_all, feat_all = model.sdf_and_features(torch.cat([direct, fd_pts]))
-        sizes = [ns, ns, ns, xf.shape[0], xe_free.shape[0], xg.shape[0], xo.shape[0], xc.shape[0],
-                 0 if xu_fd else xu.shape[0]]
+        sizes = [ns, ns, ns, xf.shape[0], xe_free.shape[0], xg.shape[0], xo.shape[0], xc.shape[0], xu.shape[0]]
         f_s, f_sa, f_n, f_f, f_e, f_g, f_o, f_c, f_u = torch.split(sdf_all[: direct.shape[0]], sizes)
         feat_s = feat_all[:ns]
-        grads, f_mean = tetrahedral_combine(sdf_all[direct.shape[0]:], h_fd)
+        grads, _ = tetrahedral_combine(sdf_all[direct.shape[0]:], h_fd)
         g_s = grads[:ns]
         n_fd = 2 * ns if weighted else ns
-        if xu_fd:
-            f_u = f_mean[n_fd:]
 
         if weighted:
             w_s = s.weights[si]
@@ -522,7 +513,7 @@ def train_rgbd(
         if f_e.numel():
             loss_free = loss_free + (F.relu(-f_e) * keep_e).mean() / ell
         gnorm = grads.norm(dim=-1)
-        loss_eik = ((gnorm[: (ns if cfg.eikonal_surface_only else None)] - 1.0) ** 2).mean()
+        loss_eik = ((gnorm[:ns] - 1.0) ** 2).mean()
         # Uniform points seen as empty by a random view must not be inside anything.
         view_u = randint(views.count, xu.shape[0])
         free_u = seen_free(xu, view_u)
@@ -571,7 +562,7 @@ def train_rgbd(
             loss = loss + parts["pose"]
         return loss, parts
 
-    log.losses = optimise(model, cfg.steps, loss_at, cfg.lr_grid, cfg.lr_mlp, cfg.grid_decay, cfg.lr_final,
+    log.losses = optimise(model, cfg.steps, loss_at, cfg.lr_grid, cfg.lr_mlp, cfg.lr_final,
                           desc=f"train {info.name or 'field'}", progress=progress,
                           postfix={"surf": "surface", "col": "color"},
                           extra_groups=[poses.param_group()] if poses is not None else ())
