@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import json
 import os
+import subprocess
+import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -275,20 +277,33 @@ def _as_version_1(h: dict) -> None:
     del h[DIGEST_KEY]
 
 
-def test_version_1_is_refused_with_what_to_do_and_can_be_resaved(tmp_path: Path) -> None:
+CONVERT_V1 = Path(__file__).resolve().parents[2] / "scripts" / "convert_checkpoint_v1.py"
+
+
+def _convert(*args: Path) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, str(CONVERT_V1), *map(str, args)], capture_output=True, text=True,
+                          check=False, timeout=300)
+
+
+def test_version_1_is_refused_with_what_to_do_and_the_script_converts_it(tmp_path: Path) -> None:
     path = rewrite(saved(tmp_path), edit_header=_as_version_1)
     for fn in (read_header, load_field, verify_checkpoint):
         message = refused(fn, path, "format version 1 has no content digest")
-        assert "retrain" in message and "re-save" in message
-    field = load_field(path, allow_legacy=True)  # every other check still applies
-    assert torch.equal(field.to_world, stored(path)[1]["to_world"])
-    save_field(field, path)
-    assert verify_checkpoint(path)["format_version"] == FORMAT_VERSION
+        assert "retrain" in message and "scripts/convert_checkpoint_v1.py" in message
+    out = tmp_path / "converted.safetensors"
+    done = _convert(path, out)
+    assert done.returncode == 0, done.stderr
+    assert verify_checkpoint(out)["format_version"] == FORMAT_VERSION
+    assert torch.equal(load_field(out).to_world, stored(path)[1]["to_world"])
+    assert _convert(out).returncode == 1  # a version-2 file: nothing to convert
 
 
-def test_a_legacy_file_read_with_allow_legacy_is_still_checked(tmp_path: Path) -> None:
+def test_the_converter_still_checks_everything_else(tmp_path: Path) -> None:
     path = rewrite(saved(tmp_path), _move_to_world_5m, _as_version_1)
-    refused(lambda p: load_field(p, allow_legacy=True), path, "tensor 'to_world' disagrees")
+    done = _convert(path, tmp_path / "converted.safetensors")
+    assert done.returncode == 1 and "tensor 'to_world' disagrees" in done.stderr
+    assert len(done.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "converted.safetensors").exists()
 
 
 @pytest.mark.parametrize("version", [3, None, "2"])

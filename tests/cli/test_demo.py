@@ -29,7 +29,10 @@ def test_a_failing_step_is_not_logged(tmp_path: Path) -> None:
     assert log.steps == []
 
 
-def test_a_demo_folder_of_an_earlier_version_is_adopted(tmp_path: Path) -> None:
+def test_a_folder_without_the_demo_marker_is_never_taken_for_the_demos(tmp_path: Path) -> None:
+    # Files that look like a demo's, with no marker saying the demo made them: refused, and with
+    # --reuse still refused where the demo would write over them (nothing of them is removed).
+    import dataclasses
     import json
 
     from regnf.cli.demo import DemoConfig, demo_folder
@@ -37,15 +40,10 @@ def test_a_demo_folder_of_an_earlier_version_is_adopted(tmp_path: Path) -> None:
     out = tmp_path / "demo"
     (out / "stage").mkdir(parents=True)
     (out / "summary.json").write_text(json.dumps({"command": f"regnf demo --out {out}"}))
-    (out / "ac-room.usdz").write_bytes(b"PK")
-    with demo_folder(out, DemoConfig()) as folder:  # made by the demo before markers: its own
-        assert {"stage", "summary.json", "ac-room.usdz"} <= folder.entries
-        folder.remove("stage")
-    assert not (out / "stage").exists()
-    other = tmp_path / "other"
-    other.mkdir()
-    (other / "summary.json").write_text(json.dumps({"command": "my own tool"}))
-    with pytest.raises(ValueError, match=r"other: is not empty and was not made by regnf demo"), \
-            demo_folder(other, DemoConfig()):
+    with pytest.raises(ValueError, match=r"demo: is not empty and was not made by regnf demo"), \
+            demo_folder(out, DemoConfig()):
         pass
-
+    with pytest.raises(ValueError, match=r"demo/stage: exists and was not made by regnf demo"), \
+            demo_folder(out, dataclasses.replace(DemoConfig(), reuse=True)):
+        pass
+    assert (out / "stage").is_dir() and (out / "summary.json").is_file()

@@ -44,7 +44,6 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import datetime
-import json
 import os
 import platform
 import time
@@ -122,22 +121,6 @@ def demo_entries(config: DemoConfig) -> list[str]:
     return [*REMADE, "report.html", "summary.json", f"{config.room}.usdz"]
 
 
-def _legacy_demo(out: Path) -> list[str]:
-    """What a demo of an earlier regnf version (before output markers) made in ``out``, if it was one.
-
-    Such a folder holds the ``summary.json`` that demo wrote (its ``command`` is ``regnf demo``).
-    """
-    try:
-        summary = json.loads((out / "summary.json").read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
-        return []
-    if not isinstance(summary, dict) or not str(summary.get("command", "")).startswith("regnf demo"):
-        return []
-    names = [*REMADE, "report.html", "summary.json"]
-    names += [p.name for p in out.glob("*.usdz")]
-    return [n for n in names if os.path.lexists(out / n)]
-
-
 @contextlib.contextmanager
 def demo_folder(out: str | Path, config: DemoConfig) -> Iterator[OutputFolder]:
     """Claim ``out`` for the demo and hold its lock for the block; yield it with the demo's entries reserved.
@@ -157,8 +140,8 @@ def demo_folder(out: str | Path, config: DemoConfig) -> Iterator[OutputFolder]:
 
     path = Path(out).absolute()
     # Everything is checked before anything is written: a refused folder gets no marker and no lock file.
-    inspect_output_dir(path, DEMO_KIND, config.reuse, _legacy_demo).require_free(demo_entries(config))
-    with owned_output_dir(path, DEMO_KIND, config.reuse, "the demo folder", _legacy_demo) as folder:
+    inspect_output_dir(path, DEMO_KIND, config.reuse).require_free(demo_entries(config))
+    with owned_output_dir(path, DEMO_KIND, config.reuse, "the demo folder") as folder:
         yield folder.reserve(demo_entries(config))
 
 

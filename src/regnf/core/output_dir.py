@@ -27,7 +27,7 @@ import contextlib
 import os
 import shutil
 import tempfile
-from collections.abc import Callable, Iterable, Iterator, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -44,11 +44,6 @@ MARKER_FORMAT = 1
 REUSE_ADVICE = ("choose a new or empty folder, or reuse this one explicitly (reuse=True; on the command "
                 "line --reuse): regnf then adds its files and removes nothing it did not make")
 """What to do about a folder that is refused because it holds foreign files."""
-
-Legacy = Callable[[Path], Sequence[str]]
-"""For a folder without a marker: the top-level entries an earlier regnf version of this kind
-of command made there (empty when it was not such a folder)."""
-
 
 class OutputFolderError(RegnfError):
     """An output folder cannot be used as asked; the message names it and says what to do.
@@ -188,8 +183,7 @@ def _remove(path: Path) -> None:
         shutil.rmtree(path, ignore_errors=True)
 
 
-def inspect_output_dir(out: str | os.PathLike, kind: str, reuse: bool = False,
-                       legacy: Legacy | None = None) -> OutputFolder:
+def inspect_output_dir(out: str | os.PathLike, kind: str, reuse: bool = False) -> OutputFolder:
     """What :func:`claim_output_dir` would accept, without writing anything; raises as it does."""
     path = Path(out).absolute()
     if os.path.lexists(path) and not path.is_dir():
@@ -200,16 +194,14 @@ def inspect_output_dir(out: str | os.PathLike, kind: str, reuse: bool = False,
             raise OutputFolderError(path, f"holds the output of regnf {marker['kind']}",
                                     f"choose another folder for regnf {kind}")
         return OutputFolder(path, kind, frozenset(marker["entries"]))
-    ours = set(legacy(path)) if legacy is not None and path.is_dir() else set()
-    foreign = [n for n in foreign_entries(path) if n not in ours]
+    foreign = foreign_entries(path)
     if foreign and not reuse:
         raise OutputFolderError(path, f"is not empty and was not made by regnf {kind} (it holds {_describe(foreign)})",
                                 REUSE_ADVICE)
-    return OutputFolder(path, kind, frozenset(ours))
+    return OutputFolder(path, kind, frozenset())
 
 
-def claim_output_dir(out: str | os.PathLike, kind: str, reuse: bool = False,
-                     legacy: Legacy | None = None) -> OutputFolder:
+def claim_output_dir(out: str | os.PathLike, kind: str, reuse: bool = False) -> OutputFolder:
     """Claim ``out`` for a command of ``kind``: make it, or accept it if it may be written (see the module).
 
     Nothing is written when the folder is refused. An accepted folder without a marker gets
@@ -224,9 +216,6 @@ def claim_output_dir(out: str | os.PathLike, kind: str, reuse: bool = False,
     reuse : bool
         Accept a folder that holds entries this kind of command did not make (the user's
         explicit consent); a folder marked by another kind of command is refused even then.
-    legacy : callable, optional
-        Recognises a folder an earlier regnf version of this command made (before markers):
-        its entries are then recorded as ours, and the folder accepted if nothing else is there.
 
     Returns
     -------
@@ -238,7 +227,7 @@ def claim_output_dir(out: str | os.PathLike, kind: str, reuse: bool = False,
         ``out`` is a file, is marked by another kind of command, has an unreadable marker,
         or holds foreign entries and ``reuse`` is False.
     """
-    folder = inspect_output_dir(out, kind, reuse, legacy)
+    folder = inspect_output_dir(out, kind, reuse)
     if not (folder.path / MARKER_NAME).exists():
         folder.path.mkdir(parents=True, exist_ok=True)
         write_json(folder.path / MARKER_NAME, _marker(kind, folder.entries))
@@ -335,12 +324,12 @@ def remove_leftovers(folder: str | os.PathLike, prefix: str = TEMP_PREFIX, recur
 
 @contextlib.contextmanager
 def owned_output_dir(out: str | os.PathLike, kind: str, reuse: bool = False, what: str = "the output folder",
-                     legacy: Legacy | None = None) -> Iterator[OutputFolder]:
+                     ) -> Iterator[OutputFolder]:
     """Claim ``out`` (:func:`claim_output_dir`), hold its lock for the block, and first remove leftovers.
 
     Parameters
     ----------
-    out, kind, reuse, legacy
+    out, kind, reuse
         As for :func:`claim_output_dir`.
     what : str
         What the folder is, for the "busy" message.
@@ -359,7 +348,7 @@ def owned_output_dir(out: str | os.PathLike, kind: str, reuse: bool = False, wha
     regnf.core.file_lock.LockUnavailable
         The folder's file system cannot take locks.
     """
-    folder = claim_output_dir(out, kind, reuse, legacy)
+    folder = claim_output_dir(out, kind, reuse)
     with folder_lock(folder.path, what):
         # Claims are made before the lock (a refused folder must not get a lock file); a
         # claimer of another kind may have marked the folder in between.

@@ -195,21 +195,6 @@ def _settings_key(settings: dict[str, Any]) -> str:
     return hashlib.sha256(json.dumps(settings, sort_keys=True).encode()).hexdigest()[:16]
 
 
-def _legacy_entries(out: Path) -> list[str]:
-    """The data set an earlier regnf version wrote in ``out`` (before output markers), if any.
-
-    Such a folder has a ``generation.json`` with a ``config_key``; its entries of
-    :data:`LAYOUT` are then this command's own (that version wrote them).
-    """
-    try:
-        meta = read_json_input(out / GENERATION_JSON, None, "data set record")
-    except JsonInputError:
-        return []
-    if not isinstance(meta, dict) or not isinstance(meta.get("config_key"), str):
-        return []
-    return [name for name in LAYOUT if os.path.lexists(out / name)]
-
-
 def prepare_output(stage: str | os.PathLike, out: str | os.PathLike, config: GenerateConfig,
                    source: dict[str, Any] | None = None,
                    capture: CaptureViews | None = None) -> tuple[Path, str]:
@@ -253,7 +238,7 @@ def prepare_output(stage: str | os.PathLike, out: str | os.PathLike, config: Gen
     if capture is None:
         capture = capture_views(config)  # nor a capture that cannot be
     config = at_capture_size(config, capture)
-    claim_output_dir(out, KIND, config.reuse, _legacy_entries)
+    claim_output_dir(out, KIND, config.reuse)
     settings = config.output_settings()
     # Orbit data sets: the key of those made before capture cameras.
     shots = {} if capture is None else {"capture": capture.identity}
@@ -402,7 +387,7 @@ def generate(
         check_variant_sizes(Path(stage).absolute())
     source = source_summary(Path(stage).absolute())
     check_generation_disk(stage, out, config)
-    with owned_output_dir(out, KIND, config.reuse, "the data set folder", _legacy_entries):
+    with owned_output_dir(out, KIND, config.reuse, "the data set folder"):
         _remove_leftovers(out)
         base, key = prepare_output(stage, out, config, source, capture)
         state = read_manifest(out, key)

@@ -29,10 +29,9 @@ written before grids existed have no ``visibility`` key) still load, with
 
 Format versions: 2 (this one) added the digest. Version-1 files carry none, so nothing proves
 their weights are the ones that were saved: :func:`read_header`, :func:`load_field` and
-:func:`verify_checkpoint` refuse them with a message saying to retrain the field (the cache,
-:data:`regnf.synthetic.cache.CACHE_VERSION` 3, remakes its own) or to re-save it:
-``save_field(load_field(path, allow_legacy=True), path)`` loads it with every other check and
-writes it as version 2.
+:func:`verify_checkpoint` refuse them with a message saying to retrain the field or to convert
+it with ``scripts/convert_checkpoint_v1.py`` of the repository (outside the package), which
+checks everything else in the file and writes it as version 2.
 
 Every failure is a :class:`CheckpointError` whose one-line message names the file and the
 problem (and the tensor or header key).
@@ -80,7 +79,10 @@ FORMAT_VERSION = 2
 """Written by :func:`save_field`. 2: the header records :data:`DIGEST_KEY`."""
 
 LEGACY_FORMAT_VERSIONS = (1,)
-"""Older versions: refused unless ``allow_legacy=True`` (see the module docstring)."""
+"""Older versions: refused with what to do (see the module docstring)."""
+
+CONVERT_V1 = "scripts/convert_checkpoint_v1.py"
+"""The repository's converter of version-1 files, named in the refusal."""
 
 VISIBILITY_KEY = "visibility"
 """Header key of the visibility grid's metadata (:meth:`VisibilityGrid.to_json`), or null."""
@@ -144,9 +146,7 @@ class _Parsed(NamedTuple):
     """:meth:`VisibilityGrid.parse_json` of the header's block; None without a grid."""
 
 
-def _read(
-    path: Path, limits: ArchitectureLimits | None, allow_legacy: bool
-) -> tuple[dict, _Parsed]:
+def _read(path: Path, limits: ArchitectureLimits | None) -> tuple[dict, _Parsed]:
     """Read the header of ``path`` and validate everything it says; see :func:`read_header`."""
     problem = input_file_problem(path, missing="file does not exist")
     if problem is not None:
@@ -164,7 +164,7 @@ def _read(
         raise CheckpointError(path, f"the JSON header is corrupted ({exc})") from exc
     if not isinstance(header, dict):
         raise CheckpointError(path, "the JSON header is not an object")
-    _check_version(path, header.get("format_version"), allow_legacy)
+    _check_version(path, header.get("format_version"))
     arch = header.get("architecture")
     if arch != ARCHITECTURE:
         raise CheckpointError(path, f"unknown architecture {arch!r} (expected {ARCHITECTURE!r})")
@@ -172,10 +172,9 @@ def _read(
         if key not in header:
             raise CheckpointError(path, f"the header lacks '{key}'")
     header_contents = _parse(path, header, limits)
-    if header["format_version"] == FORMAT_VERSION:
-        digest = header.get(DIGEST_KEY)
-        if not (isinstance(digest, str) and len(digest) == 64 and all(c in "0123456789abcdef" for c in digest)):
-            raise CheckpointError(path, f"the header's '{DIGEST_KEY}' must be 64 hex digits, got {digest!r}")
+    digest = header.get(DIGEST_KEY)
+    if not (isinstance(digest, str) and len(digest) == 64 and all(c in "0123456789abcdef" for c in digest)):
+        raise CheckpointError(path, f"the header's '{DIGEST_KEY}' must be 64 hex digits, got {digest!r}")
     return header, header_contents
 
 
@@ -223,15 +222,15 @@ def _expected_visibility(parsed: _Parsed) -> dict[str, tuple[tuple[int, ...], to
     return {VISIBILITY_TENSOR: (tuple(parsed.visibility["resolution"]), torch.uint8)}
 
 
-def _check_version(path: Path, version: object, allow_legacy: bool) -> None:
-    if version == FORMAT_VERSION or (allow_legacy and version in LEGACY_FORMAT_VERSIONS):
+def _check_version(path: Path, version: object) -> None:
+    if version == FORMAT_VERSION:
         return
     if version in LEGACY_FORMAT_VERSIONS:
         raise CheckpointError(
             path,
             f"format version {version} has no content digest and is no longer trusted; retrain the "
-            "field (cached fields are remade) or re-save it: "
-            "save_field(load_field(path, allow_legacy=True), path)",
+            f"field (cached fields are remade) or convert it: python {CONVERT_V1} FILE "
+            "(in the regnf repository)",
         )
     raise CheckpointError(
         path, f"unsupported format version {version!r} (this regnf reads version {FORMAT_VERSION})"
@@ -256,9 +255,7 @@ def _field_info(path: Path, header: dict) -> FieldInfo:
         raise CheckpointError(path, f"bad header: {exc}") from exc
 
 
-def read_header(
-    path: str | os.PathLike, limits: ArchitectureLimits | None = None, allow_legacy: bool = False
-) -> dict:
+def read_header(path: str | os.PathLike, limits: ArchitectureLimits | None = None) -> dict:
     """Read and validate the JSON header of a checkpoint without loading weights.
 
     Cheap (reads the safetensors header only) and safe on hostile files: the architecture is
@@ -269,8 +266,6 @@ def read_header(
     path : str or PathLike
     limits : ArchitectureLimits, optional
         The largest architecture accepted (default: the MAX_* constants).
-    allow_legacy : bool
-        Accept a version-1 header (no digest); see the module docstring.
 
     Returns
     -------
@@ -280,14 +275,14 @@ def read_header(
     Raises
     ------
     CheckpointError
-        Missing or unreadable file, no or corrupted header, an unsupported (or, without
-        ``allow_legacy``, legacy) format version, unknown architecture, a config of the
+        Missing or unreadable file, no or corrupted header, an unsupported or legacy format
+        version, unknown architecture, a config of the
         wrong types or beyond ``limits``, bounds with min >= max, a ``to_world`` that is not
         a similarity, badly typed label / name / symmetry / provenance, a malformed digest,
         a ``visibility`` block of the wrong types or beyond ``limits``.
         The digest itself is compared by :func:`verify_checkpoint` and :func:`load_field`.
     """
-    return _read(Path(path), limits, allow_legacy)[0]
+    return _read(Path(path), limits)[0]
 
 
 def verify_checkpoint(path: str | os.PathLike, limits: ArchitectureLimits | None = None) -> dict:
@@ -308,7 +303,7 @@ def verify_checkpoint(path: str | os.PathLike, limits: ArchitectureLimits | None
         are refused.
     """
     path = Path(path)
-    header, parsed = _read(path, limits, allow_legacy=False)
+    header, parsed = _read(path, limits)
     check_digest(path, header)
     visibility = _expected_visibility(parsed)
     try:
@@ -398,7 +393,6 @@ def load_field(
     path: str | os.PathLike,
     device: torch.device | str = "cpu",
     limits: ArchitectureLimits | None = None,
-    allow_legacy: bool = False,
 ) -> NeuralSDF:
     """Load a checkpoint written by :func:`save_field`, validating every tensor.
 
@@ -409,9 +403,6 @@ def load_field(
         Where the field is moved after loading.
     limits : ArchitectureLimits, optional
         The largest architecture accepted (default: the MAX_* constants).
-    allow_legacy : bool
-        Load a version-1 file (no digest: every other check still applies), e.g. to re-save
-        it with :func:`save_field`.
 
     Raises
     ------
@@ -422,7 +413,7 @@ def load_field(
         when the header has none.
     """
     path = Path(path)
-    header, parsed = _read(path, limits, allow_legacy)
+    header, parsed = _read(path, limits)
     config, bounds, to_world, info, visibility = parsed
     try:
         # Build a weightless skeleton first (meta device: nothing is allocated), so that the

@@ -135,7 +135,8 @@ def _file_identity(path: Path) -> tuple[int, ...] | None:
 
 
 def check_digest(path: Path, header: dict) -> None:
-    """Compare the digest the header records with the file's (no-op for a legacy header).
+    """Compare the digest the header records (:func:`regnf.io.checkpoint.read_header` checked its
+    form) with the file's.
 
     A stage is read many times in one run (every render step, every variant's layer) and
     its scene field alone is over 100 MB: a file whose digest this process has already checked
@@ -145,9 +146,7 @@ def check_digest(path: Path, header: dict) -> None:
     :data:`STABLE_SECONDS` of the check is never remembered: a write that follows so soon could
     leave every field of the identity as it was (the "racily clean" case of git's index).
     """
-    want = header.get(DIGEST_KEY)
-    if want is None:
-        return  # a legacy file read with allow_legacy=True
+    want = header[DIGEST_KEY]
     before = _file_identity(path)  # stated BEFORE hashing: a write during it changes the identity
     if before is not None and _VERIFIED.get(before) == want:
         return
