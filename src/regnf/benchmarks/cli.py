@@ -501,3 +501,21 @@ class BenchCaptureScale:
             write_text(self.markdown, text)
         console.print(text)
         console.print(f"results: {self.json}")
+
+
+@dataclass
+class BenchPage:
+    """Regenerate docs/benchmarks.md from the benchmarks' JSON results (never edited by hand)."""
+
+    results: Path = Path("docs/results")
+    """Folder of the results, one ``<benchmark>.json`` each (what ``--json`` wrote)."""
+    out: Path = Path("docs/benchmarks.md")
+    """The page to write (Markdown)."""
+
+    def run(self) -> None:
+        check_output_file(self.out, "--out")
+        from regnf.benchmarks.page import write_results_page
+
+        path = write_results_page(self.results, self.out)
+        console.print(f"{path}: {len(path.read_text(encoding='utf-8').splitlines())} lines", soft_wrap=True)
+

@@ -59,6 +59,7 @@ def _bench_commands() -> dict[str, type]:
             BenchEncodings,
             BenchFields,
             BenchGpuCheck,
+            BenchPage,
             BenchRegistration,
             BenchRender,
             BenchSensor,
@@ -79,6 +80,7 @@ def _bench_commands() -> dict[str, type]:
         "bench gpu-check": BenchGpuCheck,
         "bench sensor": BenchSensor,
         "bench capture-scale": BenchCaptureScale,
+        "bench page": BenchPage,
     }
 
 

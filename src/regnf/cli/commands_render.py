@@ -56,8 +56,8 @@ class _Views:
     render: RenderConfig = field(default_factory=RenderConfig)
     """How the views are rendered and written (docs/design.md section 3.6): for example
     ``--render.renderer volume``, ``--render.renderer baked`` (the fields baked into grids once
-    for these views, then traced: 2-3x faster a view after a bake of under a minute for a room,
-    so for many views; its "evaluations" are grid look-ups), ``--render.volume.n-samples 64``, ``--render.sphere.grid-lipschitz 1.5``
+    for these views, then traced: faster a view once the bake is paid, so for many views,
+    docs/decisions/rendering-speed.md; its "evaluations" are grid look-ups), ``--render.volume.n-samples 64``, ``--render.sphere.grid-lipschitz 1.5``
     (fields that overestimate), ``--render.sequence gif``, ``--render.overwrite``."""
     composite: StageCompositeConfig = field(default_factory=StageCompositeConfig)
     """What is cut out and placed per instance: ``--composite.removal shell``, ``--composite.box-pad``,

@@ -3,9 +3,8 @@
 Every training step frees and allocates again the gradient of each dense feature grid (tens
 of megabytes for a room). glibc serves allocations that large with a fresh ``mmap`` and
 returns them to the system on free, so every step zero-fills pages the kernel must fault in
-one by one: on 2 CPU cores that was a quarter of a room's training step (measured:
-188 ms -> 144 ms per step, ac-room, once freed memory is kept). This module makes glibc keep
-its freed memory in the heap instead, for the rest of the process.
+one by one, a large share of a room's training step (docs/decisions/implementation-speed.md).
+This module makes glibc keep its freed memory in the heap instead, for the rest of the process.
 
 The price is that a process does not give memory back to the system before it exits, so its
 resident size stays at its peak. That is right for a command (``regnf`` calls

@@ -3,9 +3,8 @@
 The SDF network's activation is a softplus of sharpness 100 (NeuS), ``log1p(exp(100 h)) / 100``.
 Its ``log1p`` of the small ``exp(100 h)`` of most pre-activations squares them into denormal
 floats (below 1.2e-38) on the way, and an x86 CPU computes with those many times slower than
-with normal ones: on one thread, a softplus over 65536 x 64 normal-distributed values takes
-76 ms, against 9 ms with denormals flushed to zero (and 6 ms for sharpness 1). Flushed, the
-renders and the distances, gradients and colours of the demo's fields are the same bits
+with normal ones (docs/decisions/implementation-speed.md). Flushed, the renders and the
+distances, gradients and colours of the demo's fields are the same bits
 (tested on a field whose softplus meets denormals).
 
 The mode is a register of each CPU thread, so it is set for the span of an evaluation on the
@@ -107,8 +106,8 @@ def pool_denormals_flushed() -> Iterator[None]:
     evaluation copies its mode) and this thread in its earlier one.
 
     For training loops, which run nothing but torch: the same bits as without (the softplus's
-    denormals only ever round away; tested), a distillation about 5 % faster on 2 cores (fc
-    11.2-11.6 -> 10.6-10.9 s in one hour). Where torch's OpenMP runtime
+    denormals only ever round away; tested), and faster (docs/decisions/implementation-speed.md).
+    Where torch's OpenMP runtime
     cannot be reached (not GNU OpenMP, not Linux), only this thread's mode is set.
     """
     with denormals_flushed():

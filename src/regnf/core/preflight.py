@@ -28,7 +28,7 @@ RENDER_BYTES_PER_PIXEL = 64
 depth, normal, mask, instance id and the tracer's per-ray state (float32 / int64)."""
 MESH_BYTES_PER_NODE = 24
 """Memory per node of the marching-cubes grid: the float32 SDF volume plus what
-``skimage.measure.marching_cubes`` allocates beside it (measured at about 5x the volume)."""
+``skimage.measure.marching_cubes`` allocates beside it (docs/decisions/training_memory.md)."""
 MAX_JSON_BYTES = 16 * 2**20
 """Largest JSON input file (a box, a registration result, a record in an output folder), in bytes."""
 

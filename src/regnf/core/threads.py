@@ -57,17 +57,10 @@ def one_thread() -> Iterator[None]:
     """Run the block on one CPU thread (torch's thread count on this thread, and Open3D's
     limit for the process while any such block runs; both restored after).
 
-    Why (measured):
-
-    - Registration's refinement: with two threads the same inputs refined three times in one
-      process ended at inlier fractions 0.8232, 0.8241 and 0.8241 (low-coverage ac-room, chair
-      c, 150 steps); one thread gives the same bits every time, and it is not slower at these
-      batch sizes (5.6 s against 5.7-6.4 s).
-    - Open3D's RANSAC: with two threads its hypotheses depend on the scheduling. The chair c
-      in the low-coverage atbl-room's wt box (mesh library) scored 0.2241 run alone and 0.2184
-      in a pooled benchmark worker, and 0.2769 with one thread. Its threads draw from one
-      random generator, in the order they reach it, and stop early on a shared count: the
-      test registration gave other RANSAC results in 2 of 20 processes on two threads.
+    Why: on more threads the refinement's sums and Open3D's RANSAC (whose threads draw from one
+    random generator in the order they reach it) depend on the scheduling, and one thread gives
+    the same bits every time at no cost in speed at registration's batch sizes
+    (docs/decisions/registration-refinement.md, docs/decisions/registration-initialisation.md).
     """
     n = torch.get_num_threads()
     torch.set_num_threads(1)
@@ -101,9 +94,8 @@ def _pool(workers: int) -> ThreadPoolExecutor:
     """The process's pool of ``workers`` threads for :func:`map_one_thread_each`.
 
     Kept, not made per call: a thread's start waits for the interpreter lock, which the other
-    side's Python holds for up to the switch interval (5 ms), and a registration maps some 25
-    times (the LM iterations' two field queries, the ICP starts): 45 thread starts took 0.25 s
-    of a 1.7 s registration (`regnf.registration.register`, the armchair ``fc``, one profile).
+    side's Python holds for up to the switch interval (5 ms), and a registration maps many
+    times (docs/decisions/implementation-speed.md).
     """
     with _pools_lock:
         pool = _pools.get(workers)

@@ -436,8 +436,8 @@ def _make_variants(out: Path, base: Path, key: str, config: GenerateConfig, todo
     warm = None
     if config.executor.kind == "local":
         # The first batch's workers start now, and import the renderer and read the stage
-        # while this process prepares (and bakes): a worker's start took 3.6 s of the first
-        # variant's 6.3 (20 baked variants of the demo's stage).
+        # while this process prepares (and bakes): a worker's start is much of the first
+        # variant's time (docs/decisions/rendering-speed.md).
         width = min(config.executor.width, len(todo), TASKS_PER_BATCH)
         warm = stack.enter_context(local_pool(width, config.executor.threads_per_task))
         for _ in range(width):

@@ -258,7 +258,7 @@ class OrientedBoxes(torch.nn.Module):
     A composite asks for the distance to every placed object's box, and to every removal box, at
     each sphere-tracing step: one matrix product for all of them, instead of a few small kernels
     per box, cuts the interpreter's share of a step, which is what limits two views traced side
-    by side on two threads (the demo's substitution views, two at a time: 1.13 -> 1.00 s each).
+    by side on two threads (docs/decisions/rendering-speed.md).
 
     Parameters
     ----------

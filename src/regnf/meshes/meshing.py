@@ -91,8 +91,7 @@ def sample_grid(
         out[start : start + flat.numel()] = field.sdf_chunked(pts, chunk, dev).cpu().numpy()
 
     # On the CPU, chunks side by side, one thread each: the bits of one after another on one
-    # thread, on any machine. Discovery's candidates (2.7 million nodes of the demo's room):
-    # 4.3 s on one thread, 2.4 s on two cores.
+    # thread, on any machine, and faster (docs/decisions/implementation-speed.md).
     map_one_thread_each(fill, range(0, total, chunk), usable_cores() if dev.type == "cpu" else 1)
     return out.reshape(tuple(int(c) for c in cells + 1))
 

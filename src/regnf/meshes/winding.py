@@ -9,16 +9,14 @@ watertight mesh.
 Two ways to compute it:
 
 - :func:`exact_winding_numbers`: the sum itself (Van Oosterom and Strackee's formula for the
-  solid angle of a triangle), in torch, in chunks of point/triangle pairs. O(points x faces):
-  about 150-250 ns a pair on 2 shared CPU cores, so it is for small meshes, few points and
-  tests.
+  solid angle of a triangle), in torch, in chunks of point/triangle pairs. O(points x faces),
+  so it is for small meshes, few points and tests (docs/decisions/field-training.md).
 - :class:`RayWinding`: the GWN is also the average, over all directions, of the signed
   number of crossings of a ray from ``p`` (+1 where the ray leaves through a face, -1 where
   it enters). Each ray's count is an integer, the same integer for every direction when the
   surface is closed and consistently oriented (however many parts overlap), so a few rays
   give the exact value there; near holes the mean over random directions is an unbiased
-  estimate. Rays are traced by Open3D's BVH (Embree), O(log faces) each: 225 000 points x 5
-  rays take about 1.5 s against 180 000 faces on 2 shared cores.
+  estimate. Rays are traced by Open3D's BVH (Embree), O(log faces) each.
 
 :func:`winding_numbers` combines them: a few rays for every point, and for the points whose
 rays disagree (those near holes, or a ray that grazed an edge) the exact sum where it is
@@ -44,14 +42,14 @@ class WindingConfig:
 
     rays: int = 5
     """Rays per point in the first pass. A point is decided there when every ray gives the
-    same side; on closed parts all do, so 5 rays (1.5 s for 225 000 points against 180 000
-    faces on 2 shared cores) decide nearly every point and the rest is refined."""
+    same side; on closed parts all do, so a few rays decide nearly every point and the rest is
+    refined (docs/decisions/field-training.md)."""
     extra_rays: int = 59
     """Rays added to an undecided point when the exact sum is too costly (64 in all: the
     mean's standard error is at most 0.06, against a 0.5 margin deep inside)."""
     exact_pairs: int = 8_000_000
-    """Undecided points get the exact sum when (points x faces) is at most this (about 1.5 s on
-    2 shared cores); more pairs fall back to :attr:`extra_rays`."""
+    """Undecided points get the exact sum when (points x faces) is at most this; more pairs fall
+    back to :attr:`extra_rays` (docs/decisions/field-training.md)."""
     seed: int = 0
     """Seed of the random ray directions (results are deterministic for a seed)."""
 

@@ -63,8 +63,7 @@ class CandidateConfig:
     """A candidate whose space below, down to the floor, the views observed less than this
     (mean of :meth:`~regnf.observations.visibility.VisibilityGrid.observed` over its column)
     is grown down to the floor: objects stand on it, and what no view saw may be their part
-    (measured: the low-coverage atbl-room's round table shows only its top, IoU 0.15 with its
-    true box; grown, 0.69)."""
+    (docs/decisions/discovery-ranking.md)."""
     seed: int = 0
     """Seed of the plane search."""
 

@@ -3,9 +3,8 @@
 A candidate's examination (:func:`regnf.registration.discovery.examine`) is split into its
 steps, each a task: the ranking of the library in the candidate's box, the full registration of
 each shortlisted object, and the choice (with its refit). A step is submitted as soon as the
-steps it needs have finished, so every worker stays busy until the last candidate's choice:
-on the demo's room, five examinations of 5-11 s each, whole examinations as tasks left one core
-idle for a third of the time.
+steps it needs have finished, so every worker stays busy until the last candidate's choice,
+where whole examinations as tasks left a core idle (docs/decisions/discovery-ranking.md).
 
 A step that fails on its input returns what the same step returns in the calling process (the
 candidate skipped, or the object's failure: :mod:`regnf.registration.step_failures`), so that

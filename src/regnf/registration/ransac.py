@@ -15,7 +15,7 @@ nearest-neighbour queries.
 
 Why not Open3D's: Open3D 0.20 runs it on its thread pool, whose threads draw from one random
 generator in the order they reach it (other hypotheses from run to run), so it had to run on
-one thread, 0.3-0.5 s of a registration's four runs (docs/benchmarks.md). Here the draws come
+one thread (docs/decisions/registration-initialisation.md). Here the draws come
 in batches from a seeded NumPy generator, every batch's checks and fits are array operations,
 and the scoring's nearest-neighbour queries (SciPy, exact) split over the cores: the same
 hypotheses on one core or many.

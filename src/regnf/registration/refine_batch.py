@@ -148,8 +148,8 @@ class HypothesisBatch:
 
         Not under autograd (Adam's loss): the backward pass orders its nodes by a creation
         counter that torch keeps per thread, so a graph built on two threads sums the pose's
-        gradient contributions in an order that depends on the scheduling (seen: one run in six
-        differed in the last bits)."""
+        gradient contributions in an order that depends on the scheduling
+        (docs/decisions/registration-refinement.md)."""
         if self.workers < 2 or torch.is_grad_enabled():
             return scene_side(), library_side()
         a, b = map_one_thread_each(lambda call: call(), [scene_side, library_side], 2)
@@ -158,9 +158,8 @@ class HypothesisBatch:
     def _fixed_values(self) -> None:
         """Evaluate, for the active hypotheses whose samples changed, what does not move with the
         pose: S_scene and the visibility at A; S_lib, the library normals and the nearest-sample
-        lookup at B. Once per distinct sample tensor, in one field query per side (the fields
-        are the cost: measured, re-evaluating them whenever a hypothesis stopped took a third of
-        the refinement)."""
+        lookup at B. Once per distinct sample tensor, in one field query per side: the field
+        queries are the refinement's main cost (docs/decisions/implementation-speed.md)."""
         if not self.bidirectional:
             self._cache_per_tensor(self.A, self.fixed_A, self._fixed_at_A)
             return

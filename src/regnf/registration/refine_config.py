@@ -115,8 +115,8 @@ class RefineConfig:
     """``lm``: Levenberg-Marquardt, the kernel's (alpha, c) fitted to the residuals at every
     iterate (:mod:`regnf.registration.irls`); ``adam``: the paper's Adam on all parameters at once.
     (Not in the paper. The objective is a robust least-squares problem in 8 parameters: a
-    damped Newton step converges in 5-15 iterations where Adam at the paper's rates takes
-    80-200 steps; measured in ``docs/benchmarks.md``.)"""
+    damped Newton step converges in far fewer iterations than Adam at the paper's rates;
+    docs/decisions/registration-refinement.md.)"""
     lm_max_iterations: int = 30
     """Most Levenberg-Marquardt iterations (``optimizer="lm"``); ``max_iterations`` caps Adam."""
     lm_resample_every: int = 3

@@ -18,7 +18,8 @@ def _adam(batch: HypothesisBatch) -> torch.optim.Adam:
     """Adam over the batch's pose, offset and kernel parameters, at the configured rates.
 
     Made only when Adam refines: torch's optimisers import its compiler (torch._dynamo) on
-    first use, 1.4 s of the first registration in a process otherwise.
+    first use, a cost to the first registration in a process otherwise
+    (docs/decisions/implementation-speed.md).
     """
     cfg = batch.cfg
     groups = [

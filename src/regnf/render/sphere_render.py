@@ -5,9 +5,9 @@
 each square tile of pixels (``cone_tile``) as one cone, one evaluation a step for the tile
 (:func:`cone_starts`): the tile's rays then start where its cone came near a surface, at a
 point proven free, instead of at the camera. The free space before the first surface is
-crossed once a tile, not once a ray (8 baked views of a generated variant: 29.2 -> 14.4
-evaluations a pixel, the cones' own included; 4.1 -> 2.4 s). A ray's result is still its own
-trace's, from a later start: the same surfaces to the tracer's tolerance, not the same bits.
+crossed once a tile, not once a ray (docs/decisions/rendering-speed.md). A ray's result is
+still its own trace's, from a later start: the same surfaces to the tracer's tolerance, not the
+same bits.
 """
 
 from __future__ import annotations
@@ -167,9 +167,8 @@ def render_many(
 
     The rays of every view march together (``config.chunk`` at a time), so the slow rays at
     the end of a trace, few points a step, are traced once for all views instead of once a
-    view: on one thread, 8 views of a variant of the demo's baked composite in 4.15 s instead of
-    4.25 s, and the demo's 6 substitution views in two batches of 3 on two threads in 6.7 s
-    instead of 7.4 s (:attr:`regnf.compositor.render_folder.RenderConfig.views_per_trace`).
+    view (docs/decisions/rendering-speed.md;
+    :attr:`regnf.compositor.render_folder.RenderConfig.views_per_trace`).
     A ray's trace is its own, so the images are those of :func:`render` up to the last bits
     of a network's batched evaluation (exactly the same on a baked field).
 

@@ -60,11 +60,8 @@ BACKGROUND_ID = -1
 
 WAVEFRONT = DEFAULT_CHUNK
 """Rays marching at once by default (65536). Smaller batches pay the loop's fixed cost more
-often, larger ones miss the caches, and a view split over two batches takes more steps. Measured
-on 2 cores: one view of 256 x 192 on two threads (``regnf bench render``) 4-10 % faster with
-65536 than with 32768; the demo's 6 substitution views in two batches of 3 on two threads,
-6.41-6.46 s with 65536 and 6.49 s with 32768; 8 views of a baked variant traced together on one
-thread, 4.45, 4.05, 3.94 and 4.15 s with 8192, 16384, 32768 and 65536 (4.25 s a view at a time)."""
+often, larger ones miss the caches, and a view split over two batches takes more steps
+(docs/decisions/rendering-speed.md)."""
 REFINE_METHODS = ("illinois", "bisection")
 """Root refinements of a bracketed crossing."""
 ADAPTIVE_MARGIN = 0.95

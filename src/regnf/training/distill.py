@@ -16,8 +16,7 @@ A mesh that cannot be signed (no triangles, no area, a flat sheet, a winding num
 nowhere or everywhere) raises :class:`~regnf.meshes.mesh_repair.MeshError` naming the file.
 
 Preparing the targets (:func:`distillation_targets`: repair, winding numbers, distances)
-takes 5.0 s for a 300 000-face mesh (the ``dense`` chair of ``benchmarks/defective_meshes.py``)
-and 1.3 s for a 40 000-face one, on 2 CPU cores shared with other jobs.
+takes seconds for a large mesh (docs/decisions/field-training.md).
 """
 
 from __future__ import annotations

@@ -34,7 +34,7 @@ def make_optimizer(
         ],
         betas=(0.9, 0.99), eps=1e-15,
         # One fused kernel per step instead of a dozen passes over millions of grid
-        # features: 9x faster on CPU (0.017 s vs 0.149 s for 11.7 M parameters).
+        # features (docs/decisions/implementation-speed.md).
         fused=True,
     )
 

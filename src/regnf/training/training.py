@@ -176,9 +176,9 @@ class RGBDTrainConfig:
     """Torch device to train on."""
     visibility_resolution: int = DEFAULT_RESOLUTION
     """Voxels along the longest bounds axis of the visibility grid attached to the trained field
-    (:func:`regnf.observations.visibility.build_visibility`, over the training frames; about 0.3 s for a
-    room of 27 frames, single-threaded); 0: attach none (``field.visibility = None``: nothing
-    recorded, everything counts as observed).
+    (:func:`regnf.observations.visibility.build_visibility`, over the training frames; a fraction
+    of a second for a room, single-threaded: docs/decisions/field-training.md); 0: attach none
+    (``field.visibility = None``: nothing recorded, everything counts as observed).
     Training needs depth in every training frame, so every trained field can have one."""
     visibility_margin: float = DEFAULT_MARGIN
     """Voxels behind each observed surface that the visibility grid counts as observed."""

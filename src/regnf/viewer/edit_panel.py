@@ -48,8 +48,8 @@ class EditPanel:
 
     def _add_editing(self) -> None:
         gui = self.server.gui
-        # Folded until opened: a page builds folded controls later, and opens faster (measured:
-        # 0.4-0.5 s of the demo stage's 6 s on 2 cores).
+        # Folded until opened: a page builds folded controls later, and opens faster
+        # (docs/decisions/rendering-speed.md).
         with gui.add_folder("Edit", expand_by_default=False):
             self.move_button = gui.add_button("move selected")
             self.refine_button = gui.add_button("refine", disabled=True)

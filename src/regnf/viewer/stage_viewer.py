@@ -97,9 +97,9 @@ class StageViewer(EditPanel):
         # A port in use is refused before the fields load and the first image renders.
         port = free_port(config.host, config.port)
         self.composites = Composites(self.stage, self.scene, config)
-        # The first view's composite (fields loaded, empty-space grid built: 3.6 s for the demo
-        # room) is made before the server starts, so that a browser's first image needs only
-        # a render.
+        # The first view's composite (fields loaded, empty-space grid built) is made before the
+        # server starts, so that a browser's first image needs only a render
+        # (docs/decisions/rendering-speed.md).
         # So is the coarse image of the camera a browser opens with: the browser needs seconds
         # to start its page, and a render then would compete with it for the CPU.
         eye, target = opening_view(self.scene, self.composites.field(SCENE_PRIM, self.scene.scene))
@@ -217,7 +217,7 @@ class StageViewer(EditPanel):
         visible = self.view.value == "proxies"
         if visible and not self._meshes:
             # Sent when first shown, not with the page: a page that opens on a render starts
-            # faster without them (measured: 0.3-0.4 s of the demo stage's 6 s, 2 cores).
+            # faster without them (docs/decisions/rendering-speed.md).
             self._add_proxies()
         for mesh in self._meshes:
             mesh.visible = visible
