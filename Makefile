@@ -32,8 +32,10 @@ test: setup
 lint: setup
 	$(VENV)/bin/ruff check .
 
+# A benchmark's JSON in docs/results/ is what docs/benchmarks.md shows; `regnf bench page` remakes the page.
 bench-fields: setup
-	$(VENV)/bin/regnf bench fields --json out/bench_fields.json --markdown docs/benchmarks_fields.md
+	$(VENV)/bin/regnf bench fields --json docs/results/fields.json
+	$(VENV)/bin/regnf bench page
 
 bench-encodings: setup
 	$(VENV)/bin/regnf bench encodings --json out/bench_encodings.json

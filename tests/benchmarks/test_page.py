@@ -47,3 +47,17 @@ def test_the_command_writes_the_page_and_refuses_a_broken_result_in_one_line(
     assert main(["bench", "page", "--results", str(tmp_path / "res"), "--out", str(out)]) == 1
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "discover.json: not a readable benchmark result" in err
+
+
+def test_the_discovery_section_links_its_pictures_relative_to_the_page(tmp_path: Path) -> None:
+    res = tmp_path / "docs" / "results"
+    (res / "discover_png").mkdir(parents=True)
+    (res / "discover_png" / "ac-room_low.png").write_bytes(b"\x89PNG")
+    row = {"scene": "ac-room", "left_out": {}, "coverage": "low", "true_instances": 5, "candidates": 6,
+           "found": 5, "identified": 5, "within_bars": 5, "false_instances": 0, "unmatched_candidates": 1,
+           "seconds": 29.4, "instances": [], "false": []}
+    (res / "discover.json").write_text(json.dumps({"meta": {**META, "command": "regnf bench discover"},
+                                                   "rows": [row]}))
+    page = results_page(res, tmp_path / "docs")
+    assert "| ac-room | all 8 | low | 5 | 6 | 5 | 5 | 5 | 0 | 1 | 29 |" in page
+    assert "Pictures: [ac-room_low](results/discover_png/ac-room_low.png)." in page

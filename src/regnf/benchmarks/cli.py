@@ -47,7 +47,7 @@ class BenchFields:
     quick: bool = False
     """Two library objects (both sources), no room: a few minutes."""
     markdown: Path | None = None
-    """Also write the results as a Markdown table here (e.g. docs/benchmarks_fields.md)."""
+    """Also write the results as a Markdown table here."""
     device: str = "cpu"
     """Torch device."""
     cache_dir: Path = dataclasses.field(default_factory=default_cache_dir)

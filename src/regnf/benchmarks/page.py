@@ -31,6 +31,8 @@ class Section(NamedTuple):
     """The options that record the result the page shows (after ``regnf bench NAME``)."""
     tables: Callable[[dict], str]
     """The section's Markdown from the JSON."""
+    images: str = ""
+    """Folder beside the JSON whose PNGs the section links (what the benchmark drew), or none."""
 
 
 def _fields(data: dict) -> str:
@@ -107,7 +109,7 @@ def _gpu_check(data: dict) -> str:
 SECTIONS = (
     Section("fields", "Fields: training time and surface error", "", _fields),
     Section("registration", "Registration from true boxes", "--coverage both --library mesh", _registration),
-    Section("discover", "Discovery without boxes", "", _discover),
+    Section("discover", "Discovery without boxes", "", _discover, "discover_png"),
     Section("render", "Rendering and object completion", "", _render),
     Section("distill", "Distillation of defective meshes", "", _distill),
     Section("encodings", "Feature encodings", "", _encodings),
@@ -135,9 +137,20 @@ def _machine(meta: dict) -> str:
             f"device {meta.get('device', '?')}")
 
 
-def results_page(results: str | os.PathLike) -> str:
-    """The page's Markdown from the JSON files in ``results`` (``<section name>.json``)."""
+def _image_links(folder: Path, section: Section, page_dir: Path) -> list[str]:
+    """A line linking the section's pictures, relative to the page's folder (none: no line)."""
+    pngs = sorted((folder / section.images).glob("*.png")) if section.images else []
+    if not pngs:
+        return []
+    links = [f"[{p.stem}]({Path(os.path.relpath(p, page_dir)).as_posix()})" for p in pngs]
+    return ["Pictures: " + ", ".join(links) + ".", ""]
+
+
+def results_page(results: str | os.PathLike, page_dir: str | os.PathLike | None = None) -> str:
+    """The page's Markdown from the JSON files in ``results`` (``<section name>.json``); its links
+    to pictures are relative to ``page_dir`` (default: the folder above ``results``)."""
     folder = Path(results)
+    page_dir = Path(page_dir) if page_dir is not None else folder.absolute().parent
     if not folder.is_dir():
         raise RegnfError(f"{folder}: no such folder of benchmark results")
     found = {s.name: _read(folder / f"{s.name}.json") for s in SECTIONS if (folder / f"{s.name}.json").is_file()}
@@ -161,11 +174,11 @@ def results_page(results: str | os.PathLike) -> str:
         meta = found[s.name]["meta"]
         machine = "" if len(machines) == 1 else f" on {_machine(meta)}"
         body += [f"`{meta.get('command', '?')}`, {str(meta.get('date', '?'))[:10]}{machine}.", "",
-                 s.tables(found[s.name]).rstrip("\n"), ""]
+                 s.tables(found[s.name]).rstrip("\n"), "", *_image_links(folder, s, page_dir)]
     return "\n".join(head + body).rstrip("\n") + "\n"
 
 
 def write_results_page(results: str | os.PathLike, out: str | os.PathLike) -> Path:
     """Write :func:`results_page` to ``out`` (atomically); returns the path."""
-    write_text(out, results_page(results))
+    write_text(out, results_page(results, Path(out).absolute().parent))
     return Path(out)
