@@ -11,22 +11,14 @@ grid there (:meth:`regnf.observations.visibility.VisibilityGrid.observed`).
 from __future__ import annotations
 
 import numpy as np
-import torch
 import trimesh
 
 from regnf.fields.field import Field
+from regnf.registration.observed_difference import DIFFERENCE_TOLERANCE, observed_share
 from regnf.synthetic.primitives import surface_distance
-
-DIFFERENCE_TOLERANCE = 0.01
-"""Surface farther than this fraction of the box object's diagonal from the other shape differs."""
 
 SAMPLES = 4000
 """Surface samples per shape."""
-
-UNOBSERVED = 0.05
-"""Below this ``observed_difference`` the views saw (next to) nothing of what tells the two
-objects apart: the wrong one fits the observed evidence as well as the right one.
-"""
 
 
 def observed_difference(scene: Field, object_to_world: np.ndarray, mesh_a: trimesh.Trimesh,
@@ -47,22 +39,15 @@ def observed_difference(scene: Field, object_to_world: np.ndarray, mesh_a: trime
     Returns
     -------
     float
-        In [0, 1]: 0 when no view observed any of the differing surface, 1 when every part of
-        it was fully observed; nan when the shapes do not differ beyond the tolerance.
+        :func:`regnf.registration.observed_difference.observed_share` of the differing surface:
+        0 when no view observed any of it, 1 when every part was fully observed.
     """
     diag = float(np.linalg.norm(mesh_b.extents))
     parts = []
     for mesh, other, s in ((mesh_a, mesh_b, seed), (mesh_b, mesh_a, seed + 1)):
         pts, _ = trimesh.sample.sample_surface(mesh, SAMPLES, seed=s)
         parts.append(pts[surface_distance(other, pts) > DIFFERENCE_TOLERANCE * diag])
-    differ = np.concatenate(parts)
-    if differ.shape[0] == 0:
-        return float("nan")
-    if scene.visibility is None:
-        return 1.0
     M = np.asarray(object_to_world, dtype=np.float64)
     world_to_field = np.linalg.inv(scene.to_world.detach().cpu().double().numpy())
-    x = differ @ M[:3, :3].T + M[:3, 3]
-    x = x @ world_to_field[:3, :3].T + world_to_field[:3, 3]
-    w = scene.visibility.observed(torch.as_tensor(x, dtype=torch.float32))
-    return float(w.mean())
+    x = np.concatenate(parts) @ M[:3, :3].T + M[:3, 3]
+    return observed_share(scene, x @ world_to_field[:3, :3].T + world_to_field[:3, 3])

@@ -7,10 +7,10 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, ImageDraw
 
-from regnf.benchmarks.observed_difference import UNOBSERVED
 from regnf.core.atomic_io import atomic_path
 from regnf.core.errors import RegnfError
 from regnf.registration.metrics import BARS, within_bars
+from regnf.registration.observed_difference import UNOBSERVED
 from regnf.registration.result import RegistrationResult
 
 SCENE_RGB = (40, 110, 220)
@@ -153,7 +153,7 @@ def wrong_pair_rates(rows: list[dict]) -> list[dict]:
     is rejected or scores a lower confidence than the box's own chair in the same setting;
     ``within_unidentified_unobserved`` counts the others whose difference from the right chair
     the scene never observed (``difference_observed`` below
-    :data:`regnf.benchmarks.observed_difference.UNOBSERVED`): no observed evidence ranks those.
+    :data:`regnf.registration.observed_difference.UNOBSERVED`): no observed evidence ranks those.
     """
     right = {(r["scene"], r["object"], r.get("coverage", "full"), r.get("library_source", "rgbd")): r
              for r in _right_rows(rows)}

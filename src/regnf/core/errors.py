@@ -11,3 +11,15 @@ from __future__ import annotations
 
 class RegnfError(ValueError):
     """A problem with regnf's input (a file, an option, a stage), its message naming it in one line."""
+
+
+def is_regnf_error_name(name: str) -> bool:
+    """Whether ``name`` is the class name of :class:`RegnfError` or of a subclass loaded in this
+    process: an error that came back from a worker process as text (``"CheckpointError: ..."``)."""
+    classes = [RegnfError]
+    while classes:
+        cls = classes.pop()
+        if cls.__name__ == name:
+            return True
+        classes += cls.__subclasses__()
+    return False

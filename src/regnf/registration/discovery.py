@@ -65,7 +65,7 @@ from regnf.registration.candidates import (
     find_candidates,
 )
 from regnf.registration.initialisation import Hypothesis, InitConfig
-from regnf.registration.observed_difference import observed_difference
+from regnf.registration.observed_difference import UNOBSERVED, observed_difference
 from regnf.registration.pipeline import (
     RegistrationConfig,
     check_fields,
@@ -123,7 +123,7 @@ class DiscoveryConfig:
     one's are fully registered too, however many: their order is noise. 0 keeps the count
     alone (docs/decisions/discovery-ranking.md)."""
 
-    unobserved_difference: float = 0.05
+    unobserved_difference: float = UNOBSERVED
     """When the two best accepted objects of a candidate differ only where the views observed
     less than this (the mean observation weight of the surface where they differ, both at
     their registered poses, :func:`~regnf.registration.observed_difference.observed_difference`), the candidate is ambiguous and left

@@ -25,7 +25,7 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any, NamedTuple
 
-from regnf.core.errors import RegnfError
+from regnf.core.errors import RegnfError, is_regnf_error_name
 from regnf.core.executors import call_pinned, local_pool
 from regnf.core.threads import one_thread
 from regnf.fields.field import Field
@@ -133,7 +133,7 @@ class DiscoveryWorkers:
     @staticmethod
     def _value(future: cf.Future, what: str) -> Any:
         """The step's value; its error raised here as one line: a ``ValueError`` for what the
-        worker found wrong with the input (a ``ValueError`` there, as in this process), a
+        worker found wrong with the input (a ``ValueError`` or a ``RegnfError`` there), a
         ``RuntimeError`` otherwise (a bug, or a worker that died)."""
         try:
             value, error = future.result()
@@ -142,7 +142,7 @@ class DiscoveryWorkers:
         if error is not None:
             first = error.splitlines()[0] if error.strip() else "no message"
             kind = first.split(":", 1)[0]
-            bad_input = kind in ("ValueError", "CheckpointError")
+            bad_input = kind == "ValueError" or is_regnf_error_name(kind)
             raise (ValueError if bad_input else RuntimeError)(f"discovery: {what} failed in a worker: {first}")
         return value
 
