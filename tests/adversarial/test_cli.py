@@ -235,7 +235,7 @@ def test_a_stage_another_process_is_writing_gives_status_busy(tmp_path, monkeypa
     try:
         assert holder.stdout.readline().strip() == "held"
         monkeypatch.setattr(locking, "STAGE_LOCK_TIMEOUT_S", 0.2)
-        assert_fails(capsys, ["stage", "add-instance", "--stage", str(stage), "--result", str(result)],
+        assert_fails(capsys, ["stage", "add-instance", str(stage), "--result", str(result)],
                      r"is in use by another regnf process \(pid \d+", status=EXIT_BUSY)
     finally:
         holder.kill()

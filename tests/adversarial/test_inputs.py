@@ -107,7 +107,7 @@ def _json_commands(work: Path, path: Path) -> list[tuple[list[str], str]]:
     return [
         (["register", "--scene", str(src / "room.safetensors"), "--library", str(src / "c.safetensors"),
           "--box", str(path), "--out", str(work / "r.json")], "--box"),
-        (["stage", "add-instance", "--stage", str(work / "stage" / "scene.usda"), "--result", str(path)], "--result"),
+        (["stage", "add-instance", str(work / "stage" / "scene.usda"), "--result", str(path)], "--result"),
     ]
 
 
@@ -164,9 +164,9 @@ def _stage_commands(work: Path, stage: Path, result: Path, box: Path) -> list[li
         ["replace", str(stage), "--orbit", "1", "--width", "8", "--height", "6", "--out", out],
         ["view", str(stage)],
         ["generate", str(stage), "--out", out],
-        ["stage", "show", "--stage", str(stage)],
-        ["stage", "add-instance", "--stage", str(stage), "--result", str(result)],
-        ["stage", "export", "--stage", str(stage), "--usda", str(work / "out.usda")],
+        ["stage", "show", str(stage)],
+        ["stage", "add-instance", str(stage), "--result", str(result)],
+        ["stage", "export", str(stage), "--usda", str(work / "out.usda")],
         ["register", "--scene", str(src / "room.safetensors"), "--library", str(src / "c.safetensors"),
          "--box", str(box), "--out", str(work / "r.json"), "--stage", str(stage)],
     ]
@@ -234,8 +234,8 @@ def test_a_non_finite_instance_transform_names_file_prim_and_attribute(work, att
     assert re.search(r"\b(nan|inf)\b", authored), authored  # the file holds it
     before = snapshot(work)
     problem = rf"{stage_path}: prim {INSTANCE}: '{attribute}' has non-finite entries: "
-    assert_fails(capsys, ["stage", "show", "--stage", str(stage_path)], rf"^regnf stage: {problem}")
-    assert_fails(capsys, ["stage", "export", "--stage", str(stage_path), "--usda", str(work / "out" / "s.usda")],
+    assert_fails(capsys, ["stage", "show", str(stage_path)], rf"^regnf stage: {problem}")
+    assert_fails(capsys, ["stage", "export", str(stage_path), "--usda", str(work / "out" / "s.usda")],
                  rf"^regnf stage: {problem}")
     assert_fails(capsys, ["render", str(stage_path), "--orbit", "1", "--width", "8", "--height", "6",
                           "--out", str(work / "renders")], rf"^regnf render: {problem}")

@@ -88,7 +88,7 @@ def test_register_warns_of_a_library_in_millimetres_and_the_stage_keeps_the_warn
     saved = json.loads(out.read_text())
     assert saved["accepted"] is True and saved["warnings"] == [expected]
     assert read_stage(stage).instances["cmm_1"].registration.warnings == [expected]
-    assert main(["stage", "show", "--stage", str(stage)]) == 0
+    assert main(["stage", "show", str(stage)]) == 0
     assert f"warning: {expected}" in " ".join(capsys.readouterr().out.split())
 
 

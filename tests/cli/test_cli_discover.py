@@ -82,7 +82,7 @@ def test_the_chair_is_written_with_how_it_was_found_and_the_lamp_is_not(patched,
     assert [c["stage_instance"] for c in saved["candidates"] if c["chosen"]] == [iid]
     assert len(list((out / "registration").glob("candidate_*.json"))) == 1
     assert (out / "top_view.png").stat().st_size > 1000
-    assert main(["stage", "show", "--stage", str(patched["stage"])]) == 0
+    assert main(["stage", "show", str(patched["stage"])]) == 0
     assert "found by discovery (tried c " in _printed(capsys)
 
 

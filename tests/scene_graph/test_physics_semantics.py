@@ -72,7 +72,7 @@ def test_a_stage_without_a_density_has_no_physics(stage: Path, tmp_path: Path) -
 def test_export_refuses_a_density_that_is_not_positive_in_one_line(
         stage: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], density: str) -> None:
     out = tmp_path / "bad.usdz"
-    assert main(["stage", "export", "--stage", str(stage), "--usdz", str(out), "--density", density]) == 1
+    assert main(["stage", "export", str(stage), "--usdz", str(out), "--density", density]) == 1
     err = capsys.readouterr().err.strip()
     assert "--density must be > 0" in err and len(err.splitlines()) == 1 and not out.exists()
 
@@ -80,6 +80,6 @@ def test_export_refuses_a_density_that_is_not_positive_in_one_line(
 def test_export_refuses_a_negative_library_cell_in_one_line(
         stage: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "bad.usdz"
-    assert main(["stage", "export", "--stage", str(stage), "--usdz", str(out), "--library-cell", "-0.01"]) == 1
+    assert main(["stage", "export", str(stage), "--usdz", str(out), "--library-cell", "-0.01"]) == 1
     err = capsys.readouterr().err.strip()
     assert "--library-cell must be >= 0" in err and len(err.splitlines()) == 1 and not out.exists()

@@ -153,7 +153,7 @@ def test_a_stage_that_cannot_be_opened_fails_like_stage_show(tmp_path: Path, cap
     bad = tmp_path / "bad.usda"
     bad.write_text("#usda 1.0\n(\n  garbage\n")
     port = free_port()
-    assert main(["stage", "show", "--stage", str(bad)]) == 1
+    assert main(["stage", "show", str(bad)]) == 1
     show = capsys.readouterr().err.strip()
     t0 = time.monotonic()
     assert main(["view", str(bad), "--port", str(port)]) == 1

@@ -11,6 +11,7 @@ from typing import Literal
 
 import torch
 from rich.console import Console
+from tyro.conf import Positional
 
 from regnf.core.atomic_io import write_json
 from regnf.core.preflight import check_output_file
@@ -295,7 +296,7 @@ class BenchRender:
 class BenchViewer:
     """The viewer in headless Chromium on a registered stage: time to the first and refined images, pose corrections."""
 
-    stage: Path
+    stage: Positional[Path]
     """A stage of one of the synthetic rooms with registered instances (``make demo`` writes
     ``out/demo/stage/ac-room.usda``)."""
     room: Literal["ac-room", "atbl-room", "mix-room"] = "ac-room"
@@ -316,7 +317,7 @@ class BenchViewer:
         from regnf.synthetic.capture import RoomCaptureConfig
 
         capture = Cache(self.cache_dir).room_capture(self.room, RoomCaptureConfig(coverage=self.coverage))
-        command = f"regnf bench viewer --stage {self.stage} --json {self.json}"
+        command = f"regnf bench viewer {self.stage} --json {self.json}"
         try:
             result = run_viewer_benchmark(self.stage, list(capture.instances), self.images)
         except StageError as exc:

@@ -32,7 +32,7 @@ class Section(NamedTuple):
     tables: Callable[[dict], str]
     """The section's Markdown from the JSON."""
     images: str = ""
-    """Folder beside the JSON whose PNGs the section links (what the benchmark drew), or none."""
+    """Glob, beside the JSON, of the PNGs the section links (what the benchmark drew), or none."""
 
 
 def _fields(data: dict) -> str:
@@ -107,10 +107,10 @@ def _gpu_check(data: dict) -> str:
 
 
 SECTIONS = (
-    Section("fields", "Fields: training time and surface error", "", _fields),
+    Section("fields", "Fields: training time and surface error", "", _fields, "fields.png"),
     Section("registration", "Registration from true boxes", "--coverage both --library mesh", _registration),
-    Section("discover", "Discovery without boxes", "", _discover, "discover_png"),
-    Section("render", "Rendering and object completion", "", _render),
+    Section("discover", "Discovery without boxes", "", _discover, "discover_png/*.png"),
+    Section("render", "Rendering and object completion", "", _render, "render_*.png"),
     Section("distill", "Distillation of defective meshes", "", _distill),
     Section("encodings", "Feature encodings", "", _encodings),
     Section("sensor", "Sensor noise and pose error", "", _sensor),
@@ -139,7 +139,7 @@ def _machine(meta: dict) -> str:
 
 def _image_links(folder: Path, section: Section, page_dir: Path) -> list[str]:
     """A line linking the section's pictures, relative to the page's folder (none: no line)."""
-    pngs = sorted((folder / section.images).glob("*.png")) if section.images else []
+    pngs = sorted(folder.glob(section.images)) if section.images else []
     if not pngs:
         return []
     links = [f"[{p.stem}]({Path(os.path.relpath(p, page_dir)).as_posix()})" for p in pngs]

@@ -6,6 +6,7 @@ from dataclasses import dataclass, fields
 from pathlib import Path
 
 from rich.console import Console
+from tyro.conf import Positional
 
 from regnf.compositor.tool_export import ToolExportConfig
 from regnf.core.preflight import check_mesh_resolution, check_output_file, read_json_input
@@ -21,7 +22,7 @@ def _fail(exc: Exception) -> SystemExit:
 class StageNew:
     """Create a USD stage from a scene field and library fields (no instances yet)."""
 
-    out: Path
+    stage: Positional[Path]
     """Stage to write (.usda or .usdc); assets go beside it (library/, slots/, fields/)."""
     scene: Path
     """Scene field checkpoint (.safetensors)."""
@@ -37,19 +38,19 @@ class StageNew:
     def run(self) -> None:
         from regnf.scene_graph import ProxyConfig, StageError, new_stage
 
-        if self.out.suffix not in (".usda", ".usdc"):
-            raise SystemExit(f"regnf stage new: {self.out} must end in .usda or .usdc")
-        check_output_file(self.out, "--out")
+        if self.stage.suffix not in (".usda", ".usdc"):
+            raise SystemExit(f"regnf stage new: {self.stage} must end in .usda or .usdc")
+        check_output_file(self.stage, "the stage")
         if self.proxy_resolution < 4:
             raise SystemExit(f"--proxy-resolution must be at least 4, got {self.proxy_resolution}")
         check_mesh_resolution(self.proxy_resolution, "--proxy-resolution")
         try:
-            scene = new_stage(self.out, self.scene, self.library,
+            scene = new_stage(self.stage, self.scene, self.library,
                               ProxyConfig(resolution=self.proxy_resolution, device=self.device),
                               overwrite=self.overwrite)
         except StageError as exc:
             raise _fail(exc) from exc
-        console.print(f"[green]stage[/] {self.out}: scene + {len(scene.library)} library objects "
+        console.print(f"[green]stage[/] {self.stage}: scene + {len(scene.library)} library objects "
                       f"in {len(scene.classes())} classes")
 
 
@@ -57,7 +58,7 @@ class StageNew:
 class StageAddInstance:
     """Add a registered instance to a stage from a `regnf register` result (JSON)."""
 
-    stage: Path
+    stage: Positional[Path]
     """The stage (.usda or .usdc)."""
     result: Path
     """Registration result JSON written by `regnf register --out`."""
@@ -87,7 +88,7 @@ class StageAddInstance:
 class StageShow:
     """Summarise a stage: scene, library classes, instances with transforms and confidence."""
 
-    stage: Path
+    stage: Positional[Path]
     """The stage (.usda, .usdc, a replacement layer or a .usdz package)."""
     allow_outside: bool = False
     """Open asset paths of the stage that lie outside its folder (refused by default: a stage is
@@ -107,7 +108,7 @@ class StageShow:
 class StageExport(ToolExportConfig):
     """Export a stage as .usda, .usdc or a self-contained .usdz (checkpoints and proxies inside)."""
 
-    stage: Path
+    stage: Positional[Path]
     """The stage to export."""
     usdz: Path | None = None
     """Write a self-contained .usdz package here."""
