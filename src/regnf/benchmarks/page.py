@@ -96,8 +96,16 @@ def _capture_scale(data: dict) -> str:
 
 def _viewer(data: dict) -> str:
     keys = [k for k in ("instances_listed_s", "first_render_s", "refined_render_s") if k in data]
-    return "| " + " | ".join(keys) + " |\n|" + "---|" * len(keys) + "\n| " + " | ".join(
+    text = "| " + " | ".join(keys) + " |\n|" + "---|" * len(keys) + "\n| " + " | ".join(
         f"{data[k]:.1f}" for k in keys) + " |\n"
+    fixes = data.get("corrections") or []
+    if fixes:
+        ok = sum(bool(c["accepted"]) and bool(c["within_bars"]) for c in fixes)
+        text += (f"\nPose corrections from a dragged pose: {ok} of {len(fixes)} accepted and within the bars "
+                 f"(worst: {max(c['rot_geodesic_rad'] for c in fixes):.4f} rad, "
+                 f"{100 * max(c['trans_rel_diag'] for c in fixes):.2f} % of the diagonal, "
+                 f"{100 * max(c['scale_rel'] for c in fixes):.2f} % in scale).\n")
+    return text
 
 
 def _gpu_check(data: dict) -> str:

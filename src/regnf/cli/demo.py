@@ -97,7 +97,7 @@ class DemoConfig:
     """Seeds of the random replacements."""
     completion_box_pad: float = 0.25
     """Growth of each removal box (a low-coverage field smears objects into space it never saw;
-    docs/benchmarks.md, "Object completion")."""
+    docs/benchmarks.md, "Rendering and object completion")."""
     device: str = "cpu"
     """Torch device."""
     reuse: bool = False
