@@ -42,8 +42,8 @@ class CandidateConfig:
     support_span: float = 2.0
     """A plane is a support (floor, wall, ceiling) when its points span at least this along
     both of its in-plane axes; a table top (at most 1.4 m in the data set) is not."""
-    support_tilt: float = 0.1
-    """Supports are level (floors, ceilings) or upright (walls) to within this, radians: a
+    support_tilt_deg: float = 5.73
+    """Supports are level (floors, ceilings) or upright (walls) to within this, degrees: a
     plane at another angle is drawn through several objects, never a support."""
     max_supports: int = 12
     """Support planes removed at most (a box room: floor, ceiling and four walls, each of
@@ -128,7 +128,7 @@ def _plane_axes(normal: np.ndarray) -> np.ndarray:
 
 
 def best_plane(points: np.ndarray, config: CandidateConfig, rng: np.random.Generator) -> tuple[Plane, np.ndarray] | None:
-    """The level or upright plane (``config.support_tilt``) through most of ``points`` (n, 3)
+    """The level or upright plane (``config.support_tilt_deg``) through most of ``points`` (n, 3)
     by RANSAC, and its inlier mask (n,).
 
     All draws are scored at once: (iterations, n) distances in chunks, no loop over points.
@@ -142,8 +142,8 @@ def best_plane(points: np.ndarray, config: CandidateConfig, rng: np.random.Gener
     norm = np.linalg.norm(normals, axis=1)
     up = np.asarray(config.up, dtype=np.float64) / np.linalg.norm(config.up)
     cos_up = np.abs(normals @ up) / np.maximum(norm, 1e-300)
-    tilt = math.sin(config.support_tilt)
-    ok = (norm > 1e-9) & ((cos_up >= math.cos(config.support_tilt)) | (cos_up <= tilt))
+    tilt = math.radians(config.support_tilt_deg)
+    ok = (norm > 1e-9) & ((cos_up >= math.cos(tilt)) | (cos_up <= math.sin(tilt)))
     if not ok.any():
         return None
     normals, a = normals[ok] / norm[ok, None], a[ok]
