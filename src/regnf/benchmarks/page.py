@@ -176,8 +176,9 @@ def results_page(results: str | os.PathLike, page_dir: str | os.PathLike | None 
     for s in SECTIONS:
         body += [f"## {s.title}", ""]
         if s.name not in found:
-            body += [f"No result recorded yet: `regnf bench {s.name} {s.record} --json "
-                     f"{folder.as_posix()}/{s.name}.json`.".replace("  ", " "), ""]
+            command = " ".join(filter(None, ("regnf bench", s.name, s.record,
+                                             f"--json {folder.as_posix()}/{s.name}.json")))
+            body += [f"No result recorded yet: `{command}`.", ""]
             continue
         meta = found[s.name]["meta"]
         machine = "" if len(machines) == 1 else f" on {_machine(meta)}"
