@@ -63,7 +63,7 @@ def test_a_bad_nerfstudio_capture_is_one_line_and_exit_1(tmp_path: Path, capsys:
     breaker, pattern = CASES[case]
     breaker(cap)
     before = snapshot(tmp_path)
-    assert_fails(capsys, ["train", "--capture", str(cap), "--steps", "1", "--cache-dir", str(tmp_path / "cache")],
+    assert_fails(capsys, ["train", "--capture", str(cap), "--training.steps", "1", "--cache-dir", str(tmp_path / "cache")],
                  pattern)
     assert changes(before, snapshot(tmp_path)) == []
 
@@ -77,7 +77,7 @@ def test_a_folder_of_no_format_is_one_line(tmp_path: Path, capsys: pytest.Captur
 
 def test_a_nerfstudio_capture_trains_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     write_nerfstudio(tmp_path / "ns")
-    code, err = run_cli(capsys, ["train", "--capture", str(tmp_path / "ns"), "--steps", "3",
+    code, err = run_cli(capsys, ["train", "--capture", str(tmp_path / "ns"), "--training.steps", "3",
                                  "--cache-dir", str(tmp_path / "cache")])
     assert code == 0, err
     assert "nerfstudio format, 8 frames" in err
@@ -90,7 +90,7 @@ def test_a_distorted_nerfstudio_capture_trains_end_to_end(tmp_path: Path, capsys
     write_nerfstudio(tmp_path / "ns", extra={"k1": -0.05, "p2": 0.001})
     _edit(tmp_path / "ns", lambda d: d["frames"][3].update(k1=0.0, p2=0.0))
     # The object preset: the room preset's set-up is what the end-to-end test above runs.
-    code, err = run_cli(capsys, ["train", "--capture", str(tmp_path / "ns"), "--steps", "3", "--preset", "object",
+    code, err = run_cli(capsys, ["train", "--capture", str(tmp_path / "ns"), "--training.steps", "3", "--preset", "object",
                                  "--cache-dir", str(tmp_path / "cache")])
     assert code == 0, err
     assert list((tmp_path / "cache" / "fields").glob("ns-rgbd-*.safetensors"))
@@ -153,14 +153,14 @@ def test_a_bad_scannet_capture_is_one_line_and_exit_1(tmp_path: Path, capsys: py
     breaker, pattern = SCANNET_CASES[case]
     breaker(cap)
     before = snapshot(tmp_path)
-    assert_fails(capsys, ["train", "--capture", str(cap), "--steps", "1", "--cache-dir", str(tmp_path / "cache")],
+    assert_fails(capsys, ["train", "--capture", str(cap), "--training.steps", "1", "--cache-dir", str(tmp_path / "cache")],
                  pattern)
     assert changes(before, snapshot(tmp_path)) == []
 
 
 def test_a_scannet_capture_trains_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     write_scannet(tmp_path / "scene")
-    code, err = run_cli(capsys, ["train", "--capture", str(tmp_path / "scene"), "--steps", "1", "--preset", "object",
+    code, err = run_cli(capsys, ["train", "--capture", str(tmp_path / "scene"), "--training.steps", "1", "--preset", "object",
                                  "--cache-dir", str(tmp_path / "cache")])
     assert code == 0, err
     assert f"scannet format, {N_FRAMES - 1} frames, 1 skipped by the reader" in err

@@ -50,14 +50,14 @@ def test_training_larger_than_memory_is_refused_before_any_depth_is_read(
     line = assert_fails(capsys, ["train", "--capture", str(tmp_path / "cap"), "--cache-dir", str(tmp_path / "cache")],
                         "needs about")
     assert line == (f"regnf train: {capture.root}: training {N_VIEWS} frames of {W}x{H} at pixel stride 1 needs "
-                    f"about {need:.1f} GB, 0.2 GB is free; use --pixel-stride or --max-frames")
+                    f"about {need:.1f} GB, 0.2 GB is free; use --training.pixel-stride or --max-frames")
     assert changes(before, snapshot(tmp_path)) == []
 
 
 @pytest.mark.parametrize("option,value,message", [
     ("--stride", "0", "--stride must be at least 1, got 0"),
     ("--max-frames", "0", "--max-frames must be at least 1, got 0"),
-    ("--pixel-stride", "0", "--pixel-stride must be at least 1, got 0"),
+    ("--training.pixel-stride", "0", "RGBDTrainConfig.pixel_stride must be a whole number >= 1, got 0"),
 ])
 def test_bad_frame_options_are_refused_before_the_capture_is_read(
         tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch,

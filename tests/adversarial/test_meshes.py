@@ -27,7 +27,7 @@ BLOCKED_S = 60.0
 """Seconds after which a command that has not returned is taken to be blocked."""
 SOUP_S = 10.0
 """The soup of random triangles is refused within this many seconds (it once ran for minutes)."""
-STEPS = ["--steps", "1"]
+STEPS = ["--distillation.steps", "1"]
 """The mesh checks and targets are what these tests exercise, not the training."""
 
 

@@ -29,7 +29,7 @@ def test_a_bad_depth_noise_model_is_one_line(tmp_path: Path, capsys: pytest.Capt
     write_capture(tmp_path / "sd", [np.zeros((6, 8, 3), np.uint8)], [np.full((6, 8), 1.5)], np.eye(4)[None],
                   np.diag([5.0, 5.0, 1.0]), np.eye(4), meta={"depth_noise": model})
     before = snapshot(tmp_path)
-    assert_fails(capsys, ["train", "--capture", str(tmp_path / "sd"), "--steps", "1",
+    assert_fails(capsys, ["train", "--capture", str(tmp_path / "sd"), "--training.steps", "1",
                           "--cache-dir", str(tmp_path / "cache")], pattern)
     assert changes(before, snapshot(tmp_path)) == []
 
@@ -52,6 +52,6 @@ def test_a_bad_confidence_map_is_one_line(tmp_path: Path, capsys: pytest.Capture
         frame["confidence_path"] = f"confidence/{i}.png"
     (cap / "transforms.json").write_text(json.dumps(data))
     before = snapshot(tmp_path)
-    assert_fails(capsys, ["train", "--capture", str(cap), "--steps", "1", "--cache-dir", str(tmp_path / "cache")],
+    assert_fails(capsys, ["train", "--capture", str(cap), "--training.steps", "1", "--cache-dir", str(tmp_path / "cache")],
                  pattern)
     assert changes(before, snapshot(tmp_path)) == []

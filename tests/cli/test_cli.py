@@ -109,7 +109,7 @@ def test_distill_uses_the_cache_and_meshes(tmp_path: Path) -> None:
     mesh_path = tmp_path / "box.ply"
     box.export(mesh_path)
     cache = tmp_path / "cache"
-    args = ["distill", "--mesh", str(mesh_path), "--steps", "5", "--label", "box", "--cache-dir", str(cache)]
+    args = ["distill", "--mesh", str(mesh_path), "--distillation.steps", "5", "--label", "box", "--cache-dir", str(cache)]
     assert main([*args, "--out", str(tmp_path / "a.safetensors")]) == 0
     made = checkpoints(cache)
     assert len(made) == 1
@@ -125,7 +125,7 @@ def test_distill_uses_the_cache_and_meshes(tmp_path: Path) -> None:
     assert (tmp_path / "a.safetensors").read_bytes() == made[0].read_bytes() == (tmp_path / "b.safetensors").read_bytes()
     assert load_field(tmp_path / "a.safetensors").label == "box"
     # A different setting is a different field.
-    assert main([*args[:-2], "--steps", "6", "--cache-dir", str(cache)]) == 0
+    assert main([*args[:-2], "--distillation.steps", "6", "--cache-dir", str(cache)]) == 0
     assert len(checkpoints(cache)) == 2
     assert main(["mesh", "--field", str(made[0]), "--out", str(tmp_path / "m.ply"), "--resolution", "32"]) == 0
     assert len(trimesh.load(tmp_path / "m.ply").faces) > 0
@@ -139,37 +139,37 @@ def test_train_from_a_capture_folder(tmp_path: Path) -> None:
     capture = write_analytic_capture(tmp_path / "cap")
     root = capture.root
     cache = tmp_path / "cache"
-    args = ["train", "--capture", str(root), "--steps", "3", "--cache-dir", str(cache)]
+    args = ["train", "--capture", str(root), "--training.steps", "3", "--cache-dir", str(cache)]
     assert main([*args, "--out", str(tmp_path / "f.safetensors")]) == 0
     field = load_field(tmp_path / "f.safetensors")
     assert field.info.provenance["trained_from"] == "rgbd"
     assert main(args) == 0  # reused
     assert len(list((cache / "fields").glob("*.safetensors"))) == 1
     # The edge loss is a training setting: another field, with the weight in its provenance.
-    assert main([*args, "--edge-weight", "1", "--out", str(tmp_path / "e.safetensors")]) == 0
+    assert main([*args, "--training.w-edge", "1", "--out", str(tmp_path / "e.safetensors")]) == 0
     assert len(checkpoints(cache)) == 2
     assert load_field(tmp_path / "e.safetensors").info.provenance["train_config"]["w_edge"] == 1.0
-    assert main([*args, "--outline-weight", "1", "--out", str(tmp_path / "o.safetensors")]) == 0
+    assert main([*args, "--training.w-outline", "1", "--out", str(tmp_path / "o.safetensors")]) == 0
     assert len(list((cache / "fields").glob("*.safetensors"))) == 3
     assert load_field(tmp_path / "o.safetensors").info.provenance["train_config"]["w_outline"] == 1.0
-    assert main([*args, "--carve-every", "1", "--out", str(tmp_path / "p.safetensors")]) == 0
+    assert main([*args, "--training.carve-every", "1", "--out", str(tmp_path / "p.safetensors")]) == 0
     assert len(list((cache / "fields").glob("*.safetensors"))) == 4
     assert load_field(tmp_path / "p.safetensors").info.provenance["train_config"]["carve_every"] == 1
 
 
 def test_train_rejects_a_negative_carve_interval(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     capture = write_analytic_capture(tmp_path / "cap")
-    assert_fails(capsys, ["train", "--capture", str(capture.root), "--carve-every", "-1",
-                          "--cache-dir", str(tmp_path / "cache")], "--carve-every must be")
+    assert_fails(capsys, ["train", "--capture", str(capture.root), "--training.carve-every", "-1",
+                          "--cache-dir", str(tmp_path / "cache")], "RGBDTrainConfig.carve_every must be")
 
 
-@pytest.mark.parametrize("option", ["--edge-weight", "--outline-weight"])
+@pytest.mark.parametrize("option", ["w-edge", "w-outline"])
 @pytest.mark.parametrize("weight", ["-1", "nan", "inf"])
 def test_train_rejects_a_bad_loss_weight(tmp_path: Path, capsys: pytest.CaptureFixture[str], option: str,
                                          weight: str) -> None:
     capture = write_analytic_capture(tmp_path / "cap")
-    assert_fails(capsys, ["train", "--capture", str(capture.root), option, weight,
-                          "--cache-dir", str(tmp_path / "cache")], f"{option} must be")
+    assert_fails(capsys, ["train", "--capture", str(capture.root), f"--training.{option}", weight,
+                          "--cache-dir", str(tmp_path / "cache")], f"RGBDTrainConfig.{option.replace('-', '_')} must be")
 
 
 def test_cache_keys_ignore_new_options_left_at_their_default() -> None:

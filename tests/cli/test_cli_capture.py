@@ -65,7 +65,7 @@ def test_train_selects_frames_and_says_its_up_and_preset(tmp_path: Path, capsys:
     capture = write_sphere_capture(tmp_path / "sphere")
     out = tmp_path / "f.safetensors"
     capsys.readouterr()
-    assert main(["train", "--capture", str(capture.root), "--stride", "3", "--pixel-stride", "2", "--steps", "2",
+    assert main(["train", "--capture", str(capture.root), "--stride", "3", "--training.pixel-stride", "2", "--training.steps", "2",
                  "--cache-dir", str(tmp_path / "cache"), "--out", str(out)]) == 0
     err = capsys.readouterr().err
     assert "frames: 4 of 12 training frames" in err
@@ -76,10 +76,10 @@ def test_train_selects_frames_and_says_its_up_and_preset(tmp_path: Path, capsys:
     assert provenance["train_config"]["pixel_stride"] == 2
     assert len(provenance["up"]) == 3 and provenance["up"][2] > 0.99
     # Every frame, the same up: another field; given again: the same one.
-    assert main(["train", "--capture", str(capture.root), "--max-frames", "4", "--stride", "3", "--pixel-stride", "2",
-                 "--steps", "2", "--cache-dir", str(tmp_path / "cache")]) == 0
+    assert main(["train", "--capture", str(capture.root), "--max-frames", "4", "--stride", "3", "--training.pixel-stride", "2",
+                 "--training.steps", "2", "--cache-dir", str(tmp_path / "cache")]) == 0
     assert len(list((tmp_path / "cache" / "fields").glob("*.safetensors"))) == 1
-    assert main(["train", "--capture", str(capture.root), "--pixel-stride", "2", "--steps", "2", "--up", "+z",
+    assert main(["train", "--capture", str(capture.root), "--training.pixel-stride", "2", "--training.steps", "2", "--up", "+z",
                  "--cache-dir", str(tmp_path / "cache"), "--out", str(out)]) == 0
     assert "up: +Z (given by --up)" in capsys.readouterr().err
     assert len(list((tmp_path / "cache" / "fields").glob("*.safetensors"))) == 2

@@ -43,7 +43,7 @@ def test_train_reports_the_pose_corrections(tmp_path: Path, capsys: pytest.Captu
     exact = _write(tmp_path / "exact", "exact")
     estimated = _write(tmp_path / "estimated", "estimated")
     cache = tmp_path / "cache"
-    base = ["train", "--preset", "object", "--steps", "4", "--cache-dir", str(cache)]
+    base = ["train", "--preset", "object", "--training.steps", "4", "--cache-dir", str(cache)]
 
     # Exact poses: no refinement, and the key of a config that has none.
     status, err = run_cli(capsys, [*base, "--capture", str(exact)])

@@ -292,7 +292,7 @@ def test_up_y_obj_gives_the_targets_and_field_of_the_z_up_copy(
     outs = []
     for path, extra in ((z_path, []), (y_path, ["--up", "y"])):
         out = tmp_path / f"{path.stem}.safetensors"
-        status, err = run_cli(capsys, ["distill", "--mesh", str(path), *extra, "--steps", "2",
+        status, err = run_cli(capsys, ["distill", "--mesh", str(path), *extra, "--distillation.steps", "2",
                                        "--cache-dir", str(cache), "--out", str(out)])
         assert status == 0, err
         outs.append(load_field(out))
@@ -306,7 +306,7 @@ def test_up_y_obj_gives_the_targets_and_field_of_the_z_up_copy(
 def test_cli_refuses_an_unsignable_mesh_on_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     sheet = tmp_path / "sheet.obj"
     unsignable_meshes()["flat sheet"].export(sheet)
-    line = assert_fails(capsys, ["distill", "--mesh", str(sheet), "--steps", "1", "--cache-dir", str(tmp_path / "c")],
+    line = assert_fails(capsys, ["distill", "--mesh", str(sheet), "--distillation.steps", "1", "--cache-dir", str(tmp_path / "c")],
                         r"^regnf distill: .*sheet\.obj: the mesh encloses no volume")
     assert str(sheet) in line
     assert not list((tmp_path / "c").glob("fields/*"))  # nothing made

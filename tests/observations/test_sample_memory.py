@@ -46,4 +46,4 @@ def test_training_larger_than_the_free_memory_is_refused(monkeypatch: pytest.Mon
         check_training_memory("cap", 600, 480, 640, 1)
     need = training_bytes(600, 480, 640, 1) / 1e9
     assert str(refused.value) == (f"cap: training 600 frames of 640x480 at pixel stride 1 needs about {need:.1f} GB, "
-                                  "1.0 GB is free; use --pixel-stride or --max-frames")
+                                  "1.0 GB is free; use --training.pixel-stride or --max-frames")

@@ -2,13 +2,17 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import pytest
 import torch
 
+from regnf.core.errors import RegnfError
 from regnf.fields.neural_sdf import NeuralSDF, NeuralSDFConfig
 from regnf.training import optim
+from regnf.training.distill import DistillConfig
+from regnf.training.training import RGBDTrainConfig
 
 TINY = NeuralSDFConfig(levels=2, finest_resolution=8, base_resolution=4, hidden_dim=8, color_hidden_dim=8)
 
@@ -33,22 +37,27 @@ def test_optimise_ends_at_lr_final_of_each_rate(monkeypatch: pytest.MonkeyPatch,
         return field.sdf(torch.rand(16, 3)).square().mean(), {}
 
     steps, warmup = 60, 50
-    optim.optimise(field, steps, loss_at, lr_grid=0.02, lr_mlp=0.002, lr_final=final, progress=False)
+    config = optim.OptimiserConfig(steps=steps, lr_grid=0.02, lr_mlp=0.002, lr_final=final)
+    optim.optimise(field, config, loss_at, progress=False)
     # The rate of the last step: cosine decay from 1 to ``final`` over steps - warmup.
     last = final + (1 - final) * 0.5 * (1 + math.cos(math.pi * (steps - 1 - warmup) / (steps - warmup)))
     grid, mlp = made[0].param_groups
     assert grid["lr"] == pytest.approx(0.02 * last) and mlp["lr"] == pytest.approx(0.002 * last)
 
 
+@pytest.mark.parametrize(("setting", "value"), [("lr_final", -0.01), ("lr_final", 1.5), ("lr_final", math.nan),
+                                                ("steps", 0), ("steps", 2.5), ("lr_grid", 0.0), ("lr_mlp", math.inf)])
+def test_optimiser_settings_out_of_range_are_refused_by_the_config(setting: str, value: float) -> None:
+    with pytest.raises(RegnfError, match=f"OptimiserConfig.{setting}"):
+        optim.OptimiserConfig(**{setting: value})
 
-@pytest.mark.parametrize("final", [-0.01, 1.5, math.nan])
-def test_a_final_fraction_outside_zero_to_one_is_refused_before_any_step(final: float) -> None:
-    steps: list[int] = []
 
-    def loss_at(step: int) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-        steps.append(step)
-        return torch.zeros((), requires_grad=True), {}
-
-    with pytest.raises(ValueError, match="lr_final"):
-        optim.optimise(NeuralSDF(TINY), 5, loss_at, lr_grid=0.02, lr_mlp=0.002, lr_final=final, progress=False)
-    assert steps == []
+def test_training_and_distillation_share_the_optimiser_settings() -> None:
+    # One definition of each: the defaults are the shared config's, and both refuse alike.
+    shared = {f.name for f in dataclasses.fields(optim.OptimiserConfig)}
+    for config in (RGBDTrainConfig, DistillConfig):
+        assert issubclass(config, optim.OptimiserConfig)
+        assert {f.name: f.default for f in dataclasses.fields(config) if f.name in shared} == {
+            f.name: f.default for f in dataclasses.fields(optim.OptimiserConfig)}
+        with pytest.raises(RegnfError, match=f"{config.__name__}.steps"):
+            config(steps=0)

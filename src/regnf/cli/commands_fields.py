@@ -17,6 +17,7 @@ from regnf.captures.inspection import skipped_note
 from regnf.captures.selection import select_frames
 from regnf.captures.up_axis import UpChoice, up_line
 from regnf.cli.capture_plan import cell_size_warning, plan_training
+from regnf.cli.preset_options import preset_options, with_options
 from regnf.core.atomic_io import write_bytes
 from regnf.core.preflight import (
     PreflightError,
@@ -38,10 +39,26 @@ from regnf.synthetic.capture import (
 )
 from regnf.synthetic.library import LIBRARY_NAMES
 from regnf.synthetic.rooms import ROOM_NAMES
+from regnf.training.distill import DistillConfig
 from regnf.training.pose_refinement import pose_refine_line
-from regnf.training.presets import object_mesh_preset, object_rgbd_preset, scene_rgbd_preset
+from regnf.training.presets import (
+    OBJECT_MESH,
+    OBJECT_RGBD,
+    SCENE_RGBD,
+    object_mesh_preset,
+    object_rgbd_preset,
+    scene_rgbd_preset,
+)
+from regnf.training.training import RGBDTrainConfig
 
 console = Console(stderr=True)
+
+TRAINING_OPTIONS = preset_options(RGBDTrainConfig, {"object": OBJECT_RGBD, "scene": SCENE_RGBD},
+                                  skip=("seed", "device", "pose_refine.mode"))
+"""``regnf train --training.*``: every training setting, set apart from the command's own options."""
+
+DISTILLATION_OPTIONS = preset_options(DistillConfig, {"mesh": OBJECT_MESH}, skip=("device", "up", "scale"))
+"""``regnf distill --distillation.*``: every distillation setting but the units and up axis (``--units``, ``--up``)."""
 
 MESH_WARN_ROUNDING = 1e-3
 """Largest move of a vertex, in metres (field units with --no-world), that ``regnf mesh`` writes without a warning."""
@@ -146,27 +163,16 @@ class Train:
     """Train on every N-th training frame."""
     max_frames: int | None = None
     """Train on at most N training frames, evenly spaced (after --stride)."""
-    pixel_stride: int | None = None
-    """Sample every N-th pixel in each image direction (``RGBDTrainConfig.pixel_stride``); default: the preset's."""
-    steps: int | None = None
-    """Override the preset's number of optimisation steps."""
-    edge_weight: float | None = None
-    """Override the preset's weight of the occluding-edge loss (0: off; the room preset uses 1,
-    the object preset 0; ``RGBDTrainConfig.w_edge`` gives what it does on the rooms)."""
-    outline_weight: float | None = None
-    """Override the preset's weight of the outline loss, the edge loss's counterpart on the
-    occluders' side (0: off; the room preset uses 1, the object preset 0;
-    ``RGBDTrainConfig.w_outline`` gives what it does on the rooms: the low-coverage
-    registration back to 11 of 11, and floaters)."""
-    carve_every: int | None = None
-    """Override the preset's steps between the floater pool's mining passes (0: no pool; the
-    room preset uses 50, the object preset 0; ``RGBDTrainConfig.carve_every``)."""
     pose_refine: Literal["auto", "on", "off"] = "auto"
     """Refine each training frame's pose jointly with the field (a small rigid correction per
     frame); auto: where the capture's poses are estimates (SLAM, COLMAP, any capture but regnf's
     exact renders). The corrections applied are printed."""
     seed: int = 0
     """Seed of initialisation and sampling (training is deterministic on CPU)."""
+    training: TRAINING_OPTIONS = dataclasses.field(default_factory=TRAINING_OPTIONS)
+    """Every setting of the training, with its unit; unset: the preset's value (shown as the
+    default): for example ``--training.steps 800``, ``--training.pixel-stride 2`` (a quarter of
+    the samples), ``--training.w-edge 0``."""
     device: str = "cpu"
     """Torch device, e.g. cpu or cuda."""
     cache_dir: Path = dataclasses.field(default_factory=default_cache_dir)
@@ -174,42 +180,24 @@ class Train:
 
     def run(self) -> None:
         check_checkpoint_out(self.out)
-        if self.steps is not None and self.steps < 1:
-            raise SystemExit(f"--steps must be at least 1, got {self.steps}")
-        if self.edge_weight is not None and not (math.isfinite(self.edge_weight) and self.edge_weight >= 0):
-            raise SystemExit(f"--edge-weight must be a finite number >= 0, got {self.edge_weight}")
-        if self.outline_weight is not None and not (math.isfinite(self.outline_weight) and self.outline_weight >= 0):
-            raise SystemExit(f"--outline-weight must be a finite number >= 0, got {self.outline_weight}")
-        if self.carve_every is not None and self.carve_every < 0:
-            raise SystemExit(f"--carve-every must be at least 0, got {self.carve_every}")
-        if self.pixel_stride is not None and self.pixel_stride < 1:
-            raise PreflightError(f"--pixel-stride must be at least 1, got {self.pixel_stride}")
+        presets = {"object": object_rgbd_preset, "scene": scene_rgbd_preset}
+        candidates = tuple(presets) if self.preset == "auto" else (self.preset,)
+        # The settings given are checked against each preset the capture may choose, before any work.
+        configs = {p: with_options(presets[p](self.device, self.seed), self.training) for p in candidates}
         select_frames((), self.stride, self.max_frames)  # refuses a bad --stride or --max-frames now
         capture, fmt = read_capture(self.capture, self.capture_format)
         console.print(f"capture {capture.root}: {fmt} format, {len(capture.frames)} frames{skipped_note(capture)}")
-        presets = {"object": object_rgbd_preset, "scene": scene_rgbd_preset}
         # Before the preset is known, memory is checked at the finer stride either may use.
-        pixel_stride = self.pixel_stride or min(
-            presets[p]().pixel_stride for p in (presets if self.preset == "auto" else (self.preset,)))
+        pixel_stride = min(c.pixel_stride for c in configs.values())
         plan = plan_training(capture, self.up, self.preset, self.stride, self.max_frames, pixel_stride)
         if len(plan.indices) != len(capture.train_indices()):
             console.print(f"frames: {len(plan.indices)} of {len(capture.train_indices())} training frames")
         console.print(escape(up_line(plan.up)), soft_wrap=True)
         console.print(escape(f"preset: {plan.kind.kind} ({plan.kind.reason})"), soft_wrap=True)
-        cfg = presets[plan.kind.kind](self.device, self.seed)
+        cfg = configs[plan.kind.kind]
         coarse = cell_size_warning(capture, cfg.architecture.finest_resolution)
         if coarse:
             console.print(f"[yellow]warning[/]: {escape(coarse)}", soft_wrap=True)
-        if self.pixel_stride is not None:
-            cfg = dataclasses.replace(cfg, pixel_stride=self.pixel_stride)
-        if self.steps is not None:
-            cfg = dataclasses.replace(cfg, steps=self.steps)
-        if self.edge_weight is not None:
-            cfg = dataclasses.replace(cfg, w_edge=self.edge_weight)
-        if self.outline_weight is not None:
-            cfg = dataclasses.replace(cfg, w_outline=self.outline_weight)
-        if self.carve_every is not None:
-            cfg = dataclasses.replace(cfg, carve_every=self.carve_every)
         cfg = dataclasses.replace(cfg, pose_refine=dataclasses.replace(cfg.pose_refine, mode=self.pose_refine))
         path = Cache(self.cache_dir).rgbd_field(capture, cfg, plan.indices, plan.up.direction)
         console.print(f"field {capture_info(capture).name!r}: {path}")
@@ -245,8 +233,10 @@ class Distill:
     """Library name; default: the mesh file's stem."""
     symmetry: int = 1
     """Rotational symmetry about +Z: 1 none, k k-fold, 0 continuous."""
-    steps: int | None = None
-    """Override the number of optimisation steps."""
+    distillation: DISTILLATION_OPTIONS = dataclasses.field(default_factory=DISTILLATION_OPTIONS)
+    """Every setting of the distillation, with its unit; unset: the mesh preset's value (shown as
+    the default): for example ``--distillation.steps 400``,
+    ``--distillation.architecture.finest-resolution 128``."""
     device: str = "cpu"
     """Torch device."""
     cache_dir: Path = dataclasses.field(default_factory=default_cache_dir)
@@ -260,8 +250,7 @@ class Distill:
 
         check_input_file(self.mesh, "--mesh", "mesh file")
         check_checkpoint_out(self.out)
-        if self.steps is not None and self.steps < 1:
-            raise SystemExit(f"--steps must be at least 1, got {self.steps}")
+        cfg = with_options(object_mesh_preset(self.device), self.distillation)  # checked before any work
         if self.scale is not None and not (math.isfinite(self.scale) and self.scale > 0):
             raise PreflightError(f"--scale {self.scale}: must be a positive number of metres per unit")
         if self.scale is not None and self.units != "m":
@@ -272,9 +261,7 @@ class Distill:
         size = extent_warning(mesh, scale, str(self.mesh), units_given=self.scale is not None or self.units != "m")
         for line in [*loaded.warnings, *([size] if size else [])]:
             console.print(f"[yellow]warning[/]: {escape(line)}", soft_wrap=True)
-        cfg = dataclasses.replace(object_mesh_preset(self.device), up=self.up.lstrip("+"), scale=scale)
-        if self.steps is not None:
-            cfg = dataclasses.replace(cfg, steps=self.steps)
+        cfg = dataclasses.replace(cfg, up=self.up.lstrip("+"), scale=scale)
         units = {"units": self.units} if self.scale is None else {}
         info = FieldInfo(label=self.label, name=self.name or self.mesh.stem, symmetry=Symmetry(self.symmetry),
                          provenance={"mesh": str(self.mesh), **units, "metres_per_unit": scale})

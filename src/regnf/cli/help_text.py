@@ -61,6 +61,12 @@ def plain_help(text: str, modules: Sequence[str] = ()) -> str:
     return ROLE.sub(plain, text)
 
 
+def unwrapped(text: str) -> str:
+    """``text`` with the line breaks of a wrapped docstring joined (a blank line still parts paragraphs),
+    so that the terminal wraps the help at its own width."""
+    return "\n\n".join(" ".join(paragraph.split()) for paragraph in re.split(r"\n\s*\n", text.strip()))
+
+
 def install() -> None:
     """Make tyro's option and command descriptions go through :func:`plain_help` (once)."""
     from tyro import _docstrings
@@ -71,7 +77,7 @@ def install() -> None:
 
     def get_field_docstring(cls: Any, field_name: str, markers: Any) -> str | None:
         text = field_docstring(cls, field_name, markers)
-        return None if text is None else plain_help(text, _modules(cls))
+        return None if text is None else unwrapped(plain_help(text, _modules(cls)))
 
     def get_callable_description(f: Any) -> str:
         return plain_help(callable_description(f), _modules(f))

@@ -120,12 +120,12 @@ def check_training_memory(where: str, n_frames: int, height: int, width: int, pi
     ------
     regnf.core.preflight.PreflightError
         ``"<where>: training N frames of WxH at pixel stride S needs about X GB, Y GB is free;
-        use --pixel-stride or --max-frames"``.
+        use --training.pixel-stride or --max-frames"``.
     """
     needed = training_bytes(n_frames, height, width, pixel_stride)
     free = preflight.available_memory_bytes()
     if needed > free:
         raise preflight.PreflightError(
             f"{where}: training {n_frames} frames of {width}x{height} at pixel stride {pixel_stride} needs "
-            f"about {needed / 1e9:.1f} GB, {free / 1e9:.1f} GB is free; use --pixel-stride or --max-frames"
+            f"about {needed / 1e9:.1f} GB, {free / 1e9:.1f} GB is free; use --training.pixel-stride or --max-frames"
         )

@@ -532,7 +532,7 @@ class HypothesisBatch:
         """Active hypotheses whose pose moved less than the tolerances since ``previous``."""
         cfg = self.cfg
         angle, moved, ds = self.motion(previous)
-        ok = (angle < cfg.convergence_rotation) & (moved < cfg.convergence_translation) \
+        ok = (angle < math.radians(cfg.convergence_rotation_deg)) & (moved < cfg.convergence_translation) \
             & (ds < cfg.convergence_scale)
         return [k for k in self.active if bool(ok[k])]
 

@@ -72,8 +72,8 @@ class RefineConfig:
     """Stop a hypothesis once its pose moved less than the three tolerances below over this many
     iterations; 0 disables. (Not in the paper, whose residual stop a neural scene field rarely
     reaches, so every hypothesis would run all 200 steps.)"""
-    convergence_rotation: float = 1e-3
-    """Rotation tolerance of that stop, radians."""
+    convergence_rotation_deg: float = math.degrees(1e-3)
+    """Rotation tolerance of that stop, degrees (a thousandth of a radian)."""
     convergence_translation: float = 1e-3
     """Tolerance on the motion of the mapped scene samples' centroid, *L*."""
     convergence_scale: float = 1e-3

@@ -22,6 +22,7 @@ takes seconds for a large mesh (docs/decisions/field-training.md).
 from __future__ import annotations
 
 import json
+import math
 import time
 from dataclasses import asdict, dataclass, field
 
@@ -40,7 +41,7 @@ from regnf.fields.neural_sdf import (
 )
 from regnf.meshes.mesh_repair import UP_AXES, RepairReport, repair_mesh, up_rotation
 from regnf.meshes.mesh_sign import MeshSignConfig, SignedMesh, check_signable
-from regnf.training.optim import finest_voxel, optimise
+from regnf.training.optim import OptimiserConfig, finest_voxel, optimise
 
 DISTILL_VERSION = 3
 """Version of what a distilled field is for a given mesh and config (part of cache keys).
@@ -50,25 +51,15 @@ not 0.1."""
 
 
 @dataclass
-class DistillConfig:
-    """How to distil a field from a mesh."""
+class DistillConfig(OptimiserConfig):
+    """How to distil a field from a mesh (the optimiser's settings: :class:`OptimiserConfig`)."""
 
-    steps: int = 400
-    """Optimisation steps."""
     batch: int = 4096
     """Near-surface samples per step (plus half as many uniform ones)."""
     pool_surface: int = 150_000
     """Surface samples drawn once from the mesh."""
     pool_near_std: float = 0.02
     """Std of the offsets of near-surface samples, as a fraction of the bounds' size."""
-    lr_grid: float = 2e-2
-    """Learning rate of the feature grids."""
-    lr_mlp: float = 2e-3
-    """Learning rate of the MLPs."""
-    lr_final: float = 0.01
-    """The learning rates at the last step, as a fraction of ``lr_grid`` and ``lr_mlp`` (as
-    :attr:`regnf.training.training.RGBDTrainConfig.lr_final`;
-    docs/decisions/field-training.md)."""
     w_eikonal: float = 0.1
     """Weight of the eikonal loss."""
     eikonal_uniform: bool = True
@@ -96,6 +87,20 @@ class DistillConfig:
     scale: float = 1.0
     """Metres per unit of the mesh as given (0.001 for a file in millimetres); applied to the
     vertices before anything else."""
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        name = type(self).__name__
+        for key in ("w_eikonal", "w_normal", "w_color", "pool_near_std"):
+            if not (math.isfinite(getattr(self, key)) and getattr(self, key) >= 0):
+                raise RegnfError(f"{name}.{key} must be a finite number >= 0, got {getattr(self, key)}")
+        for key in ("batch", "pool_surface"):
+            value = getattr(self, key)
+            if isinstance(value, bool) or int(value) != value or value < 1:
+                raise RegnfError(f"{name}.{key} must be a whole number >= 1, got {value}")
+        for key in ("margin", "scale"):
+            if not (math.isfinite(getattr(self, key)) and getattr(self, key) > 0):
+                raise RegnfError(f"{name}.{key} must be finite and > 0, got {getattr(self, key)}")
 
 
 def normalising_transform(mesh: trimesh.Trimesh, margin: float) -> np.ndarray:
@@ -300,8 +305,7 @@ def distill_mesh(
         loss = loss_sdf + cfg.w_eikonal * loss_eik + cfg.w_normal * loss_normal + cfg.w_color * loss_color
         return loss, {"sdf": loss_sdf, "eikonal": loss_eik, "color": loss_color}
 
-    losses = optimise(model, cfg.steps, loss_at, cfg.lr_grid, cfg.lr_mlp, lr_final=cfg.lr_final,
-                      desc=f"distil {info.name or 'mesh'}", progress=progress)
+    losses = optimise(model, cfg, loss_at, desc=f"distil {info.name or 'mesh'}", progress=progress)
     seconds = time.perf_counter() - t0 + prepared_before
     model.info.provenance = {
         **model.info.provenance,

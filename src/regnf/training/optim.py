@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 
 import torch
 from tqdm import tqdm
@@ -11,6 +12,31 @@ from tqdm import tqdm
 from regnf.core.denormals import pool_denormals_flushed
 from regnf.core.errors import RegnfError
 from regnf.fields.neural_sdf import NeuralSDF
+
+
+@dataclass
+class OptimiserConfig:
+    """The optimiser settings that RGB-D training and mesh distillation share (their configs derive from it)."""
+
+    steps: int = 400
+    """Optimisation steps."""
+    lr_grid: float = 2e-2
+    """Learning rate of the feature grids."""
+    lr_mlp: float = 2e-3
+    """Learning rate of the MLPs."""
+    lr_final: float = 0.01
+    """The learning rates at the last step, as a fraction of ``lr_grid`` and ``lr_mlp`` (cosine
+    decay after a 50-step warm-up, :func:`lr_factor`; docs/decisions/field-training.md)."""
+
+    def __post_init__(self) -> None:
+        name = type(self).__name__
+        if isinstance(self.steps, bool) or int(self.steps) != self.steps or self.steps < 1:
+            raise RegnfError(f"{name}.steps must be a whole number >= 1, got {self.steps}")
+        for lr in ("lr_grid", "lr_mlp"):
+            if not (math.isfinite(getattr(self, lr)) and getattr(self, lr) > 0):
+                raise RegnfError(f"{name}.{lr} must be finite and > 0, got {getattr(self, lr)}")
+        if not (math.isfinite(self.lr_final) and 0.0 <= self.lr_final <= 1.0):
+            raise RegnfError(f"{name}.lr_final is a fraction of the learning rates, in [0, 1]; got {self.lr_final}")
 
 
 def make_optimizer(
@@ -59,11 +85,8 @@ LOG_EVERY = 50
 
 def optimise(
     field: NeuralSDF,
-    steps: int,
+    config: OptimiserConfig,
     loss_at: Callable[[int], tuple[torch.Tensor, dict[str, torch.Tensor]]],
-    lr_grid: float,
-    lr_mlp: float,
-    lr_final: float = 0.01,
     desc: str = "train",
     progress: bool = True,
     postfix: dict[str, str] | None = None,
@@ -76,16 +99,11 @@ def optimise(
     ----------
     field : NeuralSDF
         Trained in place.
-    steps : int
-        Optimiser steps.
+    config : OptimiserConfig
+        Steps and learning rates.
     loss_at : callable
         ``loss_at(step) -> (loss, parts)``: the scalar loss of that step's batch and the named
         terms to log (scalar tensors).
-    lr_grid, lr_mlp : float
-        As for :func:`make_optimizer`.
-    lr_final : float
-        The learning rates at the last step, as a fraction of ``lr_grid`` and ``lr_mlp``
-        (:func:`lr_factor`'s ``final``).
     desc, progress : str, bool
         The progress bar's label, and whether it is shown.
     postfix : dict of str to str, optional
@@ -98,9 +116,8 @@ def optimise(
     list of dict
         Every :data:`LOG_EVERY` steps and at the last: ``step``, ``loss`` and the terms.
     """
-    if not (math.isfinite(lr_final) and 0.0 <= lr_final <= 1.0):
-        raise RegnfError(f"lr_final is a fraction of the learning rates, in [0, 1]; got {lr_final}")
-    opt = make_optimizer(field, lr_grid, lr_mlp, extra_groups)
+    steps = config.steps
+    opt = make_optimizer(field, config.lr_grid, config.lr_mlp, extra_groups)
     base_lrs = [g["lr"] for g in opt.param_groups]
     log: list[dict[str, float]] = []
     bar = tqdm(range(steps), desc=desc, disable=not progress, leave=False)
@@ -109,7 +126,7 @@ def optimise(
     with pool_denormals_flushed():
         for step in bar:
             for g, lr in zip(opt.param_groups, base_lrs):
-                g["lr"] = lr * lr_factor(step, steps, final=lr_final)
+                g["lr"] = lr * lr_factor(step, steps, final=config.lr_final)
             loss, parts = loss_at(step)
             opt.zero_grad(set_to_none=True)
             loss.backward()

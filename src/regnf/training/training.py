@@ -47,6 +47,7 @@ a :class:`regnf.observations.visibility.VisibilityGrid` over its bounds (see
 from __future__ import annotations
 
 import json
+import math
 import time
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
@@ -76,7 +77,7 @@ from regnf.observations.rgbd_samples import (
 from regnf.observations.view_lenses import ViewLenses
 from regnf.observations.visibility import DEFAULT_MARGIN, DEFAULT_RESOLUTION, build_visibility
 from regnf.training.floater_pool import FloaterPool
-from regnf.training.optim import finest_voxel, optimise
+from regnf.training.optim import OptimiserConfig, finest_voxel, optimise
 from regnf.training.pose_refinement import PoseCorrections, PoseRefineConfig, PoseReport
 from regnf.training.volume_render import render_rays_neus
 
@@ -87,11 +88,9 @@ keys; bump it when a default changes what training makes). 2: the learning rates
 
 
 @dataclass
-class RGBDTrainConfig:
-    """How to train a field from RGB-D frames."""
+class RGBDTrainConfig(OptimiserConfig):
+    """How to train a field from RGB-D frames (the optimiser's settings: :class:`OptimiserConfig`)."""
 
-    steps: int = 2000
-    """Optimisation steps."""
     batch_surface: int = 4096
     """Surface points (and as many near-surface points) per step."""
     batch_free: int = 2048
@@ -100,14 +99,6 @@ class RGBDTrainConfig:
     """Free-space samples per step, on rays that hit nothing."""
     batch_eikonal: int = 1024
     """Uniform points in the bounds for the eikonal loss per step."""
-    lr_grid: float = 2e-2
-    """Learning rate of the feature grids."""
-    lr_mlp: float = 2e-3
-    """Learning rate of the MLPs."""
-    lr_final: float = 0.01
-    """The learning rates at the last step, as a fraction of ``lr_grid`` and ``lr_mlp`` (cosine
-    decay after a 50-step warm-up, :func:`regnf.training.optim.lr_factor`;
-    docs/decisions/field-training.md)."""
     near_band_m: tuple[float, float] = (0.006, 0.02)
     """Near-surface offsets, metres: up to this far inside and outside (thin parts >= 1.2 cm)."""
     free_margin_m: float = 0.02
@@ -187,6 +178,27 @@ class RGBDTrainConfig:
     pose_refine: PoseRefineConfig = field(default_factory=PoseRefineConfig)
     """Joint refinement of the training frames' poses (by default only where the capture's poses
     are estimates; :mod:`regnf.training.pose_refinement`)."""
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        name = type(self).__name__
+        non_negative = ("w_surface", "w_near", "w_free", "w_edge", "w_outline", "w_eikonal", "w_normal", "w_color",
+                        "w_volume_color", "free_margin_m", "free_sigma_multiple", "bounds_margin", "visibility_margin")
+        for key in non_negative:
+            if not (math.isfinite(getattr(self, key)) and getattr(self, key) >= 0):
+                raise RegnfError(f"{name}.{key} must be a finite number >= 0, got {getattr(self, key)}")
+        counts = ("batch_surface", "batch_free", "batch_empty", "batch_eikonal", "batch_edge", "batch_outline",
+                  "batch_carve", "carve_every", "volume_rays", "volume_samples", "visibility_resolution")
+        for key in (*counts, "pixel_stride"):
+            at_least = 1 if key == "pixel_stride" else 0
+            value = getattr(self, key)
+            if isinstance(value, bool) or int(value) != value or value < at_least:
+                raise RegnfError(f"{name}.{key} must be a whole number >= {at_least}, got {value}")
+        if not 0.0 <= self.carve_from <= 1.0:
+            raise RegnfError(f"{name}.carve_from is a fraction of the steps, in [0, 1]; got {self.carve_from}")
+        for key in ("carve_spacing_m", "volume_band_m", "volume_inv_s"):
+            if not (math.isfinite(getattr(self, key)) and getattr(self, key) > 0):
+                raise RegnfError(f"{name}.{key} must be finite and > 0, got {getattr(self, key)}")
 
 
 @dataclass
@@ -562,8 +574,7 @@ def train_rgbd(
             loss = loss + parts["pose"]
         return loss, parts
 
-    log.losses = optimise(model, cfg.steps, loss_at, cfg.lr_grid, cfg.lr_mlp, cfg.lr_final,
-                          desc=f"train {info.name or 'field'}", progress=progress,
+    log.losses = optimise(model, cfg, loss_at, desc=f"train {info.name or 'field'}", progress=progress,
                           postfix={"surf": "surface", "col": "color"},
                           extra_groups=[poses.param_group()] if poses is not None else ())
     if visibility is not None:
