@@ -32,8 +32,7 @@ class DepthSummary:
     points: np.ndarray
     """(m, 3) float64 subsample of the back-projected depth, metres."""
     extent: np.ndarray
-    """(2, 3) min and max corner in metres of the cameras and the depth points' percentiles
-    (:func:`regnf.captures.metric.metric_bounds`)."""
+    """(2, 3) min and max corner of the cameras and the depth percentiles, metres (:func:`metric_bounds`)."""
 
 
 def summarise_depth(capture: Capture) -> DepthSummary:

@@ -45,8 +45,7 @@ class CompositeConfig:
     """How a :class:`CompositeField` evaluates its components."""
 
     cull: bool = True
-    """Evaluate each placed field only inside its padded oriented box, and the scene only
-    outside the removal regions shrunk by ``cull_pad``."""
+    """Evaluate placed fields only in their padded boxes, the scene only outside removals less ``cull_pad``."""
     cull_pad: float = 0.02
     """Culling margin in scene field units; must exceed the renderer's hit tolerance."""
 

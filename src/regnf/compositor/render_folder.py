@@ -5,7 +5,8 @@ hit) and ``instance_k.png`` (16-bit: ``i`` where instance ``i`` is seen, 0 on th
 the scene's own surfaces); see :mod:`regnf.core.image_io`. Then ``contact_sheet.png`` (the RGB views tiled),
 optionally ``sequence.gif`` or ``sequence.mp4`` (the RGB views in order, see
 :mod:`regnf.compositor.sequence_io`), and ``render.json`` (cameras, settings, timings, field
-evaluations per pixel).
+evaluations per pixel: grid look-ups with the ``baked`` renderer, whose grids
+:func:`~regnf.compositor.baked_composite.bake_for_views` bakes once for the views).
 
 Nothing half-done is ever left in the folder: every camera is checked first (a camera
 inside matter, or a view of more than :data:`MAX_PIXELS`, is refused before anything is
@@ -89,23 +90,21 @@ TRACE_PIXELS = 1 << 20
 
 @dataclass(frozen=True)
 class RenderConfig:
-    """How :func:`render_views` renders and writes."""
+    """How :func:`render_views` renders and writes.
+
+    The batches of ``views_per_trace`` views render side by side on ``workers`` threads; the
+    images are the same on any count (a lone batch, too, renders on one thread), and a view's
+    ``seconds`` in ``render.json`` is its batch's wall time shared among the batch's views (with
+    two workers, that of a batch sharing the machine)."""
 
     renderer: Literal["sphere", "volume", "baked"] = "sphere"
-    """``sphere``: the sphere tracer (fast, exact hits); ``volume``: NeuS-style integration;
-    ``baked``: the sphere tracer on the fields baked into grids once for these views
-    (:func:`regnf.compositor.baked_composite.bake_for_views`; its evaluations per pixel count
-    grid look-ups): faster a view once baked, so it pays for many views
-    (docs/decisions/rendering-speed.md)."""
+    """``sphere`` tracer, NeuS ``volume``, or tracer on ``baked`` grids (docs/decisions/rendering-speed.md)."""
     sphere: SphereTracerConfig = field(default_factory=lambda: SphereTracerConfig(footprint_fraction=0.05))
-    """Settings of the sphere tracer: hits to 5 % of a pixel's footprint (the tracer's own
-    default, 1e-4, is for exact depth; 0.05 costs 18 % fewer evaluations at the same PSNR,
-    see docs/benchmarks.md)."""
+    """Sphere tracer settings: hits to 5 % of a pixel's footprint (docs/decisions/rendering-speed.md)."""
     volume: VolumeRendererConfig = field(default_factory=VolumeRendererConfig)
     """Settings of the volume renderer."""
     bake: BakeConfig = field(default_factory=BakeConfig)
-    """Grids of the ``baked`` renderer (the defaults: half a pixel's footprint, at most 2^25
-    nodes a field)."""
+    """Grids of the ``baked`` renderer."""
     sheet_columns: int = 0
     """Tiles per row of the contact sheet; 0: about square."""
     sheet_tile_width: int = 192
@@ -119,20 +118,9 @@ class RenderConfig:
     progress: bool = True
     """Show a progress bar."""
     views_per_trace: int = 3
-    """Views the sphere tracer traces together, their rays in one wavefront
-    (:func:`regnf.render.sphere_render.render_many`: the slow rays at the end of a trace
-    are traced once a batch, not once a view), at most :data:`TRACE_PIXELS` pixels a batch
-    unless a view alone is larger. The batches are consecutive views, set by this and the
-    views' sizes, not by ``workers``, so the images are the same on any machine. 3: the demo's
-    6 views make one batch for each of two cores; ``regnf generate`` traces a variant's views
-    in one batch (its workers are processes of one thread each)."""
+    """Views traced in one wavefront, :data:`TRACE_PIXELS` pixels at most (docs/decisions/rendering-speed.md)."""
     workers: int | None = None
-    """Batches of views (``views_per_trace``) rendered side by side, each on one CPU thread
-    (None: one per usable core, at most ``torch.get_num_threads()``;
-    :func:`regnf.core.threads.map_one_thread_each`). The images are the same on any count (a
-    lone batch, too, renders on one thread); a view's ``seconds`` in ``render.json`` is its
-    batch's wall time shared among the batch's views, so with two workers it is that of a batch
-    sharing the machine."""
+    """Batches of views rendered side by side, one CPU thread each; None: one per usable core."""
 
     def __post_init__(self) -> None:
         if self.workers is not None and self.workers < 1:

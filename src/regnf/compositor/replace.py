@@ -61,9 +61,7 @@ class ReplaceConfig:
     device: str = "cpu"
     """Torch device the fields are loaded on."""
     allow_size_change: bool = False
-    """Swap in objects whose size differs from the instance's by more than
-    :data:`~regnf.compositor.size_change.SIZE_CHANGE_LIMIT` (refused by default: a library in
-    other units)."""
+    """Allow swaps that change an instance's size by more than :data:`~regnf.compositor.size_change.SIZE_CHANGE_LIMIT` times."""
 
 
 class ReplacementResult(NamedTuple):

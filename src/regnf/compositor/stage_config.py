@@ -20,11 +20,9 @@ class StageCompositeConfig:
     METRES, except ``cull_pad`` (scene FIELD units) and the relative ``box_pad``."""
 
     mode: Literal["scene", "substitute"] = "substitute"
-    """``scene``: the scene field alone (no removal, no objects); ``substitute``: every instance's
-    scene object removed and its (selected) library field placed."""
+    """``scene``: the scene field alone; ``substitute``: each instance cut out, its library field placed."""
     removal: Literal["box", "shell"] = "box"
-    """Removal region per instance: the original object's oriented box, or a shell around its
-    registered surface (spares walls and tables it touches)."""
+    """Removal region per instance: ``box`` (its oriented box) or ``shell`` (round its registered surface)."""
     box_pad: float = 0.05
     """Relative growth of the removal box (0.05: half extents times 1.05)."""
     shell_dilation: float = 0.05

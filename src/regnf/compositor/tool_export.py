@@ -6,7 +6,8 @@ What ``regnf stage export`` and ``regnf demo`` write: the stage as it is
 - ``/World/Scene/Edited``: the scene field less every instance's removal region, meshed
   (:func:`regnf.compositor.scene_mesh.edited_scene_mesh`), so that Blender, Isaac Sim and
   usdview show the substituted objects and none of the originals;
-- ``UsdPhysics`` rigid bodies of a density, convex-hull colliders on the library meshes;
+- ``UsdPhysics`` rigid bodies of a density, convex-hull colliders on the library meshes, the
+  edited scene a static collider;
 - library meshes re-meshed from their fields at a cell of a few millimetres (thin parts such
   as slats are lost at the stage's 48 cells); a library object's source mesh, when it has
   one, stays what viewers render.
@@ -30,19 +31,15 @@ class ToolExportConfig:
     """What an export for other tools adds to the stage."""
 
     density: float = 500.0
-    """Density of the library objects, kg / m^3: every instance becomes a rigid body and every
-    library mesh a convex-hull collider of this density (UsdPhysics), the edited scene a static
-    collider."""
+    """Density of the library objects for the physics, kg / m^3."""
     physics: bool = True
     """Write the physics above (off: the stage's own setting is kept)."""
     edit: bool = True
-    """Mesh the scene less its instances' removal regions into the export (the mesh other tools
-    show; the whole scene stays as the proxy), when the stage has instances."""
+    """Mesh the scene less its instances' removal regions into the export (when the stage has instances)."""
     scene_mesh: SceneMeshConfig = field(default_factory=SceneMeshConfig)
     """How the edited scene is meshed."""
     library_cell: float = 0.005
-    """Marching-cubes cell of the library objects' meshes in the export, metres (thin parts
-    such as chair slats need a few mm); 0 keeps the stage's proxies."""
+    """Marching-cubes cell of the library objects' exported meshes, metres; 0 keeps the stage's proxies."""
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.library_cell) and self.library_cell >= 0):

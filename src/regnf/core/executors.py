@@ -44,8 +44,7 @@ class ExecutorConfig:
     threads_per_task: int = 1
     """Torch threads per task, pinned so that results do not depend on where a task runs."""
     address: str | None = None
-    """Ray: address of the cluster to join ('auto', 'ray://host:10001', ...); None: the Ray instance
-    already started in this process, or a new local one."""
+    """Ray cluster to join ('auto', 'ray://host:10001'); None: this process's Ray instance, or a new local one."""
 
     def __post_init__(self) -> None:
         if self.kind not in EXECUTORS:

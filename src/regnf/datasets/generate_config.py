@@ -42,50 +42,31 @@ class GenerateConfig:
     """What :func:`generate` makes and how it runs."""
 
     format: str = "nerfstudio"
-    """Data set formats, comma separated: ``nerfstudio`` (a ``transforms.json`` per variant),
-    ``coco`` (``coco/annotations.json``), ``bop`` (``bop/``: models, and a scene per variant with
-    poses and masks). Every variant has its views, instance and class images."""
+    """Data set formats to write, comma separated: ``nerfstudio``, ``coco``, ``bop``."""
     variants: int = 10
-    """Number of variants (seeds first_seed, first_seed + 1, ...): 1 to :data:`MAX_VARIANTS`
-    (1,000,000; each run reads the whole manifest, so a larger data set is better split over
-    several output folders)."""
+    """Number of variants (seeds first_seed, first_seed + 1, ...), 1 to :data:`MAX_VARIANTS`."""
     first_seed: int = 0
     """Seed of the first variant."""
     cameras: OrbitConfig = field(default_factory=lambda: OrbitConfig(n=8, width=256, height=192))
-    """Orbit of cameras inside the scene's bounds; n is the number of views per variant (at most
-    :data:`MAX_VIEWS`), and a view has at most width * height = 4096 * 4096 pixels
-    (:data:`regnf.compositor.render_folder.MAX_PIXELS`: a view is rendered whole in memory)."""
+    """Orbit cameras: n views a variant (<= :data:`MAX_VIEWS`), width x height pixels (<= :data:`regnf.compositor.render_folder.MAX_PIXELS`)."""
     camera_source: Literal["orbit", "capture"] = "orbit"
-    """Where the views' cameras come from: ``orbit`` (``cameras``) or ``capture``: cameras.n frames
-    of the capture named by ``capture`` (each variant its own seeded choice with
-    ``jitter_cameras``, else the same evenly spaced frames), posed and with their intrinsics as the
-    capture has them. Capture views are cameras.width wide with the capture's aspect ratio
-    (cameras.height is not used; K scaled to that size), so every label is of the capture's camera."""
+    """Where the views' cameras come from: ``orbit`` (``cameras``) or ``capture`` (frames of ``capture``)."""
     capture: Path | None = None
-    """The capture folder (any capture format: sdfstudio, nerfstudio, scannet) whose frames are the
-    cameras of ``camera_source`` ``capture``; nothing else is read from it. Not given otherwise."""
+    """Capture folder (any capture format) whose frames are the cameras when ``camera_source`` is capture."""
     exposure_stops: float = 0.0
-    """Largest exposure change of a variant's camera, stops (0 to 4; each variant draws one
-    from its seed, :mod:`regnf.datasets.variation`, recorded in its manifest row)."""
+    """Largest exposure change of a variant's camera, stops (0 to 4; 0: none)."""
     white_balance: float = 0.0
-    """Largest white-balance gain change of a variant's camera per channel, a fraction (0 to
-    below 1; drawn and recorded as the exposure is)."""
+    """Largest white-balance gain change of a variant's camera per channel, a fraction (0 to below 1)."""
     jitter_yaw_deg: float = 0.0
-    """Largest turn of each instance about the scene's up axis through its own origin (its
-    base), degrees (0 to 180; drawn per variant from its seed, :mod:`regnf.datasets.placement_jitter`, kept
-    only where the instance collides with nothing, recorded in the manifest row). 0: no turn."""
+    """Largest turn of each instance about the up axis through its base, degrees (0 to 180; 0: no turn)."""
     jitter_shift: float = 0.0
-    """Largest move of each instance along its support plane, metres (0 to 0.5; drawn and kept
-    as the turn is). 0: no move."""
+    """Largest move of each instance along its support plane, metres (0 to 0.5; 0: no move)."""
     jitter_cameras: bool = True
-    """Turn each variant's orbit by a random azimuth (from its seed) so the variants see the room from
-    different places; with capture cameras, each variant takes its own random frames (from its seed)."""
+    """Turn each variant's orbit by a seeded random azimuth (capture cameras: seeded random frames)."""
     composite: SubstitutionConfig = field(default_factory=SubstitutionConfig)
     """Removal settings of the substituted instances (the mode is always substitute)."""
     render: RenderConfig = field(default_factory=lambda: RenderConfig(progress=False, views_per_trace=16))
-    """Renderer settings (the progress bar per variant is off: the run shows one over variants).
-    ``baked`` bakes the fields once for the whole data set (see the module). A variant's views
-    are traced together, up to 16 (a worker is one thread: nothing runs beside a batch)."""
+    """Renderer settings: up to 16 views a trace (docs/decisions/rendering-speed.md); one progress bar a run."""
     executor: ExecutorConfig = field(default_factory=ExecutorConfig)
     """Where the variants run."""
     retry_failed: bool = True
@@ -93,13 +74,9 @@ class GenerateConfig:
     device: str = "cpu"
     """Torch device of the workers."""
     reuse: bool = False
-    """Write into an output folder that holds files regnf generate did not make (they are kept:
-    nothing but the data set's own names is written there, and nothing is removed). Without it
-    such a folder is refused; a new, empty or earlier generate folder needs nothing."""
+    """Write into an output folder that holds other files (kept as they are); without it, it is refused."""
     allow_size_change: bool = False
-    """Swap in objects whose size differs from the instance's by more than 3x (bounding-box
-    diagonals at the instance's scale; refused by default, before anything is written: one
-    library is likely in other units)."""
+    """Allow swaps that change an instance's size by more than :data:`~regnf.compositor.size_change.SIZE_CHANGE_LIMIT` times."""
 
     def __post_init__(self) -> None:
         # Checked here, before any work: a huge request fails at once, not minutes in.

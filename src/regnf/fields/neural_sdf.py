@@ -47,9 +47,7 @@ class NeuralSDFConfig:
     view_dependent: bool = False
     """Feed the viewing direction to the colour head (off: our captures are Lambertian)."""
     color_grid_features: bool = False
-    """Feed the grid features to the colour head too, beside the SDF MLP's geometry features:
-    colour then reaches the grids directly instead of only through the SDF MLP, whose gradient
-    the geometry terms dominate until the geometry has converged (NeuS and the paper: off)."""
+    """Feed the grid features to the colour head too, beside the SDF MLP's (docs/decisions/field-training.md)."""
     init_radius: float = 0.5
     """Radius of the sphere the SDF starts as (geometric initialisation), field units."""
     inside_out: bool = False

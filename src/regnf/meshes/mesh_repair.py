@@ -86,8 +86,7 @@ class RepairReport:
     merged_vertices: int
     """Vertices welded into another one (closer than the merge tolerance)."""
     degenerate_faces: int
-    """Triangles dropped: a repeated corner, thinner than the merge tolerance, or a corner that
-    is not a finite vertex."""
+    """Triangles dropped: a repeated corner, thinner than the merge tolerance, or a non-finite corner."""
     duplicate_faces: int
     """Triangles dropped: the same three corners as an earlier one (either winding)."""
     reoriented_faces: int

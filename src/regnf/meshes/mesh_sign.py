@@ -45,15 +45,11 @@ class MeshSignConfig:
     winding: WindingConfig = field(default_factory=WindingConfig)
     """Winding-number estimation (rays, exact refinement)."""
     split_edge: float = 0.01
-    """Faces that reach into another part are bisected down to this longest edge (a fraction
-    of the bounding-box diagonal) before the internal ones are dropped: an internal sliver
-    left behind is at most this wide, under the 0.5 % surface-error bar of distillation."""
+    """Bisect faces reaching into another part to this edge, fraction of the diagonal (docs/decisions/mesh-signs.md)."""
     front_offset: float = 1e-4
-    """Distance in front of a face (fraction of the diagonal) at which it is tested for being
-    internal: far above float32 rounding (6e-8), far below any part's thickness."""
+    """Test offset in front of a face for being internal, fraction of the diagonal (docs/decisions/mesh-signs.md)."""
     box_pairs: int = 1_000_000
-    """Most (piece of a face, overlapping part) box tests of the splitting near other parts'
-    boxes; past it, faces are split only where they touch another part's faces."""
+    """Most (face piece, other part) box tests when splitting near parts' boxes; past it, split at contacts only."""
     contact_pairs: int = 4_000_000
     """Most candidate face pairs of the splitting at contacts; past it the mesh is refused."""
     contact_pieces: int = 1_000_000

@@ -41,15 +41,11 @@ class WindingConfig:
     """How :func:`winding_numbers` estimates the winding number of query points."""
 
     rays: int = 5
-    """Rays per point in the first pass. A point is decided there when every ray gives the
-    same side; on closed parts all do, so a few rays decide nearly every point and the rest is
-    refined (docs/decisions/field-training.md)."""
+    """Rays per point in the first pass; a point is decided if all agree (docs/decisions/field-training.md)."""
     extra_rays: int = 59
-    """Rays added to an undecided point when the exact sum is too costly (64 in all: the
-    mean's standard error is at most 0.06, against a 0.5 margin deep inside)."""
+    """Rays added to an undecided point where the exact sum is too costly (docs/decisions/field-training.md)."""
     exact_pairs: int = 8_000_000
-    """Undecided points get the exact sum when (points x faces) is at most this; more pairs fall
-    back to :attr:`extra_rays` (docs/decisions/field-training.md)."""
+    """Most (points x faces) pairs for the exact sum at undecided points (docs/decisions/field-training.md)."""
     seed: int = 0
     """Seed of the random ray directions (results are deterministic for a seed)."""
 

@@ -29,25 +29,19 @@ class CandidateConfig:
     """Settings of :func:`find_candidates` (lengths in scene metres)."""
 
     resolution: int = 192
-    """Marching-cubes cells along the longest axis of the scene field's bounds (a 6 m room:
-    3.1 cm cells, finer than the thinnest furniture part the room fields resolve)."""
+    """Marching-cubes cells along the bounds' longest axis (6 m room: 3.1 cm) (docs/decisions/discovery-ranking.md)."""
     min_observed: float = 0.5
-    """Surface points that the scene's training views observed less than this
-    (:meth:`~regnf.observations.visibility.VisibilityGrid.observed`) are dropped: a field makes
-    up a fill where no view looked. A field without a visibility grid keeps every point."""
+    """Surface points the scene's views observed less than this are dropped (docs/decisions/discovery-ranking.md)."""
     up: tuple[float, float, float] = (0.0, 0.0, 1.0)
     """The room's up axis in metres (candidates stand upright on it)."""
     plane_distance: float = 0.02
     """A surface point within this of a support plane belongs to it."""
     support_span: float = 2.0
-    """A plane is a support (floor, wall, ceiling) when its points span at least this along
-    both of its in-plane axes; a table top (at most 1.4 m in the data set) is not."""
+    """A plane spanning at least this along both in-plane axes is a support; a table top (at most 1.4 m) is not."""
     support_tilt_deg: float = 5.73
-    """Supports are level (floors, ceilings) or upright (walls) to within this, degrees: a
-    plane at another angle is drawn through several objects, never a support."""
+    """Degrees within which a support is level (floor, ceiling) or upright (wall); other planes cut through objects."""
     max_supports: int = 12
-    """Support planes removed at most (a box room: floor, ceiling and four walls, each of
-    which may show both of its faces)."""
+    """Support planes removed at most (a box room's six, each perhaps seen from both faces)."""
     plane_iterations: int = 400
     """RANSAC draws per plane (seeded: the same planes on every run)."""
     link_distance: float = 0.06
@@ -57,13 +51,9 @@ class CandidateConfig:
     min_size: float = 0.15
     """Groups whose box's largest side is shorter than this are not candidates."""
     max_size: float = 3.0
-    """Nor are groups whose box's largest side is longer than this: what is left of the room
-    itself, such as the top edges of its walls (furniture is at most 1.4 m in the data set)."""
+    """Nor are groups longer than this: what is left of the room, such as wall tops (furniture is at most 1.4 m)."""
     unseen_below: float = 0.5
-    """A candidate whose space below, down to the floor, the views observed less than this
-    (mean of :meth:`~regnf.observations.visibility.VisibilityGrid.observed` over its column)
-    is grown down to the floor: objects stand on it, and what no view saw may be their part
-    (docs/decisions/discovery-ranking.md)."""
+    """Mean observation of a candidate's column under which it grows to the floor (docs/decisions/discovery-ranking.md)."""
     seed: int = 0
     """Seed of the plane search."""
 

@@ -95,68 +95,32 @@ class DiscoveryConfig:
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
     """How each shortlisted object is registered (its acceptance threshold decides)."""
     ranking_points: int = 1000
-    """Samples of the scene and of each library object in the short registration (a seeded random
-    subset of the registration's samples). The fewest that keep the right object among the best two
-    of every candidate, at a quarter of the time of every sample
-    (docs/decisions/discovery-ranking.md)."""
+    """Samples (a seeded subset) of the scene and each library object to rank by (docs/decisions/discovery-ranking.md)."""
     ranking_init: InitConfig = field(default_factory=_ranking_init)
-    """Initialisation of the short registration: one RANSAC run and 6 screened hypotheses instead
-    of 4 and 12; the ranking comes out in the same order, sooner
-    (docs/decisions/discovery-ranking.md)."""
+    """Initialisation of the short registration: 1 RANSAC run, 6 screened hypotheses (docs/decisions/discovery-ranking.md)."""
     shortlist: int = 2
-    """Library objects fully registered per candidate, best short-registration score first,
-    and any other within :attr:`shortlist_margin` of the best. Two: the right object ranks
-    first or second (docs/decisions/discovery-ranking.md)."""
+    """Library objects fully registered per candidate, best-ranked first (docs/decisions/discovery-ranking.md)."""
     shortlist_gap: float = 0.15
-    """The objects after the best count towards :attr:`shortlist` only if their short-registration
-    score (a confidence, 0-1) is within this of the best one's: further behind, the full
-    registration does not overturn the order. inf: the count alone
-    (docs/decisions/discovery-ranking.md)."""
+    """Shortlisted objects score within this of the best (a confidence); inf: any (docs/decisions/discovery-ranking.md)."""
     shortlist_uncertain: float = 0.6
-    """When the best short-registration score of a candidate is below this, every object within
-    :attr:`shortlist_gap` of the best is fully registered, whatever :attr:`shortlist` says: a
-    best score that low means the short registration found no object's pose there, and the order
-    behind it is noise. A confidence, 0-1; 0 keeps the count alone
-    (docs/decisions/discovery-ranking.md)."""
+    """Best confidence under which all within ``shortlist_gap`` are registered; 0: never (docs/decisions/discovery-ranking.md)."""
     shortlist_margin: float = 0.05
-    """Objects whose short-registration score (a confidence, 0-1) is within this of the best
-    one's are fully registered too, however many: their order is noise. 0 keeps the count
-    alone (docs/decisions/discovery-ranking.md)."""
+    """Objects within this of the best score (a confidence) are registered too; 0: none (docs/decisions/discovery-ranking.md)."""
 
     unobserved_difference: float = UNOBSERVED
-    """When the two best accepted objects of a candidate differ only where the views observed
-    less than this (the mean observation weight of the surface where they differ, both at
-    their registered poses, :func:`~regnf.registration.observed_difference.observed_difference`), the candidate is ambiguous and left
-    unmatched instead of given a coin toss: no registration can rank them on that evidence
-    (docs/decisions/discovery-ranking.md)."""
+    """Observation of where two accepted objects differ under which neither is chosen (docs/decisions/discovery-ranking.md)."""
     difference_tolerance: float = 0.01
-    """Surface farther than this fraction of the object's diagonal from the other object's
-    surface is where two objects differ (:func:`~regnf.registration.observed_difference.observed_difference`)."""
+    """Surface farther than this fraction of the diagonal from the other object's is where two objects differ."""
     join_overlap: float = 0.02
-    """Two candidates whose boxes overlap by at least this IoU are examined first as one
-    candidate (their points' union); 0 never joins. A part the views observed poorly can split
-    one object's surface in two, and neither half then matches on its own. The union replaces
-    both halves when its object explains each half's surface (:attr:`half_explained`);
-    otherwise the halves are examined on their own and the union replaces them only when
-    neither is matched, so two objects that touch, each matched on its own, stay two. Examining
-    the union first spares the two halves' examinations (docs/decisions/discovery-ranking.md)."""
+    """Box IoU from which two candidates are first examined as one; 0 never joins (docs/decisions/discovery-ranking.md)."""
     half_explained: float = 0.5
-    """The matched union's object explains a half when at least this fraction of the half's surface
-    points lie within :attr:`explained_distance` of its registered surface
-    (docs/decisions/discovery-ranking.md)."""
+    """A half is explained at this fraction of its points within ``explained_distance`` (docs/decisions/discovery-ranking.md)."""
     explained_distance: float = 0.03
     """Scene metres (the candidates' meshing cell, :attr:`CandidateConfig.resolution`)."""
     refit_box: bool = True
-    """Refine the chosen registration once more, from its pose, in the box of the registered
-    object (its library samples' bounds at that pose) instead of the candidate's box, which
-    holds only what the views observed: the refit comes as close as a registration from the
-    true box (docs/decisions/discovery-ranking.md)."""
+    """Refine the chosen registration again in its object's box, not the candidate's (docs/decisions/discovery-ranking.md)."""
     workers: int = 0
-    """Worker processes that examine candidates side by side, when :func:`discover` is given the
-    fields' checkpoints (``files``); 0: one per usable core; 1: one after another in this process.
-    Every examination runs on one thread either way, so the result does not depend on it (tested).
-    Worker processes, not threads: Open3D's RANSAC on a thread other than the main one gives
-    hypotheses that vary from one call to the next (docs/decisions/discovery-ranking.md)."""
+    """Candidate worker processes (given ``files``); 0: one per core, 1: none (docs/decisions/discovery-ranking.md)."""
 
     def __post_init__(self) -> None:
         if self.shortlist < 1:
@@ -192,13 +156,11 @@ class Tried(NamedTuple):
 
     library_name: str
     screened: float
-    """Confidence of its best initial hypothesis before any refinement step (the shortlist's
-    order)."""
+    """Confidence of its best initial hypothesis before any refinement step (the shortlist's order)."""
     result: RegistrationResult | None
     """The full registration; None when the object was not shortlisted, or its registration failed."""
     error: str | None = None
-    """Why its full registration failed on the input (``ExceptionType: message``); None when it
-    did not fail."""
+    """Why its full registration failed on the input (``ExceptionType: message``); None when it did not."""
 
 
 class Discovery(NamedTuple):
@@ -209,17 +171,13 @@ class Discovery(NamedTuple):
     proposal: OrientedBox
     """The box in the scene field frame (what registration was given)."""
     tried: list[Tried]
-    """Every library object, best screened first; the shortlisted ones were fully registered
-    (:meth:`Ranking.shortlisted`)."""
+    """Every library object, best screened first; the shortlisted ones fully registered (:meth:`Ranking.shortlisted`)."""
     chosen: Tried | None
-    """The accepted registration of highest confidence (its result refined once more in the
-    registered object's box, :attr:`DiscoveryConfig.refit_box`), or None: unmatched."""
+    """The accepted registration of highest confidence, refit (:attr:`DiscoveryConfig.refit_box`); None: unmatched."""
     ambiguous: tuple[str, ...] = ()
-    """Two accepted library objects that differ only where the views did not look
-    (:attr:`DiscoveryConfig.unobserved_difference`): the candidate is left unmatched."""
+    """Two accepted objects differing only where no view looked (:attr:`DiscoveryConfig.unobserved_difference`)."""
     skipped: str | None = None
-    """Why the candidate could not be examined (the step, ``ExceptionType: message``); None when
-    it was. A skipped candidate has no ``tried`` and no ``chosen``."""
+    """Why the candidate was not examined (the step, ``ExceptionType: message``; then no ``tried`` or ``chosen``); None."""
 
 
 class DiscoveryResult(NamedTuple):

@@ -41,9 +41,7 @@ class InitConfig:
     edge_length_ratio: float = 0.9
     """Edge-length checker similarity (*paper*: 0.9)."""
     mutual_filter: bool = True
-    """Keep only mutual nearest-neighbour feature matches: with all matches the first RANSAC run
-    often finds nothing on the rooms. When the mutual matches give nothing, all matches are tried
-    (docs/decisions/registration-initialisation.md)."""
+    """Only mutual nearest-neighbour matches (all if those give none) (docs/decisions/registration-initialisation.md)."""
     ransac_max_iteration: int = 100_000
     """RANSAC iterations at most per run."""
     ransac_confidence: float = 0.999
@@ -61,21 +59,15 @@ class InitConfig:
     icp_max_iteration: int = 100
     """ICP iterations at most."""
     icp_coarse_voxels: float = 2.0
-    """Every start is first refined by ICP on both clouds downsampled to this many voxels (and
-    this correspondence distance), and only the ``candidates`` distinct coarse results again on
-    every sample; 0: every start on every sample. (Not in the paper, which has one start. The
-    same best hypotheses in less time than refining every start on every sample;
-    docs/decisions/registration-initialisation.md.)"""
+    """Voxels of the coarse ICP pass every start gets first; 0: none (docs/decisions/registration-initialisation.md)."""
     icp_coarse_relative_change: float = 1e-4
     """The coarse ICP stops when fitness and inlier RMSE change relatively less than this."""
     icp_relative_change: float = 1e-5
-    """ICP stops when fitness and inlier RMSE change relatively less than this (a fraction;
-    docs/decisions/registration-initialisation.md)."""
+    """ICP stop: relative change of fitness and inlier RMSE below this (docs/decisions/registration-initialisation.md)."""
     max_scale_ratio: float = 2.0
     """Hypotheses whose scale differs from the pre-estimate by more than this factor go."""
     top_k: int = 4
-    """Hypotheses kept for refinement (after the screening of ``candidates``; without the
-    screening, returned at most)."""
+    """Hypotheses kept for refinement after screening the ``candidates`` (without screening: returned at most)."""
     min_rotation_deg: float = 15.0
     """Kept hypotheses differ pairwise by at least this geodesic angle, or in scale or place."""
     min_scale_change: float = 0.1
@@ -83,15 +75,9 @@ class InitConfig:
     min_shift: float = 0.1
     """... or they put the library object's centre at least this fraction of its size apart."""
     upright_yaws: int = 24
-    """With an upright prior (the object stands as its library model does,
-    :mod:`regnf.registration.upright`), yaws this many to a turn also start ICP, over one
-    period of the object's symmetry about its up axis only (a k-fold table gets ``24 / k``, a
-    round one 1); 0: RANSAC's starts only (*paper*: RANSAC only). RANSAC alone can give an
-    object seen from one side no start near its true pose
-    (docs/decisions/registration-initialisation.md)."""
+    """Upright yaw starts a turn (over one symmetry period); 0: RANSAC only (docs/decisions/registration-initialisation.md)."""
     candidates: int = 12
-    """Distinct ICP results handed to the SDF screening (:mod:`regnf.registration.screening`), which
-    keeps the ``top_k`` with the most observed-evidence inliers for refinement."""
+    """Distinct ICP results handed to the SDF screening, which keeps the ``top_k`` best for refinement."""
     fgr_distance_voxels: float = 0.5
     """FGR's maximum correspondence distance (Open3D's example: 0.5 voxel)."""
     seed: int = 0

@@ -66,24 +66,13 @@ class RegistrationConfig:
     refine: RefineConfig = field(default_factory=RefineConfig)
     """Bidirectional refinement."""
     upright: bool = True
-    """The object stands as its library model does (the scene's and the library's up axes,
-    ``scene_sampling.up`` and the library's canonical +Z, correspond): a sweep of yaws adds
-    starts that do not depend on features (:mod:`regnf.registration.upright`). False: RANSAC's
-    starts only, for objects in any orientation."""
+    """The object stands as its library model does (``scene_sampling.up`` is its +Z); False: RANSAC's starts only."""
     acceptance_threshold: float = 0.6
     """A result whose confidence is below this is reported as a failed registration."""
     free_space_margin_m: float = 0.02
-    """A library sample the pose puts farther than this in front of the scene's surface, in
-    space the scene's views observed, stands in seen free space; the confidence is multiplied
-    by one less the fraction of observed samples that do (:mod:`regnf.registration.free_space`;
-    inf: never). Metres; 2 cm, the training's own free-space margin
-    (docs/decisions/registration-acceptance.md)."""
+    """Seen-free-space margin in front of the scene's surface, metres; inf: never (docs/decisions/registration-acceptance.md)."""
     confident_score: float = 0.85
-    """The best screened hypothesis is refined first, alone; when its confidence reaches this,
-    the others are not refined (:func:`refine_hypotheses`). Above 1: every hypothesis is
-    refined. (Not in the paper, which refines one. The first hypothesis wins in nearly every
-    benchmark pair, and the others' refinement is a third of a registration's time;
-    docs/decisions/registration-acceptance.md.)"""
+    """Confidence at which the first hypothesis spares the rest; > 1: refine all (docs/decisions/registration-acceptance.md)."""
     device: str | None = None
     """Torch device of the fields; None: the scene field's device."""
 

@@ -22,9 +22,7 @@ class RefineConfig:
     """
 
     max_iterations: int = 200
-    """Most Adam steps (*paper*: 200). (Learning rates stay constant, as in the paper: a decay
-    saves steps on some objects at the cost of accuracy;
-    docs/decisions/registration-refinement.md.)"""
+    """Most Adam steps, learning rates constant (*paper*: 200; docs/decisions/registration-refinement.md)."""
     lr_rotation: float = 0.02
     """Adam learning rate of the axis-angle rotation update, radians (*paper*: 0.02)."""
     lr_translation: float = 0.01
@@ -38,9 +36,7 @@ class RefineConfig:
     alpha_hi: float = 1.0
     """Upper end of the kernel shape range (*paper*: 1)."""
     kernel_scale_init: float = 0.01
-    """Initial kernel scale c, *L* (*paper*: 1, but c moves slowly at ``lr_kernel`` and after
-    200 steps is still about 0.5, far above residuals of 0.005: the kernel stays quadratic and
-    robust to nothing. 0.01 is the surface tolerance: the scale of an inlier residual)."""
+    """Initial kernel scale c, *L*: the surface tolerance (*paper*: 1; docs/decisions/registration-refinement.md)."""
     resample_every: int = 10
     """Draw new samples every this many iterations (*paper*: 10); 0 never resamples."""
     jitter_fraction: float = 1.0 / 20.0
@@ -56,8 +52,7 @@ class RefineConfig:
     early_stop_residual: float = 0.0005
     """Stop when the mean residual of A is below this, *L* (*paper* text: 0.0005; its code: 0.001)."""
     regulariser_weight: float = 0.1
-    """Weight w of the trimmed scene -> library nearest-neighbour term (module docstring;
-    docs/decisions/registration-refinement.md)."""
+    """Weight w of the trimmed scene -> library nearest-neighbour term (docs/decisions/registration-refinement.md)."""
     trim_fraction: float = 0.8
     """The regulariser averages this fraction of the smallest squared distances."""
     inlier_threshold: float = 0.01
@@ -69,9 +64,7 @@ class RefineConfig:
     seed: int = 0
     """Seed of the resampling jitter."""
     convergence_window: int = 20
-    """Stop a hypothesis once its pose moved less than the three tolerances below over this many
-    iterations; 0 disables. (Not in the paper, whose residual stop a neural scene field rarely
-    reaches, so every hypothesis would run all 200 steps.)"""
+    """Stop window, Adam iterations, for the tolerances below; 0 disables (docs/decisions/registration-refinement.md)."""
     convergence_rotation_deg: float = math.degrees(1e-3)
     """Rotation tolerance of that stop, degrees (a thousandth of a radian)."""
     convergence_translation: float = 1e-3
@@ -79,74 +72,40 @@ class RefineConfig:
     convergence_scale: float = 1e-3
     """Relative scale tolerance."""
     prune_after: int = 10
-    """At this iteration stop refining every hypothesis whose inlier fraction trails the best one
-    by more than ``prune_margin`` (it keeps its state and is reported); 0 disables."""
+    """Adam iteration at which hypotheses trailing the best inlier fraction by > ``prune_margin`` stop; 0 disables."""
     prune_margin: float = 0.1
     """See ``prune_after``."""
     level_set_offset: bool = True
-    """Learn a constant offset delta of the scene SDF: residuals use ``s S_scene + delta L``. (Not
-    in the paper. A neural scene field is often dilated or eroded by a few mm; without delta the
-    only way to absorb that is a wrong scale; docs/decisions/registration-refinement.md.)"""
+    """Learn an offset delta of the scene SDF, ``s S_scene + delta L`` (docs/decisions/registration-refinement.md)."""
     lr_offset: float = 0.003
     """Adam learning rate of delta, *L*."""
     max_offset: float = 0.01
-    """Bound on |delta|, *L* (``delta = max_offset tanh(d)``; 0: unbounded). Delta is for a
-    field dilated or eroded by a few mm; an object seen from one side leaves its depth along
-    the view and delta free to trade against each other, and an unbounded delta takes that
-    freedom (docs/decisions/registration-refinement.md)."""
+    """Bound on |delta|, *L* (``delta = max_offset tanh(d)``); 0: unbounded (docs/decisions/registration-refinement.md)."""
     use_visibility: bool = True
-    """Weight every residual (both terms, and the confidence) by how well the scene field's
-    training views observed the place of its sample (``scene_field.visibility``, recorded at
-    training; a field without it counts as observed everywhere). (Not in the paper. A field
-    trained from a few views knows nothing of an object's far side: counting it as evidence
-    rejects true poses and lets a 180-degree flip that fits the seen half win; a flip that puts
-    library surface into observed free space is still charged for it.)"""
+    """Weight residuals by how well the scene's training views observed them (docs/decisions/registration-refinement.md)."""
     visibility_lookahead: float = 3.0
-    """A library sample (B) counts as observed as far as the space in front of its surface was:
-    its weight is the visibility read this many grid voxels out along the library's outward
-    normal, mapped into the scene at the current pose. 0 reads it at the sample itself.
-    (Not in the paper. The grid counts space up to its margin, 2 voxels, behind an observed
-    surface as observed, so the unseen underside of a thin top reads as observed at the
-    sample. Scene samples (A) are read at the sample: read in front, the made-up surfaces
-    bounding a field's fill, whose front is observed free space, would gain weight;
-    docs/decisions/registration-refinement.md.)"""
+    """Library samples' visibility is read this many grid voxels out; 0: at them (docs/decisions/registration-refinement.md)."""
 
     optimizer: Literal["lm", "adam"] = "lm"
-    """``lm``: Levenberg-Marquardt, the kernel's (alpha, c) fitted to the residuals at every
-    iterate (:mod:`regnf.registration.irls`); ``adam``: the paper's Adam on all parameters at once.
-    (Not in the paper. The objective is a robust least-squares problem in 8 parameters: a
-    damped Newton step converges in far fewer iterations than Adam at the paper's rates;
-    docs/decisions/registration-refinement.md.)"""
+    """``lm``: Levenberg-Marquardt; ``adam``: the paper's Adam (docs/decisions/registration-refinement.md)."""
     lm_max_iterations: int = 30
     """Most Levenberg-Marquardt iterations (``optimizer="lm"``); ``max_iterations`` caps Adam."""
     lm_resample_every: int = 3
     """Resample every this many LM iterations (Adam: ``resample_every``); 0 never resamples."""
     lm_resamples: int = 2
-    """Resampling rounds at most (then the hypothesis converges on fixed samples): without a
-    limit the samples keep changing and the stop is rarely reached; without rounds the
-    confidence is lower (docs/decisions/registration-refinement.md)."""
+    """Resampling rounds at most, then fixed samples (docs/decisions/registration-refinement.md)."""
     lm_prune_after: int = 6
-    """At this LM iteration stop hypotheses whose inlier fraction trails the best one (running or
-    already stopped: a best one that converged early still counts) by more than ``prune_margin``
-    (Adam: ``prune_after``); 0 disables, merging too. A start that tilts before it settles can trail
-    for the first few iterations (docs/decisions/registration-refinement.md)."""
+    """LM iteration of the pruning (``prune_margin``); 0 disables it and merging (docs/decisions/registration-refinement.md)."""
     lm_merge_rotation_deg: float = 5.0
-    """From iteration ``lm_prune_after`` on, a hypothesis that comes this close in rotation
-    (degrees, modulo the object's symmetry), ``lm_merge_scale`` in scale and ``lm_merge_shift``
-    in where it maps the scene samples' centroid to a hypothesis with a higher inlier fraction
-    (running or stopped) stops: both are heading for one pose; 0 disables. (Not in the paper;
-    docs/decisions/registration-refinement.md.)"""
+    """Merge distance in rotation, degrees modulo symmetry; 0 disables merging (docs/decisions/registration-refinement.md)."""
     lm_merge_scale: float = 0.05
     """See ``lm_merge_rotation_deg``: relative scale."""
     lm_merge_shift: float = 0.1
     """See ``lm_merge_rotation_deg``: *L*."""
     lm_step_tolerance: float = 1e-4
-    """A hypothesis has converged once an LM step would move it less than this in rotation
-    (radians), in the mapped centroid of A (*L*), in relative scale and in the level-set
-    offset (*L*)."""
+    """LM converged when a step moves less than this: rotation (rad), centroid of A and offset (*L*), relative scale."""
     lm_damping: float = 1e-3
-    """Initial Levenberg-Marquardt damping mu (relative to the diagonal), then Nielsen's update
-    from the gain ratio (the loss's decrease over the decrease the model predicted)."""
+    """Initial Levenberg-Marquardt damping mu, relative to the diagonal, then Nielsen's gain-ratio update."""
 
     def __post_init__(self) -> None:
         positive = ("lr_rotation", "lr_translation", "lr_scale", "lr_kernel", "kernel_scale_init",

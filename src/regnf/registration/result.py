@@ -26,8 +26,7 @@ class HypothesisReport:
     loss: float
     """Final refinement loss (nan when not refined)."""
     confidence: float
-    """Fraction of SDF residuals under the inlier threshold after refinement, times the
-    fraction of the library object inside the proposal."""
+    """Inlier fraction of the SDF residuals after refinement times the library object's fraction in the proposal."""
 
     def to_json(self) -> dict:
         return {
@@ -46,8 +45,7 @@ class RegistrationResult:
     transform: SimilarityTransform
     """Scene field frame -> library field frame, ``y = s R x + t``."""
     confidence: float
-    """Fraction of SDF residuals (both directions) under ``inlier_threshold`` at the end, times
-    the fraction of the library object that lies in the proposal box (``losses`` holds both)."""
+    """Inlier fraction of the SDF residuals (both ways) times the library object's fraction in the proposal."""
     accepted: bool
     """``confidence >= acceptance_threshold``: trust the result or report a failure."""
     method: str

@@ -53,10 +53,7 @@ class SamplingConfig:
     single_view_direction: tuple[float, float, float] = (-1.0, 0.0, 0.15)
     """Box centre -> single camera, in the (x, y, up) basis: a low side view from -x."""
     single_view_zoom: float = 3.0
-    """Narrows the single view's field of view by this factor (> 1: only part in frame). The
-    paper's single views are "highly uninformative and/or partial" views picked per object; we
-    use one rule for every object: from -x, about the central third of the object in frame
-    (docs/decisions/surface-sampling.md)."""
+    """Narrows the single view's field of view by this factor (> 1: only part in frame; docs/decisions/surface-sampling.md)."""
     rays_per_side: int = 64
     """Rays along each image axis (paper: every 8th pixel of a 512 image)."""
     distance_factor: float = 2.5
@@ -80,14 +77,9 @@ class SamplingConfig:
     floor_ransac_iters: int = 200
     """Plane hypotheses tried by the floor RANSAC before the least-squares refit."""
     underside_deg: float = 60.0
-    """Scene side: hits whose normal lies within this many degrees of straight down (against
-    ``up``) are dropped, unless every hit faces down; 0 keeps them. A room is captured from
-    above: the room fields place the undersides of seats and tabletops, seen at grazing angles
-    if at all, far from their true surfaces, and their residuals pull the scale
-    (docs/decisions/surface-sampling.md)."""
+    """Scene hits facing within this many degrees of down are dropped; 0 keeps them (docs/decisions/surface-sampling.md)."""
     surface_tol_rel: float = 1e-4
-    """A hit is kept only if |sdf| <= this fraction of the box diagonal (drops rays that
-    start inside matter and unconverged brackets)."""
+    """Hits with |sdf| above this fraction of the box diagonal go (rays started in matter, unconverged brackets)."""
     voxel_size_rel: float = 0.01
     """Downsampling voxel as a fraction of the box diagonal (0 disables)."""
     max_points: int = 5000

@@ -34,27 +34,16 @@ class BakeConfig:
     """How :func:`bake` samples a field."""
 
     cell_pixels: float = 0.5
-    """Grid cell as a multiple of the cameras' pixel footprint (:func:`bake_cell`): half a
-    footprint keeps silhouettes and thin parts that a whole one loses
-    (docs/decisions/rendering-speed.md)."""
+    """Grid cell, multiples of the cameras' pixel footprint (docs/decisions/rendering-speed.md)."""
     max_nodes: int = 2**25
-    """Most grid nodes of one field (distance and colour, 4 x float32 a node: 512 MB at the
-    default); a coarser cell is taken when the footprint would need more."""
+    """Most grid nodes of one field, 16 bytes each; a coarser cell is taken when the footprint needs more."""
     max_total_nodes: int = 2**27
-    """Most grid nodes of everything one bake makes (2 GB at the default): a composite of many
-    library objects seen up close is refused before any baking rather than taking the
-    machine's memory (the composite room of the benchmark: 48 M)."""
+    """Most grid nodes one bake makes in all; a larger bake is refused (docs/decisions/rendering-speed.md)."""
     band_cells: float = 2.0
-    """Colour is evaluated at nodes whose distance is within this many cells of the surface (a
-    hit's trilinear cell has its 8 corners within sqrt(3) cells); elsewhere it is never read and
-    left 0. The colour is the costly evaluation (it takes the SDF's gradient)."""
+    """Distance from the surface, cells, up to which nodes get a colour (docs/decisions/rendering-speed.md)."""
 
     coarse_stride: int = 4
-    """The SDF is first evaluated at every ``coarse_stride``-th node along each axis and
-    interpolated; the field itself is then evaluated only at the nodes that may lie within
-    the colour band (the interpolation's error on a 1-Lipschitz distance is at most half a
-    coarse cell's diagonal). The others keep the interpolation less that bound: a lower bound
-    of their distance, safe for a sphere tracer. 1 evaluates every node."""
+    """Node stride of the SDF's interpolated first pass; 1: none (docs/decisions/rendering-speed.md)."""
 
     def __post_init__(self) -> None:
         if isinstance(self.coarse_stride, bool) or int(self.coarse_stride) != self.coarse_stride \

@@ -27,15 +27,13 @@ class Camera:
     """A pinhole camera in metres."""
 
     K: np.ndarray
-    """(3, 3) float64 pinhole intrinsics (pixels), ``fx, fy > 0``
-    (:func:`regnf.captures.model.check_intrinsics`)."""
+    """(3, 3) float64 pinhole intrinsics, pixels (:func:`~regnf.captures.model.check_intrinsics`)."""
     width: int
     """Image width in pixels."""
     height: int
     """Image height in pixels."""
     camera_to_world: np.ndarray
-    """(4, 4) float64 rigid pose camera -> world metres, OpenCV axes
-    (:func:`regnf.captures.model.check_rigid_pose`)."""
+    """(4, 4) float64 rigid pose, camera -> world metres (:func:`~regnf.captures.model.check_rigid_pose`)."""
 
     def __post_init__(self) -> None:
         K = np.asarray(self.K, dtype=np.float64)

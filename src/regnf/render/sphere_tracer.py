@@ -77,12 +77,9 @@ class SphereTracerConfig:
     max_steps: int = 256
     """Marching iterations per ray (look-ups and evaluations) before it counts as a miss."""
     omega: float = 1.6
-    """Relaxation factor of the steps (the cap when adaptive), in (0, 2): above 1 over-relaxed
-    (verified steps, see the module), 1 plain, below 1 under-relaxed for fields that overestimate
-    their distance (registration's surface sampling takes 0.9 on neural fields)."""
+    """Relaxation factor of the steps (cap when adaptive), in (0, 2): > 1 over-, 1 plain, < 1 under-relaxed."""
     adaptive: bool = True
-    """Adapt the relaxation to the SDF's slope along the ray (see the module); False: Keinert's
-    fixed ``omega``, dropped to 1 for good after the first failed step."""
+    """Adapt the relaxation to the SDF's slope along the ray (the module); False: Keinert's fixed ``omega``."""
     min_step: float = 1e-4
     """Smallest step, so that grazing rays do not stall; an overshoot it causes is refined."""
     tol: float = 1e-5
@@ -108,15 +105,11 @@ class SphereTracerConfig:
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     """RGB of pixels that hit nothing."""
     chunk: int = WAVEFRONT
-    """Rays marching at once (a ray that stops makes room for the next waiting one; see
-    :func:`trace`), and points shaded per batch: bounds the working memory."""
+    """Rays marching at once and points shaded per batch (:data:`WAVEFRONT`): bounds the working memory."""
     check_camera: bool = True
     """:func:`render` refuses a camera whose centre is inside matter."""
     cone_tile: int = 3
-    """Pixels per side of the square tiles whose rays :func:`render_many` first marches as one
-    cone (:func:`cone_starts`): each pixel's ray then starts where its tile's cone came near a
-    surface, not at the camera. 0 or 1: every ray marches from the camera. The cones of small
-    tiles cost more, those of large tiles stop sooner (docs/decisions/rendering-speed.md)."""
+    """Side of the tiles first marched as cones, pixels; 0 or 1: no cones (docs/decisions/rendering-speed.md)."""
 
     def __post_init__(self) -> None:
         if self.max_steps < 1 or self.max_refine < 0 or self.chunk < 1:

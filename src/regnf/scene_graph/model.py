@@ -94,9 +94,7 @@ class RegistrationProvenance:
     forced: bool = False
     """Written although not accepted (``force``)."""
     discovery: dict | None = None
-    """How ``regnf discover`` found the instance with no box given (the candidate's box, every
-    library object tried there with its confidence), as JSON-compatible data; None when the
-    registration was given its box."""
+    """``regnf discover``'s record (candidate box, objects tried and their confidences); None: box given."""
     warnings: list[str] = field(default_factory=list)
     """What the registration warned of, one line each (a scale that suggests other units)."""
 
@@ -117,7 +115,12 @@ class InstanceRecord:
 
 @dataclass
 class ComposedScene:
-    """Everything a stage records."""
+    """Everything a stage records.
+
+    With a ``physics_density`` the stage carries ``UsdPhysics``: every instance a rigid body, every
+    library mesh a convex-hull collider of that density, the scene a static collider. The
+    ``edited_scene`` mesh is the render-purpose mesh other tools show (the proxy keeps the whole
+    scene); any change of the instances drops it, as it belongs to the instances it was cut for."""
 
     scene: FieldRecord
     """The scene field (its proxy in room metres)."""
@@ -128,13 +131,9 @@ class ComposedScene:
     provenance: dict = field(default_factory=dict)
     """Stage-level provenance (``customLayerData``): strings, numbers, bools, nested dicts."""
     physics_density: float | None = None
-    """Density of the library objects, kg / m^3, for simulators (``UsdPhysics``: every instance a
-    rigid body, every library mesh a convex-hull collider of this density, the scene a static
-    collider), or None: no physics."""
+    """Density of the library objects for simulators' physics, kg / m^3, or None: no physics."""
     edited_scene: ProxyMesh | None = None
-    """The scene less every instance's removal region, in room metres (the render-purpose mesh
-    other tools show; the proxy keeps the whole scene), or None. Any change of the instances
-    drops it: it belongs to the instances it was cut for."""
+    """The scene less every instance's removal region, room metres (the mesh other tools show), or None."""
 
     def classes(self) -> dict[str, list[str]]:
         """Library names per class, sorted (the variants of each class's slot)."""

@@ -60,8 +60,7 @@ class ObjectCaptureConfig:
     n_views: int = 100
     """Number of frames."""
     fill: float = 0.9
-    """Fraction of the half-FOV spanned by the object's bounding sphere (the object itself then
-    spans about 55-80 % of the image)."""
+    """Fraction of the half-FOV the object's bounding sphere spans (the object: about 55-80 % of the image)."""
     seed: int = 0
     """Recorded for provenance; the object trajectory itself is deterministic."""
     heldout_every: int = 10

@@ -51,8 +51,7 @@ class SensorNoiseConfig:
     axial_scale: float = 0.0
     """Multiplier on Nguyen et al.'s axial sigma_z(z, theta) (0: no axial noise)."""
     lateral_scale: float = 0.0
-    """Multiplier on Nguyen et al.'s lateral sigma_L(theta), the standard deviation of each
-    pixel's sampling jitter (0: none; 0.625 gives ICL-NUIM's 0.5 pixel at normal incidence)."""
+    """Multiplier on Nguyen et al.'s lateral sigma_L(theta), 0 for none (docs/decisions/sensor-noise.md)."""
     baseline_m: float = 0.075
     """Projector-camera baseline of the disparity, metres."""
     disparity_focal_px: float = 580.0
@@ -64,8 +63,7 @@ class SensorNoiseConfig:
     max_incidence_deg: float = 90.0
     """No return where the angle between the ray and the surface normal exceeds this, degrees."""
     edge_jump_footprints: float = math.inf
-    """No return where the depth range of the 3x3 neighbourhood (a no-return neighbour counting
-    as 0) exceeds this many pixel footprints (z / fx), as at a depth discontinuity."""
+    """No return where a 3x3 window's depth range (no return as 0) exceeds this many pixel footprints (z / fx)."""
     max_range_m: float = math.inf
     """No return beyond this depth, metres."""
     speckle: float = 0.0

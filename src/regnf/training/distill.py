@@ -63,9 +63,7 @@ class DistillConfig(OptimiserConfig):
     w_eikonal: float = 0.1
     """Weight of the eikonal loss."""
     eikonal_uniform: bool = True
-    """Apply the eikonal loss at the uniform samples too, not only at the surface samples. The
-    uniform samples have exact signed-distance targets anyway, and their finite differences are a
-    third of a step's points. The mesh preset leaves it off (docs/decisions/field-training.md)."""
+    """Eikonal loss at the uniform samples too, not only the surface ones (docs/decisions/field-training.md)."""
     w_normal: float = 0.05
     """Weight of the normal loss at surface samples."""
     w_color: float = 1.0
@@ -79,14 +77,11 @@ class DistillConfig(OptimiserConfig):
     architecture: NeuralSDFConfig = field(default_factory=NeuralSDFConfig)
     """Architecture of the field."""
     up: str = "z"
-    """Up axis of the mesh as given (z, y, x, -z, -y, -x); it is turned to +Z, the library's
-    up, before anything else (``y``: a Y-up file, +X forward kept). The mesh is not moved
-    otherwise: the field's ``to_world`` maps to the mesh's own metres, turned."""
+    """Up axis of the mesh as given (z, y, x, -z, -y, -x), turned to +Z first and not moved otherwise."""
     sign: MeshSignConfig = field(default_factory=MeshSignConfig)
     """How signs are decided (winding numbers) and internal faces found."""
     scale: float = 1.0
-    """Metres per unit of the mesh as given (0.001 for a file in millimetres); applied to the
-    vertices before anything else."""
+    """Metres per unit of the mesh as given (0.001 for a file in millimetres), applied to the vertices first."""
 
     def __post_init__(self) -> None:
         super().__post_init__()

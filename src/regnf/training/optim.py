@@ -25,8 +25,7 @@ class OptimiserConfig:
     lr_mlp: float = 2e-3
     """Learning rate of the MLPs."""
     lr_final: float = 0.01
-    """The learning rates at the last step, as a fraction of ``lr_grid`` and ``lr_mlp`` (cosine
-    decay after a 50-step warm-up, :func:`lr_factor`; docs/decisions/field-training.md)."""
+    """Learning rates at the last step, fraction of lr_grid and lr_mlp (docs/decisions/field-training.md)."""
 
     def __post_init__(self) -> None:
         name = type(self).__name__

@@ -47,20 +47,15 @@ class PoseRefineConfig:
     """Joint refinement of the training frames' poses (see :mod:`regnf.training.pose_refinement`)."""
 
     mode: Literal["auto", "on", "off"] = "auto"
-    """Refine the poses: ``auto`` only where the capture's poses are estimates
-    (:attr:`regnf.captures.model.Capture.poses_estimated`), ``on`` always, ``off`` never."""
+    """Refine the poses: ``auto`` only where the capture's poses are estimates, ``on`` always, ``off`` never."""
     lr: float = 1e-3
-    """Learning rate of the corrections: about the largest step an Adam update takes, in metres
-    (translation) and radians (rotation) (docs/decisions/pose_refinement.md)."""
+    """Learning rate of the corrections, about Adam's step, m and rad (docs/decisions/pose_refinement.md)."""
     weight: float = 1.0
-    """Weight of the L2 penalty on the corrections, per square metre (translation in metres,
-    rotation in radians), on the frames' mean (docs/decisions/pose_refinement.md)."""
+    """Weight of the L2 penalty on the mean squared correction, per m^2 (docs/decisions/pose_refinement.md)."""
     start: float = 0.25
     """The first training step that applies the corrections, as a fraction of the steps."""
     keep_mean_pose: bool = True
-    """Take the corrections' common rigid motion out, so that the frames' mean position and
-    orientation stay as given (:meth:`PoseCorrections.applied`; docs/decisions/pose_refinement.md);
-    off only where the scene's frame is fixed by something else (a known SDF)."""
+    """Take the corrections' common rigid motion out, keeping the mean pose (docs/decisions/pose_refinement.md)."""
 
     def __post_init__(self) -> None:
         if self.mode not in ("auto", "on", "off"):

@@ -114,33 +114,21 @@ class RGBDTrainConfig(OptimiserConfig):
     w_free: float = 1.0
     """Weight of the free-space loss."""
     w_edge: float = 0.0
-    """Weight of the occluding-edge loss (0: off): S >= 0 on rays that pass just beside an
-    observed silhouette, near the occluder's depth (``RGBDSamples.edge_t``); without it an
-    outline seen against a far background grows outward freely
-    (docs/decisions/room-training-losses.md)."""
+    """Weight of the occluding-edge loss, 0 for off (docs/decisions/room-training-losses.md)."""
     batch_edge: int = 2048
     """Samples per step on the rays that pass an occluding edge."""
     edge_band_m: tuple[float, float] = (0.02, 0.05)
-    """Edge samples lie from this many metres before to this many after the occluder's depth
-    along the passing ray (and never within ``free_margin_m`` of the ray's own hit)."""
+    """Edge samples' span before and after the occluder's depth, metres (never within free_margin_m of the hit)."""
     w_outline: float = 0.0
-    """Weight of the outline loss (0: off): |S| at the points on the occluders' side of each
-    occluding edge (``RGBDSamples.outline``, the pixels whose neighbour is an edge ray), which
-    few pixels hold while the edge loss pushes the same outline inward
-    (docs/decisions/room-training-losses.md)."""
+    """Weight of the outline loss, 0 for off (docs/decisions/room-training-losses.md)."""
     batch_outline: int = 1024
     """Outline points per step (drawn with replacement)."""
     carve_every: int = 0
-    """Steps between the floater pool's mining passes (0: no pool;
-    :class:`regnf.training.floater_pool.FloaterPool`): matter the field holds where a
-    training view saw free space is found on a grid and kept, and every later step asks it to
-    be positive again, until it is gone (docs/decisions/room-training-losses.md)."""
+    """Steps between the floater pool's mining passes, 0 for no pool (docs/decisions/room-training-losses.md)."""
     carve_from: float = 0.5
-    """The first mining pass, as a fraction of ``steps``; from it on the pool also keeps the
-    uniform free-space points found negative, and each step draws ``batch_carve`` points."""
+    """When the first mining pass runs and the pool's loss starts, fraction of the steps."""
     carve_spacing_m: float = 0.04
-    """Grid spacing of a mining pass, metres (a random offset each pass); pool points are
-    drawn moved by up to half of it."""
+    """Grid spacing of a mining pass, metres (random offset each pass; pool points move by up to half)."""
     batch_carve: int = 512
     """Pool points per step."""
     w_eikonal: float = 0.1
@@ -166,18 +154,13 @@ class RGBDTrainConfig(OptimiserConfig):
     device: str = "cpu"
     """Torch device to train on."""
     visibility_resolution: int = DEFAULT_RESOLUTION
-    """Voxels along the longest bounds axis of the visibility grid attached to the trained field
-    (:func:`regnf.observations.visibility.build_visibility`, over the training frames; a fraction
-    of a second for a room, single-threaded: docs/decisions/field-training.md); 0: attach none
-    (``field.visibility = None``: nothing recorded, everything counts as observed).
-    Training needs depth in every training frame, so every trained field can have one."""
+    """Voxels along the longest axis of the visibility grid, 0 for none (docs/decisions/field-training.md)."""
     visibility_margin: float = DEFAULT_MARGIN
     """Voxels behind each observed surface that the visibility grid counts as observed."""
     architecture: NeuralSDFConfig = field(default_factory=NeuralSDFConfig)
     """Architecture of the field."""
     pose_refine: PoseRefineConfig = field(default_factory=PoseRefineConfig)
-    """Joint refinement of the training frames' poses (by default only where the capture's poses
-    are estimates; :mod:`regnf.training.pose_refinement`)."""
+    """Joint refinement of the training poses, by default of estimated ones (docs/decisions/pose_refinement.md)."""
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -211,8 +194,7 @@ class TrainLog:
     pose_refinement: PoseReport | None = None
     """The size of the pose corrections applied (None: refinement off)."""
     corrected_poses: np.ndarray | None = None
-    """(n, 4, 4) float64 corrected camtoworld of the training frames, in their order (normalised
-    frame; None: refinement off)."""
+    """(n, 4, 4) float64 corrected camtoworld of the training frames in order, normalised frame (None: off)."""
 
 
 class _ViewStack:

@@ -39,29 +39,21 @@ class ViewerConfig:
     device: str = "cpu"
     """Where the fields are loaded and rendered (``cpu`` or ``cuda``)."""
     coarse_pixels: int = 64 * 48
-    """Pixels of the image rendered as soon as the camera moves: a fraction of a second on 2 CPU
-    cores (docs/decisions/rendering-speed.md)."""
+    """Pixels of the image rendered as soon as the camera moves (docs/decisions/rendering-speed.md)."""
     refined_pixels: int = 320 * 240
     """Pixels of the image rendered once the camera rests (docs/decisions/rendering-speed.md)."""
     rest_seconds: float = 0.4
     """The camera counts as resting when it has not moved for this long."""
     opening_rest_seconds: float = 3.0
-    """Seconds a newly opened page's first view waits before it is refined: the browser is still
-    building the page, and a render then takes the CPU from it
-    (docs/decisions/rendering-speed.md)."""
+    """Seconds a new page's first view waits before it is refined (docs/decisions/rendering-speed.md)."""
     opening_fov: float = 63.0
-    """Vertical field of view of the camera a browser opens with, degrees (viser's default is
-    75: wider than a room needs)."""
+    """Vertical field of view of the camera a browser opens with, degrees (docs/decisions/viewer.md)."""
     opening_aspect: float = 2.4
-    """The opening view's coarse image is rendered before the server starts, this wide (width
-    over height), and cropped to each browser's aspect: any window up to this wide gets its
-    first image without waiting for a render."""
+    """Width over height of the opening view's image rendered in advance (docs/decisions/viewer.md)."""
     sphere: SphereTracerConfig = field(default_factory=lambda: SphereTracerConfig(footprint_fraction=0.05))
-    """The sphere tracer's settings (``regnf render``'s defaults: stop at 5 % of a pixel's
-    footprint)."""
+    """The sphere tracer's settings (as ``regnf render``'s: stop at 5 % of a pixel's footprint)."""
     allow_outside: bool = False
-    """Open asset paths of the stage that lie outside its folder (refused by default, as in
-    ``regnf stage show``)."""
+    """Open asset paths of the stage that lie outside its folder (as in ``regnf stage show``)."""
     stage_poll_seconds: float = 1.0
     """Seconds between two checks of the stage's files for changes made by another program."""
 
