@@ -364,3 +364,15 @@ def test_parameter_count_is_exact_without_building(change: dict) -> None:
     bounds = torch.tensor([[-0.9, -0.5, -0.3], [0.8, 0.6, 0.95]])
     model = NeuralSDF(config, bounds=bounds)
     assert parameter_count(config, bounds[1] - bounds[0]) == sum(p.numel() for p in model.parameters())
+
+
+def test_loaded_weights_sit_in_aligned_memory_whatever_the_header_length(tmp_path: Path) -> None:
+    # The same weights under headers of 8 different lengths: a tensor read in place would lie at
+    # an address that moves with the header, and vector kernels may round differently there.
+    field = make_field()
+    for pad in range(8):
+        field.info.provenance = {"note": "x" * pad}
+        back = load_field(save_field(field, tmp_path / f"f{pad}.safetensors"))
+        for name, t in [*back.named_parameters(), *back.named_buffers()]:
+            assert t.data_ptr() % 64 == 0, (pad, name)
+            assert torch.equal(t, dict([*field.named_parameters(), *field.named_buffers()])[name])

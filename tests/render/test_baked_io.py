@@ -73,3 +73,11 @@ def test_damaged_files_are_refused_with_the_file_named(grid, tmp_path: Path) -> 
         load_baked(tmp_path / "missing.safetensors")
     with pytest.raises(BakedFileError, match=r"\.safetensors files"):
         save_baked(grid, tmp_path / "grid.bin")
+
+
+def test_loaded_grids_sit_in_aligned_memory_whatever_the_header_length(grid, tmp_path: Path) -> None:
+    for pad in range(8):
+        grid.info.provenance = {**grid.info.provenance, "note": "x" * pad}
+        back = load_baked(save_baked(grid, tmp_path / f"g{pad}.safetensors"))
+        assert back.sdf_grid.data_ptr() % 64 == 0 and back.rgb_grid.data_ptr() % 64 == 0, pad
+        assert torch.equal(back.sdf_grid, grid.sdf_grid)

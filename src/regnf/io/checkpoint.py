@@ -51,6 +51,7 @@ from safetensors import SafetensorError, safe_open
 from safetensors.torch import save as save_to_bytes
 
 from regnf.core.atomic_io import write_bytes
+from regnf.core.fresh_memory import in_fresh_memory
 from regnf.core.preflight import input_file_problem
 from regnf.fields.field import FieldInfo, Symmetry
 from regnf.fields.neural_sdf import ARCHITECTURE, NeuralSDF, NeuralSDFConfig
@@ -447,7 +448,7 @@ def load_field(
                     raise CheckpointError(path, f"tensor '{name}' has dtype {t.dtype}, expected {dtype}")
                 if t.is_floating_point() and not bool(torch.isfinite(t).all()):
                     raise CheckpointError(path, f"tensor '{name}' has non-finite values")
-                state[name] = t
+                state[name] = in_fresh_memory(t)  # its alignment not the header's length (core.fresh_memory)
     except CheckpointError:
         raise
     except (SafetensorError, OSError, ValueError, RuntimeError) as exc:

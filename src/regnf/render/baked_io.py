@@ -21,6 +21,7 @@ from safetensors.torch import save as save_to_bytes
 
 from regnf.core.atomic_io import write_bytes
 from regnf.core.errors import RegnfError
+from regnf.core.fresh_memory import in_fresh_memory
 from regnf.fields.field import FieldInfo, Symmetry
 from regnf.render.baked_field import RGB_STORAGE, BakedField
 
@@ -105,7 +106,7 @@ def load_baked(path: str | os.PathLike, device: torch.device | str = "cpu") -> B
             if not bool((bounds[1].float() > bounds[0].float()).all()):
                 raise BakedFileError(path, f"header 'bounds' must have lo < hi on every axis, got {bounds.tolist()}")
             # The colour as stored (half precision): BakedField converts it once.
-            sdf, rgb = f.get_tensor("sdf").float(), f.get_tensor("rgb")
+            sdf, rgb = in_fresh_memory(f.get_tensor("sdf"), torch.float32), f.get_tensor("rgb")
     except (OSError, SafetensorError, json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise BakedFileError(path, f"cannot read baked grids ({type(exc).__name__}: {exc})") from None
     if not bool(torch.isfinite(sdf).all()):
