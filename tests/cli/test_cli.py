@@ -199,6 +199,17 @@ def test_help_into_a_reader_that_stops_early_is_no_error() -> None:
     assert run.returncode == 0 and b"Traceback" not in err, err.decode()[-2000:]
 
 
+@pytest.mark.parametrize("args", [["--help"], ["stage", "--help"], ["bench", "--help"], ["train", "--help"]])
+def test_output_into_a_closed_pipe_is_no_error(args: list[str]) -> None:
+    import subprocess
+    import sys
+
+    run = subprocess.Popen([sys.executable, "-m", "regnf", *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    run.stdout.close()  # closed before the command writes anything: its first write fails
+    _, err = run.communicate(timeout=120)
+    assert run.returncode == 0 and err == b"", err.decode()[-2000:]
+
+
 def test_no_sphinx_markup_in_any_help(capsys: pytest.CaptureFixture[str]) -> None:
     import re
 

@@ -70,3 +70,9 @@ def test_options_can_be_made_for_any_config_and_unset_change_nothing() -> None:
     options = preset_options(NeuralSDFConfig, {"a": NeuralSDFConfig(), "b": NeuralSDFConfig(levels=2)})
     assert {f.name for f in dataclasses.fields(options)} == {f.name for f in dataclasses.fields(NeuralSDFConfig)}
     assert with_options(NeuralSDFConfig(levels=2), options()) == NeuralSDFConfig(levels=2)
+
+
+def test_a_bad_nested_value_is_refused_by_its_own_config() -> None:
+    options = tyro.cli(TRAINING_OPTIONS, args=["--architecture.encoding", "octree"])
+    with pytest.raises(RegnfError, match="unknown encoding 'octree'"):
+        with_options(SCENE_RGBD, options)

@@ -213,6 +213,8 @@ def _run(name: str, run: Callable[[], object], debug: bool) -> int:
             print(" ".join(exc.code.split()), file=sys.stderr)
             return EXIT_BAD_INPUT
         return EXIT_OK if exc.code is None else int(exc.code)
+    except BrokenPipeError:  # the reader of the output stopped early: main ends quietly
+        raise
     except BaseException as exc:  # noqa: BLE001 (every error becomes one line and a status)
         status = exit_status(exc)
         if debug:
@@ -254,6 +256,15 @@ def _full_help(cls: type, name: str, description: str) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``regnf`` console script."""
+    try:
+        return _main(argv)
+    except BrokenPipeError:  # the output went to a reader that stopped early (`| head`): nothing is wrong
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return EXIT_OK
+
+
+def _main(argv: list[str] | None) -> int:
+    """:func:`main`, less its handling of a closed output pipe."""
     import tyro
 
     args = list(sys.argv[1:] if argv is None else argv)
@@ -289,17 +300,13 @@ def main(argv: list[str] | None = None) -> int:
 
     install()
     description = plain_help(cls.__doc__ or "", [cls.__module__])
-    try:
-        if "--help-all" in rest:  # every option of every group
-            rest = ["--help" if a == "--help-all" else a for a in rest]
-        elif "-h" in rest or "--help" in rest:  # the command's own options, each group summed up
-            sys.stdout.write(compact_help(_full_help(cls, name, description), name))
-            sys.stdout.flush()
-            return EXIT_OK
-        command = tyro.cli(cls, args=rest, prog=f"regnf {name}", description=description)
-    except BrokenPipeError:  # the help went to a reader that stopped early (`| head`): nothing is wrong
-        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+    if "--help-all" in rest:  # every option of every group
+        rest = ["--help" if a == "--help-all" else a for a in rest]
+    elif "-h" in rest or "--help" in rest:  # the command's own options, each group summed up
+        sys.stdout.write(compact_help(_full_help(cls, name, description), name))
+        sys.stdout.flush()
         return EXIT_OK
+    command = tyro.cli(cls, args=rest, prog=f"regnf {name}", description=description)
     if argv is None:
         # A command's process: training's large per-step buffers are reused, not faulted in
         # anew each step (core.allocator; called in-process, main leaves the caller's be).

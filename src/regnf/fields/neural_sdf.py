@@ -53,6 +53,9 @@ class NeuralSDFConfig:
     inside_out: bool = False
     """Start with positive SDF inside the init sphere (rooms seen from inside)."""
 
+    def __post_init__(self) -> None:
+        self.validate()
+
     def to_json(self) -> dict:
         return asdict(self)
 
