@@ -210,6 +210,20 @@ def test_output_into_a_closed_pipe_is_no_error(args: list[str]) -> None:
     assert run.returncode == 0 and err == b"", err.decode()[-2000:]
 
 
+def test_a_commands_output_into_a_closed_pipe_is_no_error(tmp_path: Path) -> None:
+    import subprocess
+    import sys
+
+    from tests.scene_graph.helpers import make_stage
+
+    stage = make_stage(tmp_path / "s", ("c", "t"))
+    run = subprocess.Popen([sys.executable, "-m", "regnf", "stage", "show", str(stage)], stdout=subprocess.PIPE,
+                           stderr=subprocess.PIPE)
+    run.stdout.close()  # `regnf stage show` prints its summary to stdout: the write fails
+    _, err = run.communicate(timeout=120)
+    assert run.returncode == 0 and err == b"", err.decode()[-2000:]
+
+
 def test_no_sphinx_markup_in_any_help(capsys: pytest.CaptureFixture[str]) -> None:
     import re
 
