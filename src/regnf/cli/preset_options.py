@@ -17,7 +17,7 @@ from typing import Annotated, Any
 
 import tyro
 
-from regnf.cli.help_text import plain_help, unwrapped
+from regnf.cli.help_text import install
 
 
 def _shown(value: Any) -> str:
@@ -38,11 +38,11 @@ def _preset_values(values: Mapping[str, Any]) -> str:
 
 
 def _docstring(config_type: type, name: str) -> str:
-    """The one-line-or-more docstring under field ``name`` of ``config_type`` (or a base), in plain text."""
+    """The docstring under field ``name`` of ``config_type`` (or a base), as the help shows it."""
     from tyro import _docstrings
 
-    text = _docstrings.get_field_docstring(config_type, name, ()) or ""
-    return unwrapped(plain_help(text, [c.__module__ for c in config_type.__mro__]))
+    install()  # tyro's docstrings in plain text, as for every other option
+    return _docstrings.get_field_docstring(config_type, name, ()) or ""
 
 
 def preset_options(config_type: type, presets: Mapping[str, Any], skip: Collection[str] = ()) -> type:
