@@ -26,7 +26,7 @@ from regnf.observations.rgbd_samples import (
     flying_pixels,
     free_depths,
 )
-from regnf.training.training import GRADIENT_FLOOR, _ViewStack, free_stop, surface_distance
+from regnf.training.training import _ViewStack, free_stop
 
 W, H = 24, 16
 F = 60.0
@@ -373,16 +373,3 @@ def test_a_rays_free_space_ends_at_the_nearest_depth_around_it(tmp_path: Path) -
     assert exact.ray_free_t is None
 
 
-# -- the surface term of noisy depth ----------------------------------------------------------
-def test_surface_distance_is_the_distance_whatever_the_fields_slope() -> None:
-    """``|S| / |grad S|`` of a sphere's SDF scaled by a: the distance to the sphere for any a
-    down to the gradient floor (flattening the field does not shrink it); ``|S|`` shrinks."""
-    x = torch.tensor([[0.0, 0.0, 1.3], [0.7, 0.0, 0.0], [0.0, 0.5, 0.5]], dtype=torch.float64)
-    r = torch.linalg.norm(x, dim=-1)
-    distance = (r - 1.0).abs()
-    for a in (1.0, 0.5, GRADIENT_FLOOR):
-        sdf = a * (r - 1.0)
-        grad = a * x / r[:, None]
-        torch.testing.assert_close(surface_distance(sdf, grad), distance)
-    flat = 0.05  # below the floor: divided by the floor, not by the vanishing slope
-    torch.testing.assert_close(surface_distance(flat * (r - 1.0), flat * x / r[:, None]), flat * distance / GRADIENT_FLOOR)

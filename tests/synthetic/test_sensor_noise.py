@@ -69,17 +69,21 @@ def test_axial_sigma_matches_nguyen_closed_form(z0: float, theta0: float) -> Non
     assert (residuals / _nguyen_sigma(depth, theta)).std() == pytest.approx(1.0, rel=0.05)
 
 
-def test_lateral_jitter_is_half_a_pixel_at_normal_incidence() -> None:
+@pytest.mark.parametrize("focal", [580.0, 179.0])
+def test_lateral_jitter_is_half_a_depth_camera_pixel_at_normal_incidence(focal: float) -> None:
+    """ICL-NUIM's 0.5 pixel is a pixel of the depth camera (580 px focal length): the same
+    jitter in metres, 0.5 z / 580, whatever focal length the image is rendered with."""
     w, h = 64, 48
-    K = _K(4000.0, w, h)
+    K = _K(focal, w, h)
     slope = 0.01  # metres per column: bilinear resampling of a ramp is exact
     depth = np.broadcast_to(1.0 + slope * np.arange(w), (h, w)).copy()
     facing = np.broadcast_to([0.0, 0.0, -1.0], (h, w, 3))
     rng = np.random.default_rng(2)
     cfg = SensorNoiseConfig(lateral_scale=0.625)  # x Nguyen's 0.8 px = ICL-NUIM's 0.5 px
+    assert cfg.disparity_focal_px == 580.0
     shifts = np.stack([(apply_sensor_noise(depth, facing, _grey(h, w), K, rng, cfg)[0] - depth) / slope
                        for _ in range(100)])[:, :, 4:-4]  # away from the clamped border
-    assert shifts.std() == pytest.approx(0.5, rel=0.05)
+    assert shifts.std() == pytest.approx(0.5 * focal / 580.0, rel=0.05)
 
 
 def test_disparity_quantisation_steps_are_b_f_over_d() -> None:

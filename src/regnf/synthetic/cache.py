@@ -66,6 +66,7 @@ from regnf.synthetic.capture import (
     capture_room,
 )
 from regnf.synthetic.library import make_library_object
+from regnf.synthetic.sensor_noise import NOISE_LEVELS
 from regnf.synthetic.shading import shaded_copy
 from regnf.training.distill import (
     DISTILL_VERSION,
@@ -291,13 +292,20 @@ class Cache:
         check_entry_writable(folder)
         return capture_object(name, folder, dataclasses.replace(cfg, progress=self.progress))
 
+    def room_capture_folder(self, name: str, config: RoomCaptureConfig | None = None) -> Path:
+        """Where the capture of room ``name`` is kept (whether or not it is made yet)."""
+        cfg = self._capture_config(config or RoomCaptureConfig())
+        # A noisy capture's key holds its level's settings: a changed noise model makes it anew.
+        level = () if cfg.noise == "ideal" else (NOISE_LEVELS[cfg.noise],)
+        key = config_key("room", name, _without_progress(cfg), GENERATOR, *level)
+        # The key holds the noise level and seed; the level also shows in the folder's name.
+        noise = "" if cfg.noise == "ideal" else f"-{cfg.noise}"
+        return self.root / "captures" / f"room-{name}-{cfg.coverage}{noise}-{key}"
+
     def room_capture(self, name: str, config: RoomCaptureConfig | None = None) -> Capture:
         """The capture of room ``name`` (made if missing)."""
         cfg = self._capture_config(config or RoomCaptureConfig())
-        key = config_key("room", name, _without_progress(cfg), GENERATOR)
-        # The key holds the noise level and seed; the level also shows in the folder's name.
-        noise = "" if cfg.noise == "ideal" else f"-{cfg.noise}"
-        folder = self.root / "captures" / f"room-{name}-{cfg.coverage}{noise}-{key}"
+        folder = self.room_capture_folder(name, config)
         if (folder / "meta_data.json").is_file():
             return load_capture(folder)
         check_entry_writable(folder)

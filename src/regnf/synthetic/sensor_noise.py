@@ -6,7 +6,9 @@ The depth pieces, applied in this order to a rendered z-depth image by
 1. lateral noise (ICL-NUIM, Handa et al. 2014): each pixel reads the clean depth, bilinearly
    resampled, at a position jittered by a Gaussian whose standard deviation is a multiple of
    the lateral sigma of Nguyen et al. 2012, ``sigma_L(theta) = 0.8 + 0.035 theta / (pi/2 -
-   theta)`` pixels (:func:`lateral_sigma_px`);
+   theta)`` pixels of the depth camera (:func:`lateral_sigma_px`; in metres ``sigma_L z / f``
+   with the depth camera's focal length ``f``, so an image rendered with another focal length
+   is jittered by ``sigma_L f_image / f`` of its own pixels);
 2. axial noise (Nguyen, Izadi, Lovell 2012, "Modeling Kinect Sensor Noise for Improved 3D
    Reconstruction and Tracking"): Gaussian with ``sigma_z(z, theta) = 0.0012 + 0.0019 (z -
    0.4)^2 + 0.0001 / sqrt(z) * theta^2 / (pi/2 - theta)^2`` metres
@@ -55,7 +57,7 @@ class SensorNoiseConfig:
     baseline_m: float = 0.075
     """Projector-camera baseline of the disparity, metres."""
     disparity_focal_px: float = 580.0
-    """Focal length of the camera that measures disparity, pixels (a Kinect's infrared camera)."""
+    """Focal length of the depth camera, pixels (a Kinect's infrared camera): the unit of the disparity and of the lateral noise."""
     disparity_step_px: float = 0.0
     """Quantisation step of the disparity, pixels (0: none)."""
     depth_step_m: float = 0.0
@@ -211,7 +213,8 @@ def apply_sensor_noise(
     theta = incidence_angles(clean, K, normals_cam)
     z = clean
     if config.lateral_scale > 0:
-        sigma = config.lateral_scale * lateral_sigma_px(theta)
+        # Nguyen's sigma_L is in the depth camera's pixels: the same metric jitter in this image's.
+        sigma = config.lateral_scale * lateral_sigma_px(theta) * (K[0, 0] / config.disparity_focal_px)
         cols, rows = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
         jitter = rng.standard_normal((2, h, w)) * sigma
         z = np.where(valid, _bilinear(clean, cols + jitter[0], rows + jitter[1]), 0.0)

@@ -27,11 +27,10 @@ every scale:
 
 Depth with a noise model (:attr:`regnf.captures.model.Capture.depth_noise`, every capture but
 regnf's ideal renders) is trusted by how noisy it is: the surface, near-surface, normal and colour
-terms are means weighted by each sample's ``RGBDSamples.weights``, the surface term measures each
-point's first-order distance ``|S| / |grad S|`` instead of ``|S|`` (:func:`surface_distance`),
-and free space (the samples on observed rays and what a view sees free) stops
-``max(free_margin_m, free_sigma_multiple x sigma)`` before the depth (:func:`free_stop`). Exact
-depth keeps the unweighted means, ``|S|`` and the fixed margin, bit for bit.
+terms are means weighted by each sample's ``RGBDSamples.weights``, and free space (the samples on
+observed rays and what a view sees free) stops ``max(free_margin_m, free_sigma_multiple x
+sigma)`` before the depth (:func:`free_stop`). Exact depth keeps the unweighted means and the
+fixed margin, bit for bit.
 
 Where the capture's poses are estimates (``RGBDTrainConfig.pose_refine``), each training frame's
 pose gets a small rigid correction trained with the field: from ``pose_refine.start`` on, every
@@ -278,26 +277,6 @@ def free_stop(t: torch.Tensor, sigma: torch.Tensor | None, margin: float, multip
     return t - (margin if sigma is None else torch.clamp_min(multiple * sigma, margin))
 
 
-GRADIENT_FLOOR = 0.25
-"""Smallest gradient norm :func:`surface_distance` divides by (a field's SDF has norm 1)."""
-
-
-def surface_distance(sdf: torch.Tensor, grad: torch.Tensor) -> torch.Tensor:
-    """(n,) first-order distance ``|S| / max(|grad S|, GRADIENT_FLOOR)`` of points to the zero level.
-
-    The surface term of noisy depth: its points scatter a few centimetres about the true
-    surface, and ``|S|`` alone is smallest where the field flattens to zero across that band
-    (a slope far below 1 that registration reads as surface everywhere); the distance is not.
-    docs/decisions/depth-weights.md.
-
-    Parameters
-    ----------
-    sdf : (n,) float
-    grad : (n, 3) float
-    """
-    return sdf.abs() / grad.norm(dim=-1).clamp_min(GRADIENT_FLOOR)
-
-
 def _weighted_mean(x: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
     """sum(w x) / sum(w) of per-sample terms ``x`` (n,) and weights ``w`` (n,) > 0."""
     return (x * w).sum() / w.sum()
@@ -482,9 +461,7 @@ def train_rgbd(
         # -- one batched forward pass over every sample --------------------------------------
         # The eikonal loss is taken at the surface samples only, so the uniform points need no
         # gradient: one evaluation each for their free-space loss.
-        # Noisy depth needs the gradient at every surface point (surface_distance).
-        fd_base = [xs] + ([xs_all] if weighted else [])
-        fd_pts = tetrahedral_points(torch.cat(fd_base), h_fd)
+        fd_pts = tetrahedral_points(xs, h_fd)
         direct = torch.cat([xs, xs_all, xn, xf, xe_free, xg, xo, xc, xu])
         sdf_all, feat_all = model.sdf_and_features(torch.cat([direct, fd_pts]))
         sizes = [ns, ns, ns, xf.shape[0], xe_free.shape[0], xg.shape[0], xo.shape[0], xc.shape[0], xu.shape[0]]
@@ -492,12 +469,10 @@ def train_rgbd(
         feat_s = feat_all[:ns]
         grads, _ = tetrahedral_combine(sdf_all[direct.shape[0]:], h_fd)
         g_s = grads[:ns]
-        n_fd = 2 * ns if weighted else ns
 
         if weighted:
             w_s = s.weights[si]
-            d_s, d_sa = surface_distance(f_s, g_s), surface_distance(f_sa, grads[ns:n_fd])
-            loss_surface = (_weighted_mean(d_s, w_s) + _weighted_mean(d_sa, s.weights[sa])) * 0.5 / ell
+            loss_surface = (_weighted_mean(f_s.abs(), w_s) + _weighted_mean(f_sa.abs(), s.weights[sa])) * 0.5 / ell
             loss_near = _weighted_mean((f_n - e).abs(), w_s) / ell
         else:
             loss_surface = (f_s.abs().mean() + f_sa.abs().mean()) * 0.5 / ell
