@@ -109,7 +109,7 @@ NOISE_LEVELS: dict[str, SensorNoiseConfig] = {
 
 
 def lateral_sigma_px(theta: np.ndarray) -> np.ndarray:
-    """Nguyen et al.'s lateral noise sigma_L(theta), pixels (theta in radians, clamped)."""
+    """Nguyen et al.'s lateral noise sigma_L(theta), pixels of the depth camera (theta in radians, clamped)."""
     theta = np.minimum(np.asarray(theta, dtype=np.float64), MAX_THETA)
     return 0.8 + 0.035 * theta / (np.pi / 2 - theta)
 
