@@ -83,9 +83,8 @@ class NeuralSDFConfig:
             kind = type(defaults[name])
             if not _is_a(value, kind):
                 raise RegnfError(f"'{name}' must be {_TYPE_WORDS[kind]}, got {value!r}")
-        cfg = NeuralSDFConfig(**{k: float(v) if type(defaults[k]) is float else v for k, v in data.items()})
-        cfg.validate()
-        return cfg
+        # The constructor validates the values.
+        return NeuralSDFConfig(**{k: float(v) if type(defaults[k]) is float else v for k, v in data.items()})
 
     def validate(self) -> None:
         """Refuse values no network can have (ValueError naming the key).
