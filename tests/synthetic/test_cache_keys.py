@@ -26,3 +26,21 @@ def test_a_changed_noise_model_makes_the_noisy_captures_anew_and_keeps_the_ideal
     assert after["ideal"] == before["ideal"] and after["slam"] == before["slam"]
     # The ideal capture's key is the one it always had: no noise settings in it.
     assert before["ideal"].name.startswith("room-ac-room-low-") and "ideal" not in before["ideal"].name
+
+
+@dataclasses.dataclass(frozen=True)
+class _WithNewSetting(type(NOISE_LEVELS["sensor"])):  # type: ignore[misc]
+    new_setting: float = 1.0
+
+
+def test_a_new_noise_setting_at_its_default_makes_the_noisy_captures_anew(tmp_path: Path) -> None:
+    """A setting added to the noise model changes what a level makes even at its default value."""
+    cache = Cache(tmp_path, progress=False)
+    config = RoomCaptureConfig(coverage="low", noise="sensor")
+    before = cache.room_capture_folder("ac-room", config)
+    sensor = NOISE_LEVELS["sensor"]
+    extended = _WithNewSetting(**{f.name: getattr(sensor, f.name) for f in dataclasses.fields(sensor)})
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(cache_module, "NOISE_LEVELS", dict(NOISE_LEVELS, sensor=extended))
+        after = cache.room_capture_folder("ac-room", config)
+    assert after != before

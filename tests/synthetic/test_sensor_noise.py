@@ -131,13 +131,33 @@ def test_no_return_at_grazing_angles() -> None:
     np.testing.assert_array_equal(out[deg < 79.8], depth[deg < 79.8].astype(np.float32))
 
 
+@pytest.mark.parametrize("width", [1, 2, 5])
+def test_incidence_beside_depth_edges_is_that_of_the_pixels_own_surface(width: int) -> None:
+    """A fronto-parallel bar ``width`` pixels wide before a fronto-parallel wall: every pixel,
+    at the bar's edges too, faces the camera (the neighbours across the edge are another
+    surface); a plane's angle stays exact up to the image border."""
+    w, h = 40, 30
+    K = _K(100.0, w, h)
+    depth = np.full((h, w), 3.0)
+    depth[:, 20 : 20 + width] = 1.0
+    depth[10, 5:8] = 0.0  # a hole: its neighbours face the camera as well
+    theta = incidence_angles(depth, K)
+    # Fronto-parallel: the angle between the ray and the optical axis.
+    u, v = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
+    off_axis = np.arctan(np.hypot((u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1]))
+    np.testing.assert_allclose(theta[depth > 0], off_axis[depth > 0], atol=1e-9)
+    plane, truth = _plane(1.5, 75.0, K, w, h)
+    np.testing.assert_allclose(incidence_angles(plane, K), truth, atol=1e-6)
+
+
 def test_no_return_at_depth_edges_and_beyond_range() -> None:
     w, h = 32, 32
     K = _K(40.0, w, h)
     depth = np.where(np.arange(w) < 16, 1.0, 2.0) * np.ones((h, 1))
     depth[5, 5] = 0.0  # a hole: its neighbours border no return
     depth[:, 28:] = 9.0  # beyond the range
-    cfg = SensorNoiseConfig(edge_jump_footprints=12.0, max_range_m=8.0)
+    # A depth camera of the image's own focal length: a band of one image pixel each side.
+    cfg = SensorNoiseConfig(edge_jump_footprints=12.0, max_range_m=8.0, disparity_focal_px=40.0)
     out = apply_sensor_noise(depth, None, _grey(h, w), K, np.random.default_rng(0), cfg)[0]
     lost = out == 0
     cols = np.arange(w)
@@ -153,6 +173,32 @@ def test_no_return_at_depth_edges_and_beyond_range() -> None:
     assert np.degrees(theta).max() > 70
     kept = apply_sensor_noise(plane, None, _grey(h, w), K, np.random.default_rng(0), cfg)[0]
     np.testing.assert_array_equal(kept, plane.astype(np.float32))
+
+
+@pytest.mark.parametrize("f_image", [40.0, 100.0, 145.0, 400.0, 1000.0])
+def test_edge_band_is_the_depth_camera_pixels_wide_in_metres(f_image: float) -> None:
+    """Beside a straight step, the lost width on each side is ``edge_band_px`` pixels of the
+    depth camera (f = 400 px) converted to metres: whole rings of image pixels where the image is
+    finer, a share of the edge pixels where it is coarser."""
+    w, h = 48, 400
+    K = _K(f_image, w, h)
+    z_near, step = 1.0, 24
+    depth = np.where(np.arange(w) < step, z_near, 2.0) * np.ones((h, 1))
+    cfg = SensorNoiseConfig(edge_jump_footprints=12.0, disparity_focal_px=400.0, edge_band_px=1.0)
+    out = apply_sensor_noise(depth, None, _grey(h, w), K, np.random.default_rng(1), cfg)[0]
+    lost = out == 0
+    # Lost width per side in pixels of the image, averaged over the rows: 400 / f_image of a
+    # depth-camera pixel is one image pixel, so the band is f_image / 400 image pixels wide.
+    band = f_image / 400.0
+    near_side = lost[:, :step].sum(1).mean()
+    far_side = lost[:, step:].sum(1).mean()
+    part = band - np.floor(band)  # the ring lost pixel by pixel: a binomial share
+    tol = 4.0 * np.sqrt(part * (1 - part) / h) + 1e-9
+    assert abs(near_side - band) <= tol and abs(far_side - band) <= tol
+    # Only pixels within the band's rings of the step are lost; the rest keep the clean depth.
+    cols = np.arange(w)
+    far_from_step = (cols < step - int(np.ceil(band))) | (cols >= step + int(np.ceil(band)))
+    np.testing.assert_array_equal(out[:, far_from_step], depth[:, far_from_step].astype(np.float32))
 
 
 def test_exposure_gain_is_one_per_frame() -> None:

@@ -66,7 +66,7 @@ from regnf.synthetic.capture import (
     capture_room,
 )
 from regnf.synthetic.library import make_library_object
-from regnf.synthetic.sensor_noise import NOISE_LEVELS
+from regnf.synthetic.sensor_noise import NOISE_LEVELS, NOISE_MODEL_VERSION
 from regnf.synthetic.shading import shaded_copy
 from regnf.training.distill import (
     DISTILL_VERSION,
@@ -295,8 +295,10 @@ class Cache:
     def room_capture_folder(self, name: str, config: RoomCaptureConfig | None = None) -> Path:
         """Where the capture of room ``name`` is kept (whether or not it is made yet)."""
         cfg = self._capture_config(config or RoomCaptureConfig())
-        # A noisy capture's key holds its level's settings: a changed noise model makes it anew.
-        level = () if cfg.noise == "ideal" else (NOISE_LEVELS[cfg.noise],)
+        # A noisy capture's key holds all of its level's settings, defaults included, and the
+        # noise model's version: a changed noise model, or a new setting, makes it anew.
+        level = (() if cfg.noise == "ideal"
+                 else (dataclasses.asdict(NOISE_LEVELS[cfg.noise]), NOISE_MODEL_VERSION))
         key = config_key("room", name, _without_progress(cfg), GENERATOR, *level)
         # The key holds the noise level and seed; the level also shows in the folder's name.
         noise = "" if cfg.noise == "ideal" else f"-{cfg.noise}"

@@ -17,7 +17,8 @@ The depth pieces, applied in this order to a rendered z-depth image by
 3. disparity quantisation (ICL-NUIM): ``d = b f / z`` rounded to a fraction of a pixel, then
    back to depth;
 4. millimetre quantisation of the reported depth;
-5. no return: at grazing angles, at depth discontinuities, beyond the maximum range, and at
+5. no return: at grazing angles, in a band of ``edge_band_px`` pixels of the depth camera on
+   each side of a depth discontinuity (:func:`edge_band`), beyond the maximum range, and at
    random speckle pixels.
 
 The colour gets a random exposure gain per frame. The camera poses get SLAM-like errors
@@ -40,6 +41,10 @@ import numpy as np
 from regnf.captures.depth_uncertainty import MAX_THETA, axial_sigma
 from regnf.core.atomic_io import write_json
 from regnf.synthetic.pose_noise import PoseNoiseConfig, perturb_poses
+
+NOISE_MODEL_VERSION = 2
+"""Version of what :func:`apply_sensor_noise` makes of a level's settings: part of a noisy
+capture's cache key, raised when the code changes the frames a level gives."""
 
 TRUE_POSES_NAME = "poses_true.json"
 """File beside a noisy capture's ``meta_data.json`` with the poses its images were rendered
@@ -65,7 +70,9 @@ class SensorNoiseConfig:
     max_incidence_deg: float = 90.0
     """No return where the angle between the ray and the surface normal exceeds this, degrees."""
     edge_jump_footprints: float = math.inf
-    """No return where a 3x3 window's depth range (no return as 0) exceeds this many pixel footprints (z / fx)."""
+    """A pixel is at a depth edge where its 3x3 window's depth range (no return as 0) exceeds this many pixel footprints (z / fx)."""
+    edge_band_px: float = 1.0
+    """Width of the no-return band on each side of a depth edge, pixels of the depth camera (docs/decisions/sensor-noise.md)."""
     max_range_m: float = math.inf
     """No return beyond this depth, metres."""
     speckle: float = 0.0
@@ -114,6 +121,45 @@ def lateral_sigma_px(theta: np.ndarray) -> np.ndarray:
     return 0.8 + 0.035 * theta / (np.pi / 2 - theta)
 
 
+SURFACE_STEP_FOOTPRINTS = 6.0
+"""Largest depth step between neighbouring pixels, in pixel footprints (z / fx), that
+:func:`incidence_angles` takes as one surface where the step changes across the pixel (a
+plane at 80.5 degrees steps that far)."""
+
+
+def _tangent(points: np.ndarray, depth: np.ndarray, axis: int, step: np.ndarray) -> np.ndarray:
+    """(H, W, 3) tangent of the surface at each pixel along image ``axis`` (1: columns, 0: rows).
+
+    The central difference where the depth changes alike on both sides (a plane, grazing or
+    not: steps of one sign that differ by at most ``step`` or half the smaller); at a depth edge, the one-sided difference toward the neighbour on the pixel's own
+    surface (the smaller step, if at most ``step``); where both neighbours lie on other
+    surfaces or give no return (a structure one pixel wide), the step of a surface facing the
+    camera along that axis: nothing in the image says otherwise.
+    """
+    h, w = depth.shape
+    # Beyond the image the surface goes on as it left it: linear extrapolation.
+    pad_p = np.pad(points, ((1, 1), (1, 1), (0, 0)), mode="reflect", reflect_type="odd")
+    pad_z = np.pad(depth, 1, mode="reflect", reflect_type="odd")
+    if axis == 1:
+        fwd_p, bwd_p, fwd_z, bwd_z = pad_p[1:-1, 2:], pad_p[1:-1, :-2], pad_z[1:-1, 2:], pad_z[1:-1, :-2]
+    else:
+        fwd_p, bwd_p, fwd_z, bwd_z = pad_p[2:, 1:-1], pad_p[:-2, 1:-1], pad_z[2:, 1:-1], pad_z[:-2, 1:-1]
+    fwd = np.where(fwd_z > 0, fwd_z - depth, np.nan)
+    bwd = np.where(bwd_z > 0, depth - bwd_z, np.nan)
+    with np.errstate(invalid="ignore"):
+        # Alike: steps of one sign that differ by at most a footprint step or half their size
+        # (a plane's steps grow with perspective, steeply at grazing angles). False where a
+        # side has no return.
+        alike = (fwd * bwd >= 0) & (np.abs(fwd - bwd) <= np.maximum(step, 0.5 * np.minimum(np.abs(fwd), np.abs(bwd))))
+        fwd_ok = np.abs(fwd) <= step
+        bwd_ok = np.abs(bwd) <= step
+    use_fwd = fwd_ok & (~bwd_ok | (np.abs(np.nan_to_num(fwd)) <= np.abs(np.nan_to_num(bwd))))
+    facing = np.zeros((h, w, 3))
+    facing[..., 1 - axis] = step / SURFACE_STEP_FOOTPRINTS  # one pixel footprint sideways
+    tangent = np.where(use_fwd[..., None], fwd_p - points, np.where(bwd_ok[..., None], points - bwd_p, facing))
+    return np.where(alike[..., None], 0.5 * (fwd_p - bwd_p), tangent)
+
+
 def incidence_angles(depth: np.ndarray, K: np.ndarray, normals_cam: np.ndarray | None = None) -> np.ndarray:
     """Angle between each pixel's ray and the surface normal, radians in [0, pi/2].
 
@@ -125,13 +171,14 @@ def incidence_angles(depth: np.ndarray, K: np.ndarray, normals_cam: np.ndarray |
         Intrinsics; pixel centres at (u + 0.5, v + 0.5).
     normals_cam : (H, W, 3) float, optional
         Surface normals in the camera frame (either orientation). None: the normals of the
-        depth image's local tangent plane (cross product of the central differences of the
-        back-projected points), exact on planar surfaces away from their edges.
+        depth image's local tangent plane (cross product of the tangents of :func:`_tangent`
+        along rows and columns), exact on planar surfaces, at their edges too; the
+        neighbours across a depth edge belong to other surfaces and are not used.
 
     Returns
     -------
     (H, W) float64
-        Meaningless where the pixel or (without normals) a neighbour has no return.
+        Meaningless where the pixel has no return.
     """
     h, w = depth.shape
     # Rays with a camera z of 1 (as the renderer casts them), so that a point is ray * z-depth;
@@ -139,9 +186,10 @@ def incidence_angles(depth: np.ndarray, K: np.ndarray, normals_cam: np.ndarray |
     u, v = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
     rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1)
     if normals_cam is None:
-        points = rays * np.asarray(depth, np.float64)[..., None]
-        pad = np.pad(points, ((1, 1), (1, 1), (0, 0)), mode="edge")
-        normals_cam = np.cross(pad[1:-1, 2:] - pad[1:-1, :-2], pad[2:, 1:-1] - pad[:-2, 1:-1])
+        z = np.asarray(depth, np.float64)
+        points = rays * z[..., None]
+        step = SURFACE_STEP_FOOTPRINTS * z / K[0, 0]
+        normals_cam = np.cross(_tangent(points, z, 1, step), _tangent(points, z, 0, step))
     norm = np.linalg.norm(normals_cam, axis=-1) * np.linalg.norm(rays, axis=-1)
     cos = np.abs((normals_cam * rays).sum(-1)) / np.maximum(norm, 1e-300)
     return np.arccos(np.clip(cos, 0.0, 1.0))
@@ -158,6 +206,43 @@ def depth_edges(depth: np.ndarray, K: np.ndarray, footprints: float) -> np.ndarr
     windows = np.stack([pad[i : i + h, j : j + w] for i in range(3) for j in range(3)])
     spread = windows.max(0) - windows.min(0)
     return (depth > 0) & (spread > footprints * depth / K[0, 0])
+
+
+def edge_band(edges: np.ndarray, valid: np.ndarray, width_px: float, rng: np.random.Generator) -> np.ndarray:
+    """(H, W) bool: the pixels lost in a band ``width_px`` image pixels wide beside depth edges.
+
+    Ring 1 is the ``edges`` themselves (the pixels on either side of a jump), ring k + 1 the
+    pixels with a return that touch ring k (8-neighbourhood). The first ``floor(width_px)``
+    rings are lost whole and the next one pixel by pixel with probability ``width_px -
+    floor(width_px)``: a band narrower than an image pixel (a depth camera finer than the
+    rendered image) loses that share of the edge pixels, so the lost width in metres is the
+    sensor's on average.
+
+    Parameters
+    ----------
+    edges : (H, W) bool
+        :func:`depth_edges`.
+    valid : (H, W) bool
+        Pixels with a return (the band grows only through them).
+    width_px : float
+        Band width on each side, pixels of this image (>= 0).
+    rng : numpy.random.Generator
+        Draws one (H, W) uniform image when the band ends inside a ring.
+    """
+    whole, part = math.floor(width_px), width_px - math.floor(width_px)
+    lost = np.zeros(edges.shape, dtype=bool)
+    reach, ring = edges, edges
+    for k in range(1, whole + 2):  # per ring of pixels, each ring vectorised
+        if k > 1:
+            h, w = reach.shape
+            pad = np.pad(reach, 1)
+            grown = np.stack([pad[i : i + h, j : j + w] for i in range(3) for j in range(3)]).any(0) & valid
+            ring, reach = grown & ~reach, grown | reach
+        if k <= whole:
+            lost |= ring
+        elif part > 0:
+            lost |= ring & (rng.random(ring.shape) < part)
+    return lost
 
 
 def _bilinear(depth: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -231,7 +316,9 @@ def apply_sensor_noise(
     keep = valid & (z > 0) & (z <= config.max_range_m)
     keep &= theta <= math.radians(config.max_incidence_deg)
     if math.isfinite(config.edge_jump_footprints):
-        keep &= ~depth_edges(clean, K, config.edge_jump_footprints)
+        # The band is in the depth camera's pixels, as the lateral noise: this image's share of it.
+        band = config.edge_band_px * K[0, 0] / config.disparity_focal_px
+        keep &= ~edge_band(depth_edges(clean, K, config.edge_jump_footprints), valid, band, rng)
     if config.speckle > 0:
         keep &= rng.random((h, w)) >= config.speckle
     out_depth = np.where(keep, z, 0.0).astype(np.float32)
