@@ -26,7 +26,7 @@ from regnf.observations.rgbd_samples import (
     flying_pixels,
     free_depths,
 )
-from regnf.training.training import _ViewStack, free_stop
+from regnf.training.training import _ViewStack, free_stop, hit_reach
 
 W, H = 24, 16
 F = 60.0
@@ -233,6 +233,27 @@ def test_free_space_stops_before_the_depth_by_the_larger_of_margin_and_k_sigma()
     sigma = torch.tensor([0.001, 0.05, 0.2])
     torch.testing.assert_close(free_stop(t, sigma, 0.02, 3.0), torch.tensor([1.98, 1.85, 4.4]))
     assert torch.equal(free_stop(t, None, 0.02, 3.0), t - 0.02)
+
+
+def test_the_true_surface_is_within_the_hit_bound_of_noisy_depth() -> None:
+    """Rays at normal incidence to a plane at D, depths D + N(0, sigma): the true SDF, D - t,
+    breaks the bound S <= reach - t on almost no ray with the noise-aware reach, and on half of
+    them (by 0.8 sigma on average) were the bound at the noisy depth itself."""
+    D, sigma = 3.0, 0.02
+    gen = torch.Generator().manual_seed(0)
+    depth = D + sigma * torch.randn(100_000, generator=gen, dtype=torch.float64)
+    t = depth - 0.5 * torch.rand(depth.shape[0], generator=gen, dtype=torch.float64)
+    true_sdf = D - t
+
+    def excess(reach: torch.Tensor) -> torch.Tensor:
+        return torch.relu(true_sdf - (reach - t))
+
+    noisy = excess(hit_reach(depth, torch.full_like(depth, sigma), 3.0))
+    assert float((noisy > 0).double().mean()) < 0.01 and float(noisy.mean()) < 1e-3 * sigma
+    at_depth = excess(depth)
+    assert abs(float((at_depth > 0).double().mean()) - 0.5) < 0.01
+    assert abs(float(at_depth.mean()) - sigma / (2 * torch.pi) ** 0.5) < 0.02 * sigma
+    assert torch.equal(hit_reach(depth, None, 3.0), depth)  # exact depth: the depth itself
 
 
 def test_the_view_stack_margin_grows_with_the_depths_sigma(tmp_path: Path) -> None:

@@ -201,6 +201,25 @@ def test_edge_band_is_the_depth_camera_pixels_wide_in_metres(f_image: float) -> 
     np.testing.assert_array_equal(out[:, far_from_step], depth[:, far_from_step].astype(np.float32))
 
 
+def test_lateral_jitter_never_reports_a_depth_between_two_surfaces() -> None:
+    """Jittered across a step from 1 m to 2 m, a pixel reads one side or the other; within a
+    slanted plane it reads the plane (bilinear, off the pixel's own depth)."""
+    w, h = 40, 200
+    K = _K(100.0, w, h)
+    depth = np.where(np.arange(w) < 20, 1.0, 2.0) * np.ones((h, 1))
+    # A depth camera four times coarser than the image: a jitter of ~1.6 image pixels.
+    cfg = SensorNoiseConfig(lateral_scale=0.5, disparity_focal_px=25.0)
+    out = apply_sensor_noise(depth, None, _grey(h, w), K, np.random.default_rng(3), cfg)[0]
+    on_a_side = np.isclose(out, 1.0) | np.isclose(out, 2.0) | (out == 0)
+    assert on_a_side.all()
+    assert (out[:, 18:22] != depth[:, 18:22]).any()  # the jitter did cross the step
+    plane, _ = _plane(1.5, 40.0, K, w, h)
+    moved = apply_sensor_noise(plane, None, _grey(h, w), K, np.random.default_rng(3), cfg)[0]
+    inner = (slice(5, -5), slice(5, -5))
+    assert not np.allclose(moved[inner], plane[inner])
+    assert moved[inner].min() >= plane.min() - 1e-6 and moved[inner].max() <= plane.max() + 1e-6
+
+
 def test_exposure_gain_is_one_per_frame() -> None:
     rgb = np.random.default_rng(0).integers(20, 120, (8, 8, 3)).astype(np.uint8)
     depth = np.ones((8, 8))

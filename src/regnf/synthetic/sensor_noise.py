@@ -3,8 +3,9 @@
 The depth pieces, applied in this order to a rendered z-depth image by
 :func:`apply_sensor_noise` (a depth of 0 means "no return" throughout):
 
-1. lateral noise (ICL-NUIM, Handa et al. 2014): each pixel reads the clean depth, bilinearly
-   resampled, at a position jittered by a Gaussian whose standard deviation is a multiple of
+1. lateral noise (ICL-NUIM, Handa et al. 2014): each pixel reads the clean depth (bilinearly
+   resampled within a surface; across a depth edge, the nearest pixel's: a shifted sample
+   lands on one surface, never between two) at a position jittered by a Gaussian whose standard deviation is a multiple of
    the lateral sigma of Nguyen et al. 2012, ``sigma_L(theta) = 0.8 + 0.035 theta / (pi/2 -
    theta)`` pixels of the depth camera (:func:`lateral_sigma_px`; in metres ``sigma_L z / f``
    with the depth camera's focal length ``f``, so an image rendered with another focal length
@@ -42,7 +43,7 @@ from regnf.captures.depth_uncertainty import MAX_THETA, axial_sigma
 from regnf.core.atomic_io import write_json
 from regnf.synthetic.pose_noise import PoseNoiseConfig, perturb_poses
 
-NOISE_MODEL_VERSION = 2
+NOISE_MODEL_VERSION = 3
 """Version of what :func:`apply_sensor_noise` makes of a level's settings: part of a noisy
 capture's cache key, raised when the code changes the frames a level gives."""
 
@@ -245,9 +246,21 @@ def edge_band(edges: np.ndarray, valid: np.ndarray, width_px: float, rng: np.ran
     return lost
 
 
-def _bilinear(depth: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """``depth`` read at continuous pixel indices (x column, y row), clamped to the image; 0
-    where one of the four taps has no return (no depth is mixed with a hole)."""
+def _resample(depth: np.ndarray, x: np.ndarray, y: np.ndarray, step: np.ndarray) -> np.ndarray:
+    """``depth`` read at continuous pixel indices (x column, y row), clamped to the image.
+
+    Bilinear where the four taps have returns on one surface (their depths within ``step``);
+    elsewhere the nearest tap's depth (0 if it has no return): a shifted sample lands on one
+    of the surfaces beside a depth edge, never at a depth between them.
+
+    Parameters
+    ----------
+    depth : (H, W) float
+        0: no return.
+    x, y : (H, W) float
+    step : (H, W) float
+        Largest depth range of one surface's taps, the units of ``depth``.
+    """
     h, w = depth.shape
     x = np.clip(x, 0.0, w - 1.0)
     y = np.clip(y, 0.0, h - 1.0)
@@ -257,7 +270,9 @@ def _bilinear(depth: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     fx, fy = x - x0, y - y0
     taps = np.stack([depth[y0, x0], depth[y0, x1], depth[y1, x0], depth[y1, x1]])
     value = (taps[0] * (1 - fx) + taps[1] * fx) * (1 - fy) + (taps[2] * (1 - fx) + taps[3] * fx) * fy
-    return np.where((taps > 0).all(0), value, 0.0)
+    one_surface = (taps > 0).all(0) & (taps.max(0) - taps.min(0) <= step)
+    nearest = np.take_along_axis(taps, (2 * (fy >= 0.5) + (fx >= 0.5))[None], 0)[0]
+    return np.where(one_surface, value, nearest)
 
 
 def apply_sensor_noise(
@@ -302,7 +317,8 @@ def apply_sensor_noise(
         sigma = config.lateral_scale * lateral_sigma_px(theta) * (K[0, 0] / config.disparity_focal_px)
         cols, rows = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
         jitter = rng.standard_normal((2, h, w)) * sigma
-        z = np.where(valid, _bilinear(clean, cols + jitter[0], rows + jitter[1]), 0.0)
+        step = SURFACE_STEP_FOOTPRINTS * clean / K[0, 0]
+        z = np.where(valid, _resample(clean, cols + jitter[0], rows + jitter[1], step), 0.0)
     if config.axial_scale > 0:
         noise = rng.standard_normal((h, w)) * (config.axial_scale * axial_sigma(z, theta))
         z = np.where(z > 0, z + noise, 0.0)  # a pixel without a return gets none from noise

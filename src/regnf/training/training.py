@@ -6,7 +6,8 @@ every scale:
 - surface: |S(x)| at back-projected depth points;
 - near-surface: S(x + e n) = e for small offsets e along the depth-derived normal n;
 - free space: S >= 0 in front of every observed surface and along rays that hit nothing,
-  and S <= the remaining ray distance (the hit is that far along the ray); uniform points
+  and S <= the remaining ray distance (the hit is that far along the ray; for noisy depth, that
+  far plus ``free_sigma_multiple`` x its sigma); uniform points
   that a random training view sees as empty (in front of its depth, or on a ray that hit
   nothing) must be positive too, which carves floaters out of rarely seen corners;
 - occluding edges (``w_edge > 0``): S >= 0 on the rays that pass just beside an observed
@@ -29,8 +30,9 @@ Depth with a noise model (:attr:`regnf.captures.model.Capture.depth_noise`, ever
 regnf's ideal renders) is trusted by how noisy it is: the surface, near-surface, normal and colour
 terms are means weighted by each sample's ``RGBDSamples.weights``, and free space (the samples on
 observed rays and what a view sees free) stops ``max(free_margin_m, free_sigma_multiple x
-sigma)`` before the depth (:func:`free_stop`). Exact depth keeps the unweighted means and the
-fixed margin, bit for bit.
+sigma)`` before the depth (:func:`free_stop`), and the bound on S from the remaining ray distance
+reaches as far beyond it. Exact depth keeps the unweighted means, the fixed margin and the
+bound at the depth, bit for bit.
 
 Where the capture's poses are estimates (``RGBDTrainConfig.pose_refine``), each training frame's
 pose gets a small rigid correction trained with the field: from ``pose_refine.start`` on, every
@@ -277,6 +279,16 @@ def free_stop(t: torch.Tensor, sigma: torch.Tensor | None, margin: float, multip
     return t - (margin if sigma is None else torch.clamp_min(multiple * sigma, margin))
 
 
+def hit_reach(t: torch.Tensor, sigma: torch.Tensor | None, multiple: float) -> torch.Tensor:
+    """How far along its ray an observed depth ``t`` (n,) puts the hit at most: ``t + multiple * sigma``.
+
+    The free-space term keeps S below the remaining distance to it. Noisy depth lies short of
+    the surface by up to a few sigma; a bound at the depth itself would pull the surface toward
+    the camera by the noise. ``sigma`` (n,) in the unit of ``t``; None (exact depth): ``t``.
+    """
+    return t if sigma is None else t + multiple * sigma
+
+
 def _weighted_mean(x: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
     """sum(w x) / sum(w) of per-sample terms ``x`` (n,) and weights ``w`` (n,) > 0."""
     return (x * w).sum() / w.sum()
@@ -419,7 +431,8 @@ def train_rgbd(
         t_in, _ = ray_box_interval(o, d, bounds_d)
         t_hi = free_stop(t_free, s.sigma[fi] if weighted else None, margin, cfg.free_sigma_multiple)
         t = t_in + rand(cfg.batch_free) * (t_hi - t_in).clamp_min(0.0)
-        xf, ub = moved(o + t[:, None] * d, s.frame[fi]), td - t
+        reach = hit_reach(td, s.sigma[fi] if weighted else None, cfg.free_sigma_multiple)
+        xf, ub = moved(o + t[:, None] * d, s.frame[fi]), reach - t
         keep_f = (t_hi > t_in).float()
 
         if k > 0 and cfg.batch_empty > 0:
