@@ -5,8 +5,8 @@ The depth pieces, applied in this order to a rendered z-depth image by
 
 1. lateral noise (ICL-NUIM, Handa et al. 2014): each pixel reads the clean depth (bilinearly
    resampled within a surface; across a depth edge, the nearest pixel's: a shifted sample
-   lands on one surface, never between two) at a position jittered by a Gaussian whose standard deviation is a multiple of
-   the lateral sigma of Nguyen et al. 2012, ``sigma_L(theta) = 0.8 + 0.035 theta / (pi/2 -
+   lands on one surface, never between two) at a position jittered by a Gaussian whose
+   standard deviation is a multiple of the lateral sigma of Nguyen et al. 2012, ``sigma_L(theta) = 0.8 + 0.035 theta / (pi/2 -
    theta)`` pixels of the depth camera (:func:`lateral_sigma_px`; in metres ``sigma_L z / f``
    with the depth camera's focal length ``f``, so an image rendered with another focal length
    is jittered by ``sigma_L f_image / f`` of its own pixels);
@@ -123,17 +123,18 @@ def lateral_sigma_px(theta: np.ndarray) -> np.ndarray:
 
 
 SURFACE_STEP_FOOTPRINTS = 6.0
-"""Largest depth step between neighbouring pixels, in pixel footprints (z / fx), that
-:func:`incidence_angles` takes as one surface where the step changes across the pixel (a
-plane at 80.5 degrees steps that far)."""
+"""Largest depth step between neighbouring pixels, in pixel footprints (z / fx), taken as one
+surface (a plane at 80.5 degrees steps that far): by :func:`incidence_angles` where the step
+changes across the pixel, and by the lateral noise's resampling."""
 
 
 def _tangent(points: np.ndarray, depth: np.ndarray, axis: int, step: np.ndarray) -> np.ndarray:
     """(H, W, 3) tangent of the surface at each pixel along image ``axis`` (1: columns, 0: rows).
 
     The central difference where the depth changes alike on both sides (a plane, grazing or
-    not: steps of one sign that differ by at most ``step`` or half the smaller); at a depth edge, the one-sided difference toward the neighbour on the pixel's own
-    surface (the smaller step, if at most ``step``); where both neighbours lie on other
+    not: steps of one sign that differ by at most ``step`` or half the smaller); at a depth
+    edge, the one-sided difference toward the neighbour on the pixel's own surface (the
+    smaller step, if at most ``step``); where both neighbours lie on other
     surfaces or give no return (a structure one pixel wide), the step of a surface facing the
     camera along that axis: nothing in the image says otherwise.
     """
@@ -151,7 +152,8 @@ def _tangent(points: np.ndarray, depth: np.ndarray, axis: int, step: np.ndarray)
         # Alike: steps of one sign that differ by at most a footprint step or half their size
         # (a plane's steps grow with perspective, steeply at grazing angles). False where a
         # side has no return.
-        alike = (fwd * bwd >= 0) & (np.abs(fwd - bwd) <= np.maximum(step, 0.5 * np.minimum(np.abs(fwd), np.abs(bwd))))
+        spread = np.maximum(step, 0.5 * np.minimum(np.abs(fwd), np.abs(bwd)))
+        alike = (fwd * bwd >= 0) & (np.abs(fwd - bwd) <= spread)
         fwd_ok = np.abs(fwd) <= step
         bwd_ok = np.abs(bwd) <= step
     use_fwd = fwd_ok & (~bwd_ok | (np.abs(np.nan_to_num(fwd)) <= np.abs(np.nan_to_num(bwd))))
