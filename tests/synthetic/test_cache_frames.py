@@ -63,3 +63,18 @@ def test_a_field_records_its_frames_and_its_up(tmp_path: Path) -> None:
     # Every training frame: nothing recorded about a selection.
     every = load_field(cache.rgbd_field(capture, TINY)).info.provenance
     assert "train_indices" not in every and "up" not in every and every["train_frames"] == len(capture.train_indices())
+
+
+def test_a_change_to_noisy_depth_training_renews_only_the_noisy_fields(ours: Capture, tmp_path: Path) -> None:
+    """Raising the noisy-depth version gives a sensor capture's field another cache file and
+    leaves an exact-depth capture's where it was."""
+    from regnf.synthetic import cache as cache_module
+
+    noisy = write_sphere_capture(tmp_path / "noisy", meta={"zero_depth": "unknown"})
+    assert noisy.depth_noise is not None and ours.depth_noise is None
+    cache = Cache(tmp_path / "cache", progress=False)
+    before = cache.rgbd_entry(noisy, TINY)[0], cache.rgbd_entry(ours, TINY)[0]
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(cache_module, "NOISY_DEPTH_VERSION", cache_module.NOISY_DEPTH_VERSION + 1)
+        after = cache.rgbd_entry(noisy, TINY)[0], cache.rgbd_entry(ours, TINY)[0]
+    assert after[0] != before[0] and after[1] == before[1]

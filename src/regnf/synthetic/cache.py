@@ -78,6 +78,7 @@ from regnf.training.distill import (
 from regnf.training.pose_refinement import PoseRefineConfig
 from regnf.training.presets import object_mesh_preset, object_rgbd_preset, scene_rgbd_preset
 from regnf.training.training import (
+    NOISY_DEPTH_VERSION,
     TRAIN_VERSION,
     RGBDTrainConfig,
     train_rgbd,
@@ -339,7 +340,7 @@ class Cache:
             parts += ({"pose_refine": dataclasses.asdict(dataclasses.replace(config.pose_refine, mode="on"))},)
         # Depth weighted by a noise model trains differently from exact depth (same rule).
         noise = capture.depth_noise
-        parts += () if noise is None else ({"depth_noise": dataclasses.asdict(noise)},)
+        parts += () if noise is None else ({"depth_noise": dataclasses.asdict(noise), "version": NOISY_DEPTH_VERSION},)
         frames = selected_frames(capture, indices)
         if frames is not None:
             parts += ({"train_indices": frames},)

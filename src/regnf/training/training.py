@@ -82,6 +82,11 @@ from regnf.training.optim import OptimiserConfig, finest_voxel, optimise
 from regnf.training.pose_refinement import PoseCorrections, PoseRefineConfig, PoseReport
 from regnf.training.volume_render import render_rays_neus
 
+NOISY_DEPTH_VERSION = 2
+"""Version of what training makes of depth with a noise model: part of the cache key of the
+fields trained on such depth only (an exact-depth field keeps its key), raised when the code
+changes it."""
+
 TRAIN_VERSION = 2
 """Version of what a field trained on given captures with a given config is (part of cache
 keys; bump it when a default changes what training makes). 2: the learning rates decay to
