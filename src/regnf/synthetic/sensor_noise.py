@@ -6,10 +6,11 @@ The depth pieces, applied in this order to a rendered z-depth image by
 1. lateral noise (ICL-NUIM, Handa et al. 2014): each pixel reads the clean depth (bilinearly
    resampled within a surface; across a depth edge, the nearest pixel's: a shifted sample
    lands on one surface, never between two) at a position jittered by a Gaussian whose
-   standard deviation is a multiple of the lateral sigma of Nguyen et al. 2012, ``sigma_L(theta) = 0.8 + 0.035 theta / (pi/2 -
-   theta)`` pixels of the depth camera (:func:`lateral_sigma_px`; in metres ``sigma_L z / f``
-   with the depth camera's focal length ``f``, so an image rendered with another focal length
-   is jittered by ``sigma_L f_image / f`` of its own pixels);
+   standard deviation is a multiple of the lateral sigma of Nguyen et al. 2012,
+   ``sigma_L(theta) = 0.8 + 0.035 theta / (pi/2 - theta)`` pixels of the depth camera
+   (:func:`lateral_sigma_px`; in metres ``sigma_L z / f`` with the depth camera's focal length
+   ``f``, so an image rendered with another focal length is jittered by ``sigma_L f_image / f``
+   of its own pixels);
 2. axial noise (Nguyen, Izadi, Lovell 2012, "Modeling Kinect Sensor Noise for Improved 3D
    Reconstruction and Tracking"): Gaussian with ``sigma_z(z, theta) = 0.0012 + 0.0019 (z -
    0.4)^2 + 0.0001 / sqrt(z) * theta^2 / (pi/2 - theta)^2`` metres
@@ -128,17 +129,19 @@ surface (a plane at 80.5 degrees steps that far): by :func:`incidence_angles` wh
 changes across the pixel, and by the lateral noise's resampling."""
 
 
-def _tangent(points: np.ndarray, depth: np.ndarray, axis: int, step: np.ndarray) -> np.ndarray:
+def _tangent(points: np.ndarray, depth: np.ndarray, axis: int, footprint: np.ndarray) -> np.ndarray:
     """(H, W, 3) tangent of the surface at each pixel along image ``axis`` (1: columns, 0: rows).
 
-    The central difference where the depth changes alike on both sides (a plane, grazing or
-    not: steps of one sign that differ by at most ``step`` or half the smaller); at a depth
-    edge, the one-sided difference toward the neighbour on the pixel's own surface (the
-    smaller step, if at most ``step``); where both neighbours lie on other
-    surfaces or give no return (a structure one pixel wide), the step of a surface facing the
-    camera along that axis: nothing in the image says otherwise.
+    With ``step`` = :data:`SURFACE_STEP_FOOTPRINTS` x ``footprint`` (z / fx per pixel): the
+    central difference where the depth changes alike on both sides (a plane, grazing or not:
+    steps of one sign that differ by at most ``step`` or half the smaller); at a depth edge,
+    the one-sided difference toward the neighbour on the pixel's own surface (the smaller
+    step, if at most ``step``); where both neighbours lie on other surfaces or give no return
+    (a structure one pixel wide), one footprint sideways, as on a surface facing the camera
+    along that axis: nothing in the image says otherwise.
     """
     h, w = depth.shape
+    step = SURFACE_STEP_FOOTPRINTS * footprint
     # Beyond the image the surface goes on as it left it: linear extrapolation.
     pad_p = np.pad(points, ((1, 1), (1, 1), (0, 0)), mode="reflect", reflect_type="odd")
     pad_z = np.pad(depth, 1, mode="reflect", reflect_type="odd")
@@ -158,7 +161,7 @@ def _tangent(points: np.ndarray, depth: np.ndarray, axis: int, step: np.ndarray)
         bwd_ok = np.abs(bwd) <= step
     use_fwd = fwd_ok & (~bwd_ok | (np.abs(np.nan_to_num(fwd)) <= np.abs(np.nan_to_num(bwd))))
     facing = np.zeros((h, w, 3))
-    facing[..., 1 - axis] = step / SURFACE_STEP_FOOTPRINTS  # one pixel footprint sideways
+    facing[..., 1 - axis] = footprint
     tangent = np.where(use_fwd[..., None], fwd_p - points, np.where(bwd_ok[..., None], points - bwd_p, facing))
     return np.where(alike[..., None], 0.5 * (fwd_p - bwd_p), tangent)
 
@@ -191,11 +194,18 @@ def incidence_angles(depth: np.ndarray, K: np.ndarray, normals_cam: np.ndarray |
     if normals_cam is None:
         z = np.asarray(depth, np.float64)
         points = rays * z[..., None]
-        step = SURFACE_STEP_FOOTPRINTS * z / K[0, 0]
-        normals_cam = np.cross(_tangent(points, z, 1, step), _tangent(points, z, 0, step))
+        footprint = z / K[0, 0]
+        normals_cam = np.cross(_tangent(points, z, 1, footprint), _tangent(points, z, 0, footprint))
     norm = np.linalg.norm(normals_cam, axis=-1) * np.linalg.norm(rays, axis=-1)
     cos = np.abs((normals_cam * rays).sum(-1)) / np.maximum(norm, 1e-300)
     return np.arccos(np.clip(cos, 0.0, 1.0))
+
+
+def _neighbourhood(image: np.ndarray, mode: str) -> np.ndarray:
+    """(9, H, W) each pixel's 3x3 window of ``image`` (H, W); beyond the border as ``np.pad``'s ``mode``."""
+    h, w = image.shape
+    pad = np.pad(image, 1, mode=mode)
+    return np.stack([pad[i : i + h, j : j + w] for i in range(3) for j in range(3)])
 
 
 def depth_edges(depth: np.ndarray, K: np.ndarray, footprints: float) -> np.ndarray:
@@ -204,9 +214,7 @@ def depth_edges(depth: np.ndarray, K: np.ndarray, footprints: float) -> np.ndarr
     A no-return neighbour counts as depth 0 (so a pixel beside a hole is an edge); beyond the
     image border the nearest pixel is repeated.
     """
-    h, w = depth.shape
-    pad = np.pad(depth, 1, mode="edge")
-    windows = np.stack([pad[i : i + h, j : j + w] for i in range(3) for j in range(3)])
+    windows = _neighbourhood(depth, "edge")
     spread = windows.max(0) - windows.min(0)
     return (depth > 0) & (spread > footprints * depth / K[0, 0])
 
@@ -237,9 +245,7 @@ def edge_band(edges: np.ndarray, valid: np.ndarray, width_px: float, rng: np.ran
     reach, ring = edges, edges
     for k in range(1, whole + 2):  # per ring of pixels, each ring vectorised
         if k > 1:
-            h, w = reach.shape
-            pad = np.pad(reach, 1)
-            grown = np.stack([pad[i : i + h, j : j + w] for i in range(3) for j in range(3)]).any(0) & valid
+            grown = _neighbourhood(reach, "constant").any(0) & valid
             ring, reach = grown & ~reach, grown | reach
         if k <= whole:
             lost |= ring
