@@ -112,20 +112,6 @@ def test_a_captures_depth_noise_follows_the_capture(tmp_path: Path) -> None:
         assert load_capture(_write(tmp_path / name, meta)).depth_noise == model, name
 
 
-def test_a_capture_made_with_twice_the_axial_noise_has_twice_the_sigma(tmp_path: Path) -> None:
-    """regnf's harsh level draws its axial noise at 2 x Nguyen et al.'s sigma (its metadata
-    says so): the capture's model is that sigma, in closed form, at every depth and angle."""
-    meta = {"generator": "regnf.synthetic/2", "noise": {"level": "harsh", "seed": 0, "config": {"axial_scale": 2.0}}}
-    model = load_capture(_write(tmp_path / "harsh", meta)).depth_noise
-    z, theta = np.array([0.5, 1.0, 2.5, 4.0]), np.radians([0.0, 30.0, 60.0, 75.0])
-    closed = 0.0012 + 0.0019 * (z - 0.4) ** 2 + 0.0001 / np.sqrt(z) * theta**2 / (np.pi / 2 - theta) ** 2
-    np.testing.assert_allclose(model.sigma(z, theta), 2.0 * closed, rtol=1e-12)
-    assert (model.reference_m, model.min_weight) == (DepthNoiseModel().reference_m, DepthNoiseModel().min_weight)
-    bad = load_capture(_write(tmp_path / "bad", {"noise": {"config": {"axial_scale": "twice"}}}))
-    with pytest.raises(CaptureError, match=r"bad/meta_data.json: noise.config.axial_scale must be a number >= 0"):
-        _ = bad.depth_noise
-
-
 def test_a_bad_depth_noise_is_refused_naming_the_metadata_file(tmp_path: Path) -> None:
     root = _write(tmp_path, {"depth_noise": {"constant_m": -1.0}})
     with pytest.raises(CaptureError, match=r"meta_data.json: regnf.depth_noise: constant_m must be > 0"):

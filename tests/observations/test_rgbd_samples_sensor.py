@@ -25,6 +25,7 @@ from regnf.observations.rgbd_samples import (
     build_samples,
     flying_pixels,
     free_depths,
+    free_window_radius,
 )
 from regnf.training.training import _ViewStack, free_stop, hit_reach
 
@@ -375,7 +376,7 @@ def test_a_rays_free_space_ends_at_the_nearest_depth_around_it(tmp_path: Path) -
     expect = z.copy()
     expect[:, STEP : STEP + 1] = NEAR / SCALE  # the wall's first column is beside the face
     expect[4:7, STEP - 2 : STEP + 1] = NEAR / SCALE
-    np.testing.assert_array_equal(free_depths(z, z > 0), expect)
+    np.testing.assert_array_equal(free_depths(z, z > 0, 1), expect)
     cap = write(tmp_path, [depth], None)
     s = build_samples(cap, [0])
     px = sample_pixels(s)
@@ -394,3 +395,40 @@ def test_a_rays_free_space_ends_at_the_nearest_depth_around_it(tmp_path: Path) -
     assert exact.ray_free_t is None
 
 
+@pytest.mark.parametrize("lateral_px", [0.0, 0.1, 0.15, 0.3, 0.5, 0.8, 1.6])
+def test_the_free_window_holds_every_neighbour_a_jittered_read_reaches(lateral_px: float) -> None:
+    """A pixel's depth, read at its centre jittered by a Gaussian of ``lateral_px``, lands in a
+    pixel beyond the window (more than ``radius + 1/2`` pixels away) at most as often as a
+    Gaussian exceeds two sigma; a window one pixel smaller would miss it more often."""
+    rng = np.random.default_rng(0)
+    read = lateral_px * rng.standard_normal(400_000)
+    radius = free_window_radius(lateral_px)
+    beyond_two_sigma = 2 * (1 - 0.97725)  # P(|N(0, 1)| > 2)
+    assert np.mean(np.abs(np.round(read)) > radius) <= beyond_two_sigma
+    if radius > 0:
+        assert np.mean(np.abs(np.round(read)) > radius - 1) > beyond_two_sigma
+
+
+def test_a_sensor_whose_reads_stay_within_their_pixel_keeps_each_rays_own_free_space(tmp_path: Path) -> None:
+    """With a lateral sigma of a sixth of a pixel (a Kinect's depth read at a third of its
+    resolution) the ray beside the box face is free up to the wall it saw, and the occluding-edge
+    samples on it reach past the face's depth; at ICL-NUIM's half a pixel they have no room."""
+    depth = step_depth()
+    depth[:, STEP : STEP + 2] = FAR  # a clean step
+
+    def z_of(t: torch.Tensor, dirs: torch.Tensor) -> np.ndarray:
+        d = dirs.double().numpy()  # camera = world frame: z-depth = distance x d_z / |d|
+        return t.double().numpy() * d[:, 2] / np.linalg.norm(d, axis=-1)
+
+    fine, coarse = (build_samples(write(tmp_path / str(sigma), [depth], {"depth_noise": {"lateral_px": sigma}}), [0])
+                    for sigma in (1 / 6, 0.5))
+    for s in (fine, coarse):
+        assert s.edge_t.shape[0] == H  # one edge ray per row: the wall's first column
+        np.testing.assert_allclose(z_of(s.edge_t, s.edge_dirs), NEAR / SCALE, rtol=1e-5)
+    margin = 0.02 / SCALE
+    np.testing.assert_allclose(z_of(fine.edge_limit, fine.edge_dirs), FAR / SCALE, rtol=1e-5)
+    assert (coarse.edge_limit - margin <= coarse.edge_t).all()
+    beside = torch.from_numpy(sample_pixels(fine)[:, 1] == STEP)
+    assert int(beside.sum()) == H
+    np.testing.assert_allclose(z_of(fine.ray_free_t[beside], fine.points[beside] - fine.origins[beside]),
+                               FAR / SCALE, rtol=1e-5)

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from regnf.captures.depth_uncertainty import DepthNoiseModel
 from regnf.captures.model import check_rigid_pose
 from regnf.synthetic.cache import non_default
 from regnf.synthetic.capture import RoomCaptureConfig, capture_room
@@ -23,6 +24,7 @@ from regnf.synthetic.sensor_noise import (
     TRUE_POSES_NAME,
     SensorNoiseConfig,
     apply_sensor_noise,
+    depth_noise_model,
     incidence_angles,
 )
 
@@ -84,6 +86,19 @@ def test_lateral_jitter_is_half_a_depth_camera_pixel_at_normal_incidence(focal: 
     shifts = np.stack([(apply_sensor_noise(depth, facing, _grey(h, w), K, rng, cfg)[0] - depth) / slope
                        for _ in range(100)])[:, :, 4:-4]  # away from the clamped border
     assert shifts.std() == pytest.approx(0.5 * focal / 580.0, rel=0.05)
+    # The model a capture made with this sensor names has that sigma, in the image's pixels.
+    assert depth_noise_model(cfg, focal).lateral_px == pytest.approx(shifts.std(), rel=0.05)
+
+
+@pytest.mark.parametrize("level", ["sensor", "harsh"])
+def test_a_levels_depth_model_has_the_axial_sigma_it_draws(level: str) -> None:
+    """harsh draws twice Nguyen et al.'s sigma: the model its captures name is that sigma, in
+    closed form, at every depth and angle, with the default weights."""
+    model = depth_noise_model(NOISE_LEVELS[level], 179.0)
+    z, theta = np.array([0.5, 1.0, 2.5, 4.0]), np.radians([0.0, 30.0, 60.0, 75.0])
+    factor = {"sensor": 1.0, "harsh": 2.0}[level]
+    np.testing.assert_allclose(model.sigma(z, theta), factor * _nguyen_sigma(z, theta), rtol=1e-12)
+    assert (model.reference_m, model.min_weight) == (DepthNoiseModel().reference_m, DepthNoiseModel().min_weight)
 
 
 def test_disparity_quantisation_steps_are_b_f_over_d() -> None:
@@ -306,6 +321,7 @@ def test_ideal_capture_is_unchanged_and_noisy_one_keeps_true_poses(tmp_path: Pat
 
     noisy = capture_room("ac-room", tmp_path / "slam", dataclasses.replace(ROOM, noise="slam", noise_seed=1))
     assert noisy.meta["noise"]["level"] == "slam" and noisy.meta["config"]["noise"] == "slam"
+    assert noisy.depth_noise == depth_noise_model(NOISE_LEVELS["slam"], float(noisy.frames[0].intrinsics[0][0]))
     true = np.array(json.loads((noisy.root / TRUE_POSES_NAME).read_text())["camtoworld_metres"])
     ideal_poses = np.stack([ideal.camtoworld_metres(i) for i in range(4)])
     stored = np.stack([noisy.camtoworld_metres(i) for i in range(4)])

@@ -7,8 +7,10 @@ and Tracking")::
 
     sigma_z(z, theta) = a + b (z - z0)^2 + c / sqrt(z) * theta^2 / (pi/2 - theta)^2   metres
 
-with z the z-depth in metres and theta the angle between the ray and the surface normal. Its
-defaults are their Kinect constants; the synthetic sensor (:mod:`regnf.synthetic.sensor_noise`)
+with z the z-depth in metres and theta the angle between the ray and the surface normal, and
+the lateral noise ``lateral_px``: how far from its pixel's centre a depth may have been read
+(ICL-NUIM's half a pixel by default), which decides how near an outline free space reaches. Its
+axial defaults are their Kinect constants; the synthetic sensor (:mod:`regnf.synthetic.sensor_noise`)
 draws its axial noise from the same closed form (:func:`axial_sigma`), so the captures regnf
 makes noisy and the trainer that reads them agree on the model.
 
@@ -59,6 +61,8 @@ class DepthNoiseModel:
     """Sigma of weight 1: a sample whose sigma is this or less counts fully, metres."""
     min_weight: float = 0.1
     """Smallest weight of a sample however noisy its depth (a fraction, in (0, 1])."""
+    lateral_px: float = 0.5
+    """Lateral noise: sigma of the offset of the point a pixel's depth is read at, pixels of the capture's depth images."""
 
     def __post_init__(self) -> None:
         for f in dataclasses.fields(self):
@@ -77,6 +81,8 @@ class DepthNoiseModel:
             )
         if not 0 < self.min_weight <= 1:
             raise RegnfError(f"min_weight must be in (0, 1], got {self.min_weight:g}")
+        if self.lateral_px < 0:
+            raise RegnfError(f"lateral_px must be >= 0, got {self.lateral_px:g}")
 
     def sigma_normal(self, z: ArrayT) -> ArrayT:
         """``a + b (z - z0)^2``: sigma at normal incidence, metres, of z-depth ``z`` (metres, > 0).

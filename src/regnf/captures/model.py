@@ -277,10 +277,9 @@ class Capture:
 
         None where a zero depth means the ray hit nothing (:attr:`zero_depth_is_empty`: regnf's
         own ideal renders), the default :class:`~regnf.captures.depth_uncertainty.DepthNoiseModel`
-        (Nguyen et al.'s Kinect) for every other capture, scaled by ``noise.config.axial_scale``
-        where regnf made the capture noisy with another multiple of that sigma
-        (:mod:`regnf.synthetic.sensor_noise`); ``regnf.depth_noise`` in the metadata overrides it
-        (``"none"``, or an object of the model's fields).
+        (Nguyen et al.'s Kinect) for every other capture; ``regnf.depth_noise`` in the metadata
+        overrides it (``"none"``, or an object of the model's fields), as the captures regnf makes
+        noisy name their sensor's (:func:`regnf.synthetic.sensor_noise.depth_noise_model`).
 
         Raises
         ------
@@ -293,16 +292,7 @@ class Capture:
                 return parse_depth_noise(self.meta[DEPTH_NOISE_KEY])
             except ValueError as exc:
                 raise CaptureError(f"{self.root / self.meta_name}: {exc}") from exc
-        if self.zero_depth_is_empty:
-            return None
-        noise = self.meta.get("noise")
-        made = noise.get("config") if isinstance(noise, dict) else None
-        factor = made.get("axial_scale", 1.0) if isinstance(made, dict) else 1.0
-        if isinstance(factor, bool) or not isinstance(factor, (int, float)) or not math.isfinite(factor) or factor < 0:
-            raise CaptureError(f"{self.root / self.meta_name}: noise.config.axial_scale must be a number >= 0, "
-                               f"got {factor!r}")
-        # 0: a synthetic capture without axial noise still has its quantisation; the default model.
-        return DepthNoiseModel().scaled(factor) if factor not in (0, 1) else DepthNoiseModel()
+        return None if self.zero_depth_is_empty else DepthNoiseModel()
 
     @property
     def scale(self) -> float:

@@ -23,6 +23,7 @@ exactly what they were before any of this.
 from __future__ import annotations
 
 import functools
+import math
 from collections.abc import Sequence
 from pathlib import Path
 from typing import NamedTuple, Protocol
@@ -273,20 +274,32 @@ def frame_confidence(capture: CaptureLike, i: int) -> np.ndarray | None:
         raise CaptureError(f"{path}: frame {i}: {exc}") from exc
 
 
-FREE_WINDOW_RADIUS = 1
-"""Radius of the window whose nearest depth bounds a sensor pixel's free space, pixels."""
+LATERAL_READ_SIGMAS = 2.0
+"""How many sigmas of lateral noise away from its pixel's centre a depth may have been read."""
 
 
-def free_depths(depth: np.ndarray, valid: np.ndarray, radius: int = FREE_WINDOW_RADIUS) -> np.ndarray:
+def free_window_radius(lateral_px: float) -> int:
+    """Radius of the window whose nearest depth bounds a sensor pixel's free space, pixels.
+
+    A depth read up to :data:`LATERAL_READ_SIGMAS` x ``lateral_px`` from the pixel's centre
+    (``lateral_px``: :attr:`~regnf.captures.depth_uncertainty.DepthNoiseModel.lateral_px`)
+    reaches beyond the pixel's own half-pixel as far as ``ceil(2 sigma - 1/2)`` neighbours: 1 for
+    ICL-NUIM's half a pixel, 0 for a read that stays within the pixel (docs/decisions/depth-weights.md).
+    """
+    return max(0, math.ceil(LATERAL_READ_SIGMAS * lateral_px - 0.5))
+
+
+def free_depths(depth: np.ndarray, valid: np.ndarray, radius: int) -> np.ndarray:
     """(h, w) the nearest depth in each pixel's window: how far a sensor pixel's ray is free.
 
-    A sensor reads each pixel's depth at a position jittered by its lateral noise (ICL-NUIM:
-    half a pixel): beside an object's outline a ray that passes through the object may report
-    the wall behind it, and free space along it would carve the object. Its neighbours see the
-    object, so the ray is taken as free only up to the nearest depth of its ``(2 radius + 1)^2``
-    window (docs/decisions/depth-weights.md). On a slanted surface that ends free space up to
-    one pixel's step early (a few footprints at grazing angles): free space is given up near
-    the surface, never invented.
+    A sensor reads each pixel's depth at a position jittered by its lateral noise: beside an
+    object's outline a ray that passes through the object may report the wall behind it, and
+    free space along it would carve the object. Its neighbours see the object, so the ray is
+    taken as free only up to the nearest depth of its ``(2 radius + 1)^2`` window
+    (:func:`free_window_radius`). On a slanted surface that ends free space up to one pixel's
+    step early (a few footprints at grazing angles): free space is given up near the surface,
+    never invented. The same bound ends the occluding-edge samples of a pixel beside an
+    outline, so a radius of 1 or more leaves them none there.
 
     Parameters
     ----------
@@ -404,7 +417,8 @@ def frame_pixels(
     sigma_m = noise.sigma(depth * capture.scale, np.where(valid, theta, 0.0))
     factor = 1.0 if confidence is None else np.asarray(CONFIDENCE_WEIGHTS)[confidence]
     weight = noise.weight(sigma_m) * factor
-    return FramePixels(depth, p, d, valid, n, ok, empty, sigma_m / capture.scale, weight, free_depths(depth, valid))
+    return FramePixels(depth, p, d, valid, n, ok, empty, sigma_m / capture.scale, weight,
+                       free_depths(depth, valid, free_window_radius(noise.lateral_px)))
 
 
 def measured_depth(capture: CaptureLike, i: int, free: bool = False) -> np.ndarray:

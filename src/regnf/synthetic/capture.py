@@ -14,6 +14,7 @@ import numpy as np
 import trimesh
 from tqdm import tqdm
 
+from regnf.captures.depth_uncertainty import DEPTH_NOISE_KEY
 from regnf.captures.instance import Instance
 from regnf.captures.metric import SCENE_MARGIN
 from regnf.captures.model import Capture, normalisation
@@ -27,6 +28,7 @@ from regnf.synthetic.rooms import make_room
 from regnf.synthetic.sensor_noise import (
     NOISE_LEVELS,
     TRUE_POSES_NAME,
+    depth_noise_model,
     noisy_capture_frames,
     write_true_poses,
 )
@@ -236,7 +238,8 @@ def capture_room(
         rgbs, depths, poses = noisy_capture_frames(rgbs, depths, poses, K, level, config.noise_seed)
         write_true_poses(out, true_poses, config.noise, config.noise_seed)
         noise = {"noise": {"level": config.noise, "seed": config.noise_seed,
-                           "true_poses_path": TRUE_POSES_NAME, "config": dataclasses.asdict(level)}}
+                           "true_poses_path": TRUE_POSES_NAME, "config": dataclasses.asdict(level)},
+                 DEPTH_NOISE_KEY: dataclasses.asdict(depth_noise_model(level, float(K[0, 0])))}
     instances: list[Instance] = []
     for inst, mesh in zip(room.instances, meshes):
         path = out / "meshes" / f"{inst.id}.ply"

@@ -40,11 +40,11 @@ from pathlib import Path
 
 import numpy as np
 
-from regnf.captures.depth_uncertainty import MAX_THETA, axial_sigma
+from regnf.captures.depth_uncertainty import MAX_THETA, DepthNoiseModel, axial_sigma
 from regnf.core.atomic_io import write_json
 from regnf.synthetic.pose_noise import PoseNoiseConfig, perturb_poses
 
-NOISE_MODEL_VERSION = 3
+NOISE_MODEL_VERSION = 4
 """Version of what :func:`apply_sensor_noise` makes of a level's settings: part of a noisy
 capture's cache key, raised when the code changes the frames a level gives."""
 
@@ -353,6 +353,18 @@ def apply_sensor_noise(
         scaled = np.clip(out_rgb.astype(np.float64) * gain, 0.0, top)
         out_rgb = (np.rint(scaled) if out_rgb.dtype == np.uint8 else scaled).astype(out_rgb.dtype)
     return out_depth, out_rgb
+
+
+def depth_noise_model(config: SensorNoiseConfig, fx: float) -> DepthNoiseModel:
+    """The noise model of the depth ``config`` makes at an image focal length ``fx`` (pixels).
+
+    The axial sigma scaled by ``axial_scale`` (the default's where there is no axial noise: its
+    quantisation still errs) and the lateral sigma at normal incidence in the image's own pixels:
+    what a capture made at this level names in its metadata (``regnf.depth_noise``).
+    """
+    model = DepthNoiseModel() if config.axial_scale == 0 else DepthNoiseModel().scaled(config.axial_scale)
+    lateral = config.lateral_scale * float(lateral_sigma_px(0.0)) * fx / config.disparity_focal_px
+    return dataclasses.replace(model, lateral_px=lateral)
 
 
 def noisy_capture_frames(
