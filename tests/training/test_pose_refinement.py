@@ -20,7 +20,7 @@ from regnf.core.cameras import look_at
 from regnf.fields.neural_sdf import NeuralSDFConfig
 from regnf.synthetic.pose_noise import pose_errors
 from regnf.training.optim import lr_factor
-from regnf.training.pose_refinement import PoseCorrections, PoseRefineConfig, se3_exp
+from regnf.training.pose_refinement import PoseCorrections, PoseRefineConfig, per_frame, se3_exp
 from regnf.training.training import RGBDTrainConfig, train_rgbd
 
 ROOM = (np.array([-2.0, -1.5, 0.0]), np.array([2.0, 1.5, 2.5]))
@@ -335,3 +335,22 @@ def test_training_refines_the_perturbed_poses(tmp_path):
     assert rep.worst_cm == pytest.approx(100 * np.linalg.norm(fixed_m[:, :3, 3] - given_m[:, :3, 3], axis=1).max(),
                                          rel=1e-4)
     assert field.info.provenance["pose_refinement"]["worst_cm"] == pytest.approx(rep.worst_cm, abs=1e-4)
+
+
+def test_per_frame_rows_and_their_gradient_repeat_bit_for_bit() -> None:
+    """The rows are exactly the indexed ones; their gradient is each frame's sum of its samples'
+    gradients (checked against a float64 sum), the same bit for bit on every run at a
+    training batch's size."""
+    gen = torch.Generator().manual_seed(0)
+    x = torch.randn(40, 3, 3, generator=gen)
+    frame = torch.randint(40, (60_000,), generator=gen)
+    upstream = torch.randn(60_000, 3, 3, generator=gen)
+    assert torch.equal(per_frame(x, frame), x[frame])
+    grads = []
+    for _ in range(4):
+        leaf = x.clone().requires_grad_(True)
+        (per_frame(leaf, frame) * upstream).sum().backward()
+        grads.append(leaf.grad)
+    assert all(torch.equal(grads[0], g) for g in grads[1:])
+    truth = torch.zeros(40, 3, 3, dtype=torch.float64).index_add_(0, frame, upstream.double())
+    torch.testing.assert_close(grads[0].double(), truth, rtol=1e-5, atol=1e-3)

@@ -149,6 +149,17 @@ def se3_exp(xi: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return R, (V @ u[:, :, None]).squeeze(-1)
 
 
+def per_frame(x: torch.Tensor, frame: torch.Tensor) -> torch.Tensor:
+    """``x[frame]``, rows of the per-frame values ``x`` (n, ...) for frames ``frame`` (m,), as a one-hot product.
+
+    Indexing's backward adds each sample's gradient into its frame's row with atomic adds on the
+    CPU, in an order that changes from run to run; the product's backward is a matrix product,
+    which sums in a fixed order, so training with pose refinement repeats bit for bit.
+    """
+    onehot = torch.nn.functional.one_hot(frame.long(), x.shape[0]).to(x.dtype)
+    return (onehot @ x.reshape(x.shape[0], -1)).reshape(frame.shape[0], *x.shape[1:])
+
+
 class PoseCorrections(torch.nn.Module):
     """Learnable rigid corrections of ``n`` frames' camera-to-world poses.
 
@@ -234,20 +245,20 @@ class PoseCorrections(torch.nn.Module):
         ``maps``: :meth:`world_maps`, when several calls share one step's corrections.
         """
         D, b = maps if maps is not None else self.world_maps()
-        D, b = D.to(p.dtype)[frame], b.to(p.dtype)[frame]
+        D, b = per_frame(D.to(p.dtype), frame), per_frame(b.to(p.dtype), frame)
         return p + (D @ p[:, :, None]).squeeze(-1) + b
 
     def points_back(self, p: torch.Tensor, frame: torch.Tensor, maps: Maps | None = None) -> torch.Tensor:
         """The inverse of :meth:`points`: where world points ``p`` (m, 3) lie for frames ``frame`` (m,) as given."""
         D, b = maps if maps is not None else self.world_maps()
-        D, b = D.to(p.dtype)[frame], b.to(p.dtype)[frame]
+        D, b = per_frame(D.to(p.dtype), frame), per_frame(b.to(p.dtype), frame)
         # I + D is a rotation: its inverse is its transpose.
         q = p - b
         return q + (D.transpose(1, 2) @ q[:, :, None]).squeeze(-1)
 
     def directions(self, d: torch.Tensor, frame: torch.Tensor, maps: Maps | None = None) -> torch.Tensor:
         """(m, 3) world directions (or normals) of frames ``frame`` (m,), turned with their frames."""
-        D = (maps if maps is not None else self.world_maps())[0].to(d.dtype)[frame]
+        D = per_frame((maps if maps is not None else self.world_maps())[0].to(d.dtype), frame)
         return d + (D @ d[:, :, None]).squeeze(-1)
 
     def rays(self, origins: torch.Tensor, dirs: torch.Tensor, frame: torch.Tensor,

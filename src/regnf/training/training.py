@@ -82,7 +82,7 @@ from regnf.training.optim import OptimiserConfig, finest_voxel, optimise
 from regnf.training.pose_refinement import PoseCorrections, PoseRefineConfig, PoseReport
 from regnf.training.volume_render import render_rays_neus
 
-NOISY_DEPTH_VERSION = 3
+NOISY_DEPTH_VERSION = 4
 """Version of what training makes of depth with a noise model: part of the cache key of the
 fields trained on such depth only (an exact-depth field keeps its key), raised when the code
 changes it."""
