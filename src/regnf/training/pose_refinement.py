@@ -152,9 +152,10 @@ def se3_exp(xi: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
 def per_frame(x: torch.Tensor, frame: torch.Tensor) -> torch.Tensor:
     """``x[frame]``, rows of the per-frame values ``x`` (n, ...) for frames ``frame`` (m,), as a one-hot product.
 
-    Indexing's backward adds each sample's gradient into its frame's row with atomic adds on the
-    CPU, in an order that changes from run to run; the product's backward is a matrix product,
-    which sums in a fixed order, so training with pose refinement repeats bit for bit.
+    Indexing's backward adds the samples' gradients into each frame's row in an order that
+    changes from run to run on the CPU (at a training batch's size); the product's backward is a
+    matrix product, which sums in a fixed order, so training with pose refinement repeats bit
+    for bit.
     """
     onehot = torch.nn.functional.one_hot(frame.long(), x.shape[0]).to(x.dtype)
     return (onehot @ x.reshape(x.shape[0], -1)).reshape(frame.shape[0], *x.shape[1:])
